@@ -1,0 +1,28 @@
+"""The `scanflow` command line: one module per subcommand, registered on `app` here."""
+
+from __future__ import annotations
+
+import typer
+
+app = typer.Typer(
+    name="scanflow",
+    help="2D LiDAR pipeline: simulate, inspect logs, run the services, benchmark.",
+    no_args_is_help=True,
+    add_completion=False,
+)
+
+
+@app.callback()
+def _root() -> None:
+    """2D LiDAR pipeline: simulate, inspect logs, run the services, benchmark."""
+
+
+def main() -> None:
+    """Console entry point."""
+    _register()
+    app()
+
+
+def _register() -> None:
+    # Subcommand modules attach themselves to `app` on import.
+    from scanflow.cli import version  # noqa: F401

@@ -1,0 +1,97 @@
+"""Where a 2D grid sits in the world: origin, resolution and size, and world <-> cell maps.
+
+Cell (row, col) covers world x in [origin_x + col*res, origin_x + (col+1)*res) and y likewise
+with rows; its value is taken to sit at the cell centre. Row index grows with y (as in ROS
+map_server data before the image is flipped for display).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+
+@dataclass(frozen=True, slots=True)
+class GridSpec:
+    """Geometry of a grid: origin is the world position of the corner of cell (0, 0)."""
+
+    origin_x_m: float
+    origin_y_m: float
+    resolution_m: float
+    rows: int
+    cols: int
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.resolution_m) and self.resolution_m > 0):
+            raise ValueError(f"resolution_m must be positive and finite, got {self.resolution_m}")
+        if self.rows < 0 or self.cols < 0:
+            raise ValueError(f"grid size must be non-negative, got {self.rows}x{self.cols}")
+        if not (math.isfinite(self.origin_x_m) and math.isfinite(self.origin_y_m)):
+            raise ValueError("grid origin must be finite")
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.rows, self.cols)
+
+    @property
+    def width_m(self) -> float:
+        return self.cols * self.resolution_m
+
+    @property
+    def height_m(self) -> float:
+        return self.rows * self.resolution_m
+
+    @staticmethod
+    def covering(points: NDArray[np.float64], resolution_m: float, margin_m: float) -> GridSpec:
+        """The smallest grid, aligned to multiples of the resolution, holding points plus a margin."""
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        if p.size == 0:
+            lo = np.array([-margin_m, -margin_m])
+            hi = np.array([margin_m, margin_m])
+        else:
+            lo = p.min(axis=0) - margin_m
+            hi = p.max(axis=0) + margin_m
+        lo = np.floor(lo / resolution_m) * resolution_m
+        cols = int(math.ceil((hi[0] - lo[0]) / resolution_m)) + 1
+        rows = int(math.ceil((hi[1] - lo[1]) / resolution_m)) + 1
+        return GridSpec(float(lo[0]), float(lo[1]), resolution_m, rows, cols)
+
+    def world_to_cell(self, points: NDArray[np.float64]) -> NDArray[np.int64]:
+        """Integer (row, col) of the cell holding each (x, y) point; may fall outside the grid."""
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        col = np.floor((p[:, 0] - self.origin_x_m) / self.resolution_m).astype(np.int64)
+        row = np.floor((p[:, 1] - self.origin_y_m) / self.resolution_m).astype(np.int64)
+        return np.column_stack((row, col))
+
+    def world_to_continuous(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Fractional (row, col) with cell centres at integers: the frame bilinear sampling uses."""
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        col = (p[:, 0] - self.origin_x_m) / self.resolution_m - 0.5
+        row = (p[:, 1] - self.origin_y_m) / self.resolution_m - 0.5
+        return np.column_stack((row, col))
+
+    def cell_centers(self, cells: NDArray[np.int64]) -> NDArray[np.float64]:
+        """World (x, y) of the centres of (row, col) cells."""
+        c = np.asarray(cells).reshape(-1, 2)
+        x = self.origin_x_m + (c[:, 1] + 0.5) * self.resolution_m
+        y = self.origin_y_m + (c[:, 0] + 0.5) * self.resolution_m
+        return np.column_stack((x, y))
+
+    def contains(self, cells: NDArray[np.int64]) -> NDArray[np.bool_]:
+        c = np.asarray(cells).reshape(-1, 2)
+        return (c[:, 0] >= 0) & (c[:, 0] < self.rows) & (c[:, 1] >= 0) & (c[:, 1] < self.cols)
+
+    def coarsened(self, factor: int) -> GridSpec:
+        """The same area at `factor` times the cell size (rounded up to whole cells)."""
+        if factor < 1:
+            raise ValueError(f"factor must be >= 1, got {factor}")
+        return GridSpec(
+            self.origin_x_m,
+            self.origin_y_m,
+            self.resolution_m * factor,
+            -(-self.rows // factor),
+            -(-self.cols // factor),
+        )

@@ -1,0 +1,161 @@
+"""One entry point for every scan matcher: `match(source, target, initial_guess, method=...)`.
+
+Pose convention: the result `pose` is T_target_source, the motion that maps source points
+(sensor frame of the source scan) into the target's frame (the target scan's sensor frame for
+scan-to-scan, the map frame for scan-to-map). `initial_guess` follows the same convention.
+
+Each method lives in its own module and registers itself with `register_method`; this module
+validates inputs once so methods can assume clean (N, 2) finite arrays.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from enum import StrEnum
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from scanflow.geometry import Pose2D
+from scanflow.scan import LaserScan
+
+
+class MatchStatus(StrEnum):
+    """Why a match ended. Only OK means the pose can be trusted."""
+
+    OK = "ok"
+    TOO_FEW_POINTS = "too_few_points"
+    ILL_CONDITIONED = "ill_conditioned"
+    DEGENERATE = "degenerate"
+    STEP_LIMIT = "step_limit"
+    MAX_ITERATIONS = "max_iterations"
+    DIVERGED = "diverged"
+    EMPTY_MAP = "empty_map"
+    NO_OVERLAP = "no_overlap"
+
+
+class MatchInputError(ValueError):
+    """Inputs that cannot be matched at all (wrong shapes, NaN guess, unknown method)."""
+
+
+@dataclass(frozen=True, eq=False)
+class MatchResult:
+    """What a matcher found and how much to trust it."""
+
+    pose: Pose2D
+    covariance: NDArray[np.float64]
+    score: float
+    iterations: int
+    converged: bool
+    status: MatchStatus
+    method: str
+    message: str = ""
+    weak_direction: tuple[float, float, float] | None = None
+    inliers: int = 0
+    time_s: float = 0.0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return self.status is MatchStatus.OK
+
+
+class MapTarget(Protocol):
+    """What scan-to-map methods need from a map: see scanflow.maps."""
+
+    def likelihood_field(self) -> Any: ...
+
+
+Target = NDArray[np.float64] | MapTarget
+MethodFn = Callable[..., MatchResult]
+_METHODS: dict[str, MethodFn] = {}
+DEFAULT_METHOD = "icp"
+
+
+def register_method(name: str) -> Callable[[MethodFn], MethodFn]:
+    """Decorator: make a matcher available to `match(..., method=name)`."""
+
+    def deco(fn: MethodFn) -> MethodFn:
+        _METHODS[name] = fn
+        return fn
+
+    return deco
+
+
+def available_methods() -> list[str]:
+    _load_methods()
+    return sorted(_METHODS)
+
+
+def _load_methods() -> None:
+    # Importing the package registers every method module.
+    import scanflow.matching  # noqa: F401
+
+
+def as_points(data: LaserScan | ArrayLike, name: str) -> NDArray[np.float64]:
+    """Validated (N, 2) float64 points; a LaserScan gives its valid endpoints. Drops NaN rows."""
+    if isinstance(data, LaserScan):
+        return data.points()
+    try:
+        p = np.asarray(data, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise MatchInputError(f"{name} is not a numeric array: {exc}") from exc
+    if p.size == 0:
+        return np.zeros((0, 2))
+    if p.ndim != 2 or p.shape[1] != 2:
+        raise MatchInputError(f"{name} must have shape (N, 2), got {p.shape}")
+    finite = np.all(np.isfinite(p), axis=1)
+    return p if finite.all() else p[finite]
+
+
+def as_pose(guess: Pose2D | ArrayLike | None) -> Pose2D:
+    if guess is None:
+        return Pose2D()
+    if isinstance(guess, Pose2D):
+        return guess
+    v = np.asarray(guess, dtype=np.float64).reshape(-1)
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise MatchInputError(f"initial_guess must be 3 finite values (x, y, theta), got {v}")
+    return Pose2D(*v)
+
+
+def failed(
+    method: str, status: MatchStatus, guess: Pose2D, message: str, iterations: int = 0
+) -> MatchResult:
+    """A result that carries no information: the guess, infinite covariance, the reason."""
+    return MatchResult(
+        pose=guess,
+        covariance=np.diag([math.inf, math.inf, math.inf]),
+        score=0.0,
+        iterations=iterations,
+        converged=False,
+        status=status,
+        method=method,
+        message=message,
+    )
+
+
+def match(
+    source: LaserScan | ArrayLike,
+    target: LaserScan | Target,
+    initial_guess: Pose2D | ArrayLike | None = None,
+    method: str = DEFAULT_METHOD,
+    **options: Any,
+) -> MatchResult:
+    """Align `source` to `target` starting from `initial_guess`; see the module docstring."""
+    _load_methods()
+    fn = _METHODS.get(method)
+    if fn is None:
+        raise MatchInputError(f"unknown method {method!r}; available: {', '.join(sorted(_METHODS))}")
+    guess = as_pose(initial_guess)
+    src = as_points(source, "source")
+    tgt: Any = target
+    if isinstance(target, LaserScan) or not hasattr(target, "likelihood_field"):
+        tgt = as_points(target, "target")
+    t0 = time.perf_counter()
+    result = fn(src, tgt, guess, **options)
+    return replace(result, time_s=time.perf_counter() - t0)

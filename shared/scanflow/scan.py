@@ -1,0 +1,193 @@
+"""Laser scans and odometry samples: the data model every other module speaks.
+
+Conventions (the same as ROS sensor_msgs/LaserScan):
+- beam i points at `angle_min_rad + i * angle_increment_rad`, counter-clockwise, in the
+  sensor frame (x forward, y left);
+- `stamp_s` is the time of the first beam; beam i was measured at `stamp_s + beam_time_offsets_s[i]`.
+  When a driver gives no per-beam times, offsets are assumed uniform over `scan_duration_s`
+  (and `beam_times_assumed` tells so);
+- a beam is valid when its range is finite, positive, >= `range_min_m` and < `range_max_m`.
+  Drivers report "no return" as the maximum range, NaN, inf or 0: all are masked, never used.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from scanflow.geometry import Pose2D
+
+MAX_BEAMS = 100_000
+
+
+class ScanError(ValueError):
+    """A scan or odometry sample whose fields are inconsistent; the message names the field."""
+
+
+def _finite(name: str, value: float) -> float:
+    value = float(value)
+    if not math.isfinite(value):
+        raise ScanError(f"{name} must be finite, got {value!r}")
+    return value
+
+
+@dataclass(frozen=True, eq=False)
+class LaserScan:
+    """One sweep of a 2D lidar, with its validity mask and beam timing."""
+
+    ranges_m: NDArray[np.float32]
+    angle_min_rad: float
+    angle_increment_rad: float
+    range_min_m: float = 0.0
+    range_max_m: float = math.inf
+    stamp_s: float = 0.0
+    scan_duration_s: float = 0.0
+    beam_time_offsets_s: NDArray[np.float64] | None = None
+    robot_id: str = "robot"
+    frame_id: str = "laser"
+    intensities: NDArray[np.float32] | None = None
+    seq: int = 0
+
+    def __post_init__(self) -> None:
+        ranges = np.asarray(self.ranges_m, dtype=np.float32)
+        if ranges.ndim != 1:
+            raise ScanError(f"ranges_m must be 1-D, got shape {ranges.shape}")
+        if ranges.size > MAX_BEAMS:
+            raise ScanError(f"ranges_m has {ranges.size} beams, more than the limit {MAX_BEAMS}")
+        object.__setattr__(self, "ranges_m", ranges)
+        for name in ("angle_min_rad", "angle_increment_rad", "range_min_m", "stamp_s"):
+            object.__setattr__(self, name, _finite(name, getattr(self, name)))
+        rmax = float(self.range_max_m)
+        if math.isnan(rmax):
+            raise ScanError("range_max_m must not be NaN")
+        object.__setattr__(self, "range_max_m", rmax)
+        if self.range_min_m < 0:
+            raise ScanError(f"range_min_m must be >= 0, got {self.range_min_m}")
+        if rmax <= self.range_min_m:
+            raise ScanError(f"range_max_m ({rmax}) must exceed range_min_m ({self.range_min_m})")
+        duration = _finite("scan_duration_s", self.scan_duration_s)
+        if duration < 0:
+            raise ScanError(f"scan_duration_s must be >= 0, got {duration}")
+        object.__setattr__(self, "scan_duration_s", duration)
+        if self.beam_time_offsets_s is not None:
+            offsets = np.asarray(self.beam_time_offsets_s, dtype=np.float64)
+            if offsets.shape != ranges.shape:
+                raise ScanError(
+                    f"beam_time_offsets_s has shape {offsets.shape}, ranges_m has {ranges.shape}"
+                )
+            if not np.all(np.isfinite(offsets)):
+                raise ScanError("beam_time_offsets_s contains non-finite values")
+            if offsets.size > 1 and np.any(np.diff(offsets) < 0):
+                raise ScanError("beam_time_offsets_s must be non-decreasing")
+            object.__setattr__(self, "beam_time_offsets_s", offsets)
+        if self.intensities is not None:
+            inten = np.asarray(self.intensities, dtype=np.float32)
+            if inten.shape != ranges.shape:
+                raise ScanError(f"intensities has shape {inten.shape}, ranges_m has {ranges.shape}")
+            object.__setattr__(self, "intensities", inten)
+        if not self.robot_id or not isinstance(self.robot_id, str):
+            raise ScanError(f"robot_id must be a non-empty string, got {self.robot_id!r}")
+        if int(self.seq) < 0:
+            raise ScanError(f"seq must be >= 0, got {self.seq}")
+
+    @property
+    def beam_count(self) -> int:
+        return int(self.ranges_m.size)
+
+    @cached_property
+    def angles_rad(self) -> NDArray[np.float64]:
+        """Angle of every beam in the sensor frame."""
+        return self.angle_min_rad + self.angle_increment_rad * np.arange(self.beam_count)
+
+    @cached_property
+    def valid_mask(self) -> NDArray[np.bool_]:
+        """True for beams with a usable return (see the module docstring)."""
+        r = self.ranges_m
+        with np.errstate(invalid="ignore"):
+            return np.isfinite(r) & (r > 0) & (r >= self.range_min_m) & (r < self.range_max_m)
+
+    @property
+    def valid_count(self) -> int:
+        return int(np.count_nonzero(self.valid_mask))
+
+    @property
+    def dropped_count(self) -> int:
+        """Beams masked out as invalid (no return, NaN, out of range)."""
+        return self.beam_count - self.valid_count
+
+    @property
+    def beam_times_assumed(self) -> bool:
+        """True when per-beam times are derived from the scan duration, not measured."""
+        return self.beam_time_offsets_s is None
+
+    @cached_property
+    def time_offsets_s(self) -> NDArray[np.float64]:
+        """Per-beam time offsets from `stamp_s`: measured, or uniform over the scan duration."""
+        if self.beam_time_offsets_s is not None:
+            return self.beam_time_offsets_s
+        n = self.beam_count
+        if n <= 1 or self.scan_duration_s == 0.0:
+            return np.zeros(n)
+        return np.arange(n) * (self.scan_duration_s / n)
+
+    @property
+    def end_stamp_s(self) -> float:
+        """Time of the last beam."""
+        offsets = self.time_offsets_s
+        return self.stamp_s + (float(offsets[-1]) if offsets.size else 0.0)
+
+    def points(self, valid_only: bool = True) -> NDArray[np.float64]:
+        """Beam endpoints as (N, 2) Cartesian points in the sensor frame."""
+        r = self.ranges_m.astype(np.float64)
+        a = self.angles_rad
+        if valid_only:
+            m = self.valid_mask
+            r, a = r[m], a[m]
+        return np.column_stack((r * np.cos(a), r * np.sin(a)))
+
+    def with_ranges(self, ranges_m: ArrayLike) -> LaserScan:
+        """A copy with other ranges (same layout and timing)."""
+        return LaserScan(
+            ranges_m=np.asarray(ranges_m, dtype=np.float32),
+            angle_min_rad=self.angle_min_rad,
+            angle_increment_rad=self.angle_increment_rad,
+            range_min_m=self.range_min_m,
+            range_max_m=self.range_max_m,
+            stamp_s=self.stamp_s,
+            scan_duration_s=self.scan_duration_s,
+            beam_time_offsets_s=self.beam_time_offsets_s,
+            robot_id=self.robot_id,
+            frame_id=self.frame_id,
+            intensities=self.intensities,
+            seq=self.seq,
+        )
+
+
+@dataclass(frozen=True)
+class Odometry:
+    """One wheel-odometry sample: the robot's pose in the odometry frame at `stamp_s`.
+
+    `velocity` is (v_x m/s, v_y m/s, omega rad/s) in the robot frame, when the source gives it.
+    """
+
+    stamp_s: float
+    pose: Pose2D
+    velocity: tuple[float, float, float] | None = None
+    robot_id: str = "robot"
+    seq: int = 0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "stamp_s", _finite("stamp_s", self.stamp_s))
+        if not isinstance(self.pose, Pose2D):
+            raise ScanError(f"pose must be a Pose2D, got {type(self.pose).__name__}")
+        if self.velocity is not None:
+            if len(self.velocity) != 3:
+                raise ScanError(f"velocity must have 3 values, got {len(self.velocity)}")
+            vel = tuple(_finite(f"velocity[{i}]", v) for i, v in enumerate(self.velocity))
+            object.__setattr__(self, "velocity", vel)
+        if not self.robot_id or not isinstance(self.robot_id, str):
+            raise ScanError(f"robot_id must be a non-empty string, got {self.robot_id!r}")
