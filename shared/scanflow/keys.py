@@ -6,7 +6,7 @@ Layout (``<prefix>`` defaults to ``scanflow``; ``<robot>`` is a robot id):
 |---------------------------------------|------------|--------------------------------|
 | <prefix>/<robot>/scan/raw             | pub/sub    | ScanMessage                    |
 | <prefix>/<robot>/odom                 | pub/sub    | OdometryMessage                |
-| <prefix>/<robot>/scan/deskewed        | pub/sub    | ScanMessage (deskewed)         |
+| <prefix>/<robot>/scan/deskewed        | pub/sub    | DeskewedScanMessage            |
 | <prefix>/<robot>/pose                 | pub/sub    | PoseEstimateMessage            |
 | <prefix>/<robot>/match                | queryable  | MatchRequest -> MatchResponse  |
 | <prefix>/<robot>/map/meta             | queryable  | MapMetaMessage                 |
@@ -27,14 +27,14 @@ DEFAULT_PREFIX = "scanflow"
 _ID_RE = re.compile(r"^[A-Za-z0-9_\-.]{1,64}$")
 
 
-class KeyError_(ValueError):
+class KeyExprError(ValueError):
     """A robot id or service name that cannot be part of a key expression."""
 
 
 def check_id(value: str, what: str = "robot id") -> str:
     """Ids become key chunks: letters, digits, '_', '-', '.', at most 64 characters."""
     if not isinstance(value, str) or not _ID_RE.match(value):
-        raise KeyError_(
+        raise KeyExprError(
             f"{what} {value!r} is invalid: use 1-64 letters, digits, '_', '-' or '.'"
         )
     return value
@@ -84,7 +84,7 @@ def robot_of(key: str, prefix: str = DEFAULT_PREFIX) -> str:
     """The robot id in a concrete per-robot key."""
     parts = str(key).split("/")
     if len(parts) < 3 or parts[0] != prefix:
-        raise KeyError_(f"key {key!r} is not a per-robot key under {prefix!r}")
+        raise KeyExprError(f"key {key!r} is not a per-robot key under {prefix!r}")
     return check_id(parts[1])
 
 

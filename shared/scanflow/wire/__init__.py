@@ -1,0 +1,63 @@
+"""The wire format: every message scanflow puts on the bus, and its msgpack codec.
+
+Each message is a frozen dataclass with `encode() -> bytes` and `Cls.decode(bytes)`;
+`decode_any(bytes)` dispatches on the payload's `type` field. Payloads are msgpack maps with a
+schema version `v` (SCHEMA_VERSION); numpy arrays travel as raw little-endian bytes with dtype
+and shape. Anything wrong with a payload raises a `DecodeError` (subclasses `VersionError`,
+`SchemaError`, `PayloadTooLarge`) naming the field; building a message with bad fields raises
+`MessageError`. Decoded arrays are read-only views of the payload.
+"""
+
+from scanflow.wire.base import Message, decode_any, message_types
+from scanflow.wire.codec import ALLOWED_DTYPES, MAX_PAYLOAD_BYTES, SCHEMA_VERSION
+from scanflow.wire.errors import (
+    DecodeError,
+    MessageError,
+    PayloadTooLarge,
+    SchemaError,
+    VersionError,
+)
+from scanflow.wire.estimates import (
+    MapRef,
+    MatchRequest,
+    MatchResponse,
+    PoseEstimateMessage,
+    TrajectoryMessage,
+)
+from scanflow.wire.maps import (
+    MAP_IMAGE_FORMATS,
+    MapChangedMessage,
+    MapImageMessage,
+    MapMetaMessage,
+    MapRegionMessage,
+)
+from scanflow.wire.scans import DeskewedScanMessage, OdometryMessage, ScanMessage
+from scanflow.wire.stats import ServiceStatsMessage
+
+__all__ = [
+    "ALLOWED_DTYPES",
+    "MAP_IMAGE_FORMATS",
+    "MAX_PAYLOAD_BYTES",
+    "SCHEMA_VERSION",
+    "DecodeError",
+    "DeskewedScanMessage",
+    "MapChangedMessage",
+    "MapImageMessage",
+    "MapMetaMessage",
+    "MapRef",
+    "MapRegionMessage",
+    "MatchRequest",
+    "MatchResponse",
+    "Message",
+    "MessageError",
+    "OdometryMessage",
+    "PayloadTooLarge",
+    "PoseEstimateMessage",
+    "ScanMessage",
+    "SchemaError",
+    "ServiceStatsMessage",
+    "TrajectoryMessage",
+    "VersionError",
+    "decode_any",
+    "message_types",
+]

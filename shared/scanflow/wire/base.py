@@ -1,0 +1,134 @@
+"""The message base class (encode, decode, the type registry) and field checks for constructors.
+
+Every message validates its fields when built, so decoding a payload is: unpack, read typed
+fields, construct. A constructor's ValueError on decoded data surfaces as a chained SchemaError.
+"""
+
+from __future__ import annotations
+
+import math
+import operator
+from typing import Any, ClassVar, Self
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from scanflow.wire.codec import Fields, pack_message, unpack_message
+from scanflow.wire.errors import DecodeError, MessageError, SchemaError
+from scanflow.wire.schema import Schema, decode_fields, encode_fields
+
+_REGISTRY: dict[str, type[Message]] = {}
+
+
+class Message:
+    """A frozen dataclass that knows its wire `TYPE` tag and its field schema `WIRE`.
+
+    The default codec writes and reads exactly the fields listed in `WIRE`; messages that wrap
+    another type (a LaserScan, an Odometry) override `to_fields` / `from_fields`.
+    """
+
+    TYPE: ClassVar[str]
+    WIRE: ClassVar[Schema]
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if cls.TYPE in _REGISTRY:
+            raise TypeError(f"wire type {cls.TYPE!r} is registered twice")
+        _REGISTRY[cls.TYPE] = cls
+
+    def to_fields(self) -> dict[str, Any]:
+        """The message's own fields as msgpack-ready values (arrays as envelopes)."""
+        return encode_fields(self.WIRE, self)
+
+    @classmethod
+    def from_fields(cls, fields: Fields) -> Self:
+        """Build the message from typed fields read off a payload."""
+        return cls(**decode_fields(cls.WIRE, fields))
+
+    def encode(self) -> bytes:
+        return pack_message(self.TYPE, self.to_fields())
+
+    @classmethod
+    def decode(cls, data: bytes | bytearray | memoryview) -> Self:
+        """Decode a payload that must hold this message type; raises DecodeError otherwise."""
+        type_name, fields = unpack_message(data)
+        if type_name != cls.TYPE:
+            raise SchemaError(f"message.type: expected {cls.TYPE!r}, got {type_name!r}")
+        return cls.build(fields)
+
+    @classmethod
+    def build(cls, fields: Fields) -> Self:
+        try:
+            return cls.from_fields(fields)
+        except DecodeError:
+            raise
+        except ValueError as exc:
+            raise SchemaError(f"{fields.where}: {exc}") from exc
+
+
+def decode_any(data: bytes | bytearray | memoryview) -> Message:
+    """Decode any scanflow message, dispatching on its `type` field."""
+    type_name, fields = unpack_message(data)
+    cls = _REGISTRY.get(type_name)
+    if cls is None:
+        known = ", ".join(sorted(_REGISTRY))
+        raise SchemaError(f"message.type: unknown type {type_name!r} (known: {known})")
+    return cls.build(fields)
+
+
+def message_types() -> dict[str, type[Message]]:
+    """Every registered message class by its wire type tag."""
+    return dict(_REGISTRY)
+
+
+def check_finite(name: str, value: float) -> float:
+    value = float(value)
+    if not math.isfinite(value):
+        raise MessageError(f"{name} must be finite, got {value!r}")
+    return value
+
+
+def check_count(name: str, value: int) -> int:
+    """A non-negative integer (numpy integers welcome, bools and floats refused)."""
+    if isinstance(value, bool):
+        raise MessageError(f"{name} must be an integer, got {value!r}")
+    try:
+        value = operator.index(value)
+    except TypeError:
+        raise MessageError(f"{name} must be an integer, got {value!r}") from None
+    if value < 0:
+        raise MessageError(f"{name} must be >= 0, got {value}")
+    return value
+
+
+def check_text(name: str, value: str, allow_empty: bool = False) -> str:
+    if not isinstance(value, str) or (not value and not allow_empty):
+        raise MessageError(
+            f"{name} must be a {'' if allow_empty else 'non-empty '}string, got {value!r}"
+        )
+    return value
+
+
+def check_array(
+    name: str,
+    values: ArrayLike,
+    dtype: type[np.generic],
+    shape: tuple[int | None, ...],
+    finite: bool = True,
+    allow_inf: bool = False,
+) -> NDArray[Any]:
+    """`values` as `dtype` with the given shape (None: any size), optionally free of NaN/inf."""
+    a = np.asarray(values, dtype=dtype)
+    if a.ndim != len(shape) or any(
+        n is not None and n != m for n, m in zip(shape, a.shape, strict=True)
+    ):
+        want = "(" + ", ".join("N" if n is None else str(n) for n in shape) + ")"
+        raise MessageError(f"{name} must have shape {want}, got {a.shape}")
+    if finite and a.dtype.kind == "f":
+        bad = np.isnan(a) if allow_inf else ~np.isfinite(a)
+        if bad.any():
+            what = "NaN" if allow_inf else "non-finite values"
+            raise MessageError(
+                f"{name} contains {what} (first at flat index {int(np.argmax(bad))})"
+            )
+    return a

@@ -1,0 +1,202 @@
+"""msgpack framing, the numpy array envelope and typed field access for untrusted payloads.
+
+A payload is one msgpack map with `type` (str) and `v` (schema version) next to the message's
+own fields. Arrays travel as `{"d": dtype, "s": shape, "b": raw little-endian bytes}`, never as
+lists of numbers. Unpacking runs under fixed limits so hostile bytes cannot make it hang or
+allocate more than the payload's own size.
+"""
+
+from __future__ import annotations
+
+import math
+import reprlib
+from typing import Any
+
+import msgpack
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from scanflow.geometry import Pose2D
+from scanflow.wire.errors import (
+    DecodeError,
+    MessageError,
+    PayloadTooLarge,
+    SchemaError,
+    VersionError,
+)
+
+SCHEMA_VERSION = 1
+MAX_PAYLOAD_BYTES = 16 * 1024 * 1024
+MAX_STR_BYTES = 64 * 1024
+MAX_MAP_LEN = 4096
+MAX_ARRAY_LEN = 16
+MAX_NDIM = 4
+ALLOWED_DTYPES = frozenset({"|i1", "|u1", "<i2", "<u2", "<i4", "<u4", "<i8", "<u8", "<f4", "<f8"})
+Scalar = bool | int | float | str
+
+_UNPACK_ERRORS = (ValueError, TypeError, OverflowError, msgpack.UnpackException)
+_repr = reprlib.Repr()
+_repr.maxstring = _repr.maxother = 40
+_short = _repr.repr
+
+
+def pack_message(type_name: str, fields: dict[str, Any]) -> bytes:
+    """The msgpack bytes of one message; refuses to write what a reader would reject as too big."""
+    data = msgpack.packb({"type": type_name, "v": SCHEMA_VERSION, **fields}, use_bin_type=True)
+    if len(data) > MAX_PAYLOAD_BYTES:
+        raise MessageError(
+            f"{type_name} encodes to {len(data)} bytes, over MAX_PAYLOAD_BYTES={MAX_PAYLOAD_BYTES}"
+        )
+    return data
+
+
+def unpack_message(data: Any) -> tuple[str, Fields]:
+    """Check size, msgpack syntax, version and type tag; return the type and its fields."""
+    if not isinstance(data, bytes | bytearray | memoryview):
+        raise DecodeError(f"payload must be bytes, got {type(data).__name__}")
+    size = memoryview(data).nbytes
+    if size > MAX_PAYLOAD_BYTES:
+        raise PayloadTooLarge(
+            f"payload is {size} bytes, over MAX_PAYLOAD_BYTES={MAX_PAYLOAD_BYTES}"
+        )
+    if size == 0:
+        raise DecodeError("payload is empty")
+    try:
+        obj = msgpack.unpackb(
+            data,
+            raw=False,
+            strict_map_key=True,
+            max_bin_len=MAX_PAYLOAD_BYTES,
+            max_str_len=MAX_STR_BYTES,
+            max_array_len=MAX_ARRAY_LEN,
+            max_map_len=MAX_MAP_LEN,
+            max_ext_len=0,
+        )
+    except _UNPACK_ERRORS as exc:
+        raise DecodeError(f"payload is not valid msgpack within the limits: {exc}") from exc
+    fields = Fields(obj, "message")
+    version = fields.integer("v")
+    if version != SCHEMA_VERSION:
+        raise VersionError(f"message.v: schema version {version} unsupported (this reader: 1)")
+    type_name = fields.text("type")
+    fields.where = type_name
+    return type_name, fields
+
+
+def encode_array(values: ArrayLike, dtype: str) -> dict[str, Any]:
+    """The array envelope: dtype string, shape list and raw little-endian bytes."""
+    a = np.ascontiguousarray(values, dtype=np.dtype(dtype))
+    return {"d": dtype, "s": list(a.shape), "b": a.tobytes()}
+
+
+def decode_array(envelope: Any, where: str, dtype: str) -> NDArray[Any]:
+    """A read-only array viewing the envelope's bytes, after checking dtype, shape and length."""
+    env = Fields(envelope, where)
+    found = env.text("d")
+    if found not in ALLOWED_DTYPES:
+        raise SchemaError(f"{where}.d: dtype {_short(found)} is not allowed")
+    if found != dtype:
+        raise SchemaError(f"{where}.d: expected dtype {dtype!r}, got {found!r}")
+    shape = env.get("s")
+    if not isinstance(shape, list) or len(shape) > MAX_NDIM:
+        raise SchemaError(
+            f"{where}.s: expected a list of at most {MAX_NDIM} sizes, got {_short(shape)}"
+        )
+    if not all(type(n) is int and n >= 0 for n in shape):
+        raise SchemaError(f"{where}.s: sizes must be non-negative integers, got {_short(shape)}")
+    raw = env.blob("b")
+    itemsize = np.dtype(dtype).itemsize
+    if math.prod(shape) * itemsize != len(raw):
+        raise SchemaError(
+            f"{where}.b: {len(raw)} bytes do not fit shape {shape} of {dtype} "
+            f"({itemsize} bytes each)"
+        )
+    return np.frombuffer(raw, dtype=np.dtype(dtype)).reshape(shape)
+
+
+def encode_pose(pose: Pose2D) -> list[float]:
+    return [pose.x, pose.y, pose.theta]
+
+
+class Fields:
+    """Typed, named access to one decoded msgpack map; any mismatch is a SchemaError naming it."""
+
+    def __init__(self, data: Any, where: str) -> None:
+        if not isinstance(data, dict):
+            raise SchemaError(f"{where}: expected a map, got {type(data).__name__}")
+        self.data = data
+        self.where = where
+
+    def get(self, name: str) -> Any:
+        if name not in self.data:
+            raise SchemaError(f"{self.where}.{name}: missing")
+        return self.data[name]
+
+    def _typed(self, name: str, types: tuple[type, ...], what: str) -> Any:
+        value = self.get(name)
+        if type(value) not in types:
+            raise SchemaError(
+                f"{self.where}.{name}: expected {what}, got {type(value).__name__} {_short(value)}"
+            )
+        return value
+
+    def is_nil(self, name: str) -> bool:
+        return self.get(name) is None
+
+    def text(self, name: str) -> str:
+        return self._typed(name, (str,), "a string")
+
+    def integer(self, name: str) -> int:
+        return self._typed(name, (int,), "an integer")
+
+    def number(self, name: str) -> float:
+        """An int or float (never a bool), as float; finiteness is the message's to check."""
+        return float(self._typed(name, (int, float), "a number"))
+
+    def flag(self, name: str) -> bool:
+        return self._typed(name, (bool,), "a bool")
+
+    def blob(self, name: str) -> bytes:
+        return self._typed(name, (bytes,), "bytes")
+
+    def array(self, name: str, dtype: str) -> NDArray[Any]:
+        return decode_array(self.get(name), f"{self.where}.{name}", dtype)
+
+    def optional_array(self, name: str, dtype: str) -> NDArray[Any] | None:
+        return None if self.is_nil(name) else self.array(name, dtype)
+
+    def nested(self, name: str) -> Fields:
+        return Fields(self.get(name), f"{self.where}.{name}")
+
+    def numbers(self, name: str, count: int) -> tuple[float, ...]:
+        """A fixed-length list of numbers, e.g. a pose or a velocity."""
+        value = self.get(name)
+        if not isinstance(value, list) or len(value) != count:
+            raise SchemaError(f"{self.where}.{name}: expected a list of {count} numbers")
+        if not all(type(v) in (int, float) for v in value):
+            raise SchemaError(f"{self.where}.{name}: expected numbers, got {_short(value)}")
+        return tuple(float(v) for v in value)
+
+    def pose(self, name: str) -> Pose2D:
+        x, y, theta = self.numbers(name, 3)
+        try:
+            return Pose2D(x, y, theta)
+        except ValueError as exc:
+            raise SchemaError(f"{self.where}.{name}: {exc}") from exc
+
+    def optional_pose(self, name: str) -> Pose2D | None:
+        return None if self.is_nil(name) else self.pose(name)
+
+    def mapping(self, name: str, types: tuple[type, ...], what: str) -> dict[str, Any]:
+        """A str-keyed map whose values have one of `types` exactly (bool is not an int here)."""
+        value = self.get(name)
+        if not isinstance(value, dict):
+            raise SchemaError(f"{self.where}.{name}: expected a map, got {type(value).__name__}")
+        for key, item in value.items():
+            if type(key) is not str:
+                raise SchemaError(f"{self.where}.{name}: key {_short(key)} is not a string")
+            if type(item) not in types:
+                raise SchemaError(
+                    f"{self.where}.{name}[{key!r}]: expected {what}, got {type(item).__name__}"
+                )
+        return value

@@ -1,0 +1,313 @@
+"""Estimate messages: pose estimates, match requests and responses, trajectories.
+
+Poses follow scanflow.matching.api: a match pose is T_target_source. Covariances are 3x3 over
+(x, y, theta); +inf marks "no information" (a failed match) and is legal, NaN is not.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, ClassVar, Self
+
+import numpy as np
+from numpy.typing import NDArray
+
+from scanflow.geometry import Pose2D
+from scanflow.scan import LaserScan
+from scanflow.wire.base import Message, check_array, check_count, check_finite, check_text
+from scanflow.wire.codec import Fields, Scalar, encode_array
+from scanflow.wire.errors import MessageError, SchemaError
+from scanflow.wire.scans import scan_from_fields, scan_to_fields
+from scanflow.wire.schema import (
+    FLAG,
+    INT,
+    NUMBER,
+    POSE,
+    TEXT,
+    VECTOR3,
+    FieldCodec,
+    Schema,
+    array,
+    mapping,
+    optional,
+)
+
+if TYPE_CHECKING:
+    from scanflow.matching.api import MatchResult
+
+ERROR_STATUS = "error"
+
+
+def _no_information() -> NDArray[np.float64]:
+    return np.diag([math.inf, math.inf, math.inf])
+
+
+def _check_covariance(name: str, values: Any) -> NDArray[np.float64]:
+    return check_array(name, values, np.float64, (3, 3), allow_inf=True)
+
+
+def _check_pose(name: str, value: Any) -> Pose2D:
+    if not isinstance(value, Pose2D):
+        raise MessageError(f"{name} must be a Pose2D, got {type(value).__name__}")
+    return value
+
+
+@dataclass(frozen=True, eq=False)
+class PoseEstimateMessage(Message):
+    """The tracked pose of a robot in its map frame at `stamp_s`, and how it was obtained."""
+
+    TYPE = "pose"
+    WIRE: ClassVar[Schema] = {
+        "robot_id": TEXT,
+        "seq": INT,
+        "stamp_s": NUMBER,
+        "pose": POSE,
+        "covariance": array("<f8"),
+        "status": TEXT,
+        "method": TEXT,
+        "iterations": INT,
+        "score": NUMBER,
+        "message": TEXT,
+    }
+    robot_id: str
+    seq: int
+    stamp_s: float
+    pose: Pose2D
+    covariance: NDArray[np.float64]
+    status: str
+    method: str
+    iterations: int
+    score: float
+    message: str = ""
+
+    def __post_init__(self) -> None:
+        check_text("robot_id", self.robot_id)
+        object.__setattr__(self, "seq", check_count("seq", self.seq))
+        object.__setattr__(self, "stamp_s", check_finite("stamp_s", self.stamp_s))
+        _check_pose("pose", self.pose)
+        object.__setattr__(self, "covariance", _check_covariance("covariance", self.covariance))
+        check_text("status", self.status)
+        check_text("method", self.method, allow_empty=True)
+        object.__setattr__(self, "iterations", check_count("iterations", self.iterations))
+        object.__setattr__(self, "score", check_finite("score", self.score))
+        check_text("message", self.message, allow_empty=True)
+
+    @classmethod
+    def from_result(cls, result: MatchResult, robot_id: str, seq: int, stamp_s: float) -> Self:
+        """The estimate a tracker publishes after a match: the result's pose, covariance, status."""
+        return cls(
+            robot_id=robot_id,
+            seq=seq,
+            stamp_s=stamp_s,
+            pose=result.pose,
+            covariance=result.covariance,
+            status=str(result.status),
+            method=result.method,
+            iterations=result.iterations,
+            score=result.score,
+            message=result.message,
+        )
+
+
+@dataclass(frozen=True)
+class MapRef:
+    """A match target that is the map the mapserver keeps for `robot_id` (scan-to-map)."""
+
+    robot_id: str
+
+    def __post_init__(self) -> None:
+        check_text("robot_id", self.robot_id)
+
+
+Operand = LaserScan | NDArray[np.float64]
+
+
+def _check_operand(name: str, value: Any, allow_map: bool) -> Any:
+    """A scan, (N, 2) finite float64 points, or (targets only) a MapRef."""
+    if isinstance(value, LaserScan) or (allow_map and isinstance(value, MapRef)):
+        return value
+    return check_array(name, value, np.float64, (None, 2))
+
+
+def _operand_to_fields(value: Operand | MapRef) -> dict[str, Any]:
+    if isinstance(value, LaserScan):
+        return {"kind": "scan", "scan": scan_to_fields(value)}
+    if isinstance(value, MapRef):
+        return {"kind": "map", "robot_id": value.robot_id}
+    return {"kind": "points", "points": encode_array(value, "<f8")}
+
+
+def _operand_from_fields(f: Fields, allow_map: bool) -> Operand | MapRef:
+    kind = f.text("kind")
+    if kind == "scan":
+        return scan_from_fields(f.nested("scan"))
+    if kind == "points":
+        return f.array("points", "<f8")
+    if kind == "map" and allow_map:
+        return MapRef(f.text("robot_id"))
+    allowed = "'scan', 'points' or 'map'" if allow_map else "'scan' or 'points'"
+    raise SchemaError(f"{f.where}.kind: expected {allowed}, got {kind!r}")
+
+
+SOURCE = FieldCodec(
+    _operand_to_fields, lambda fields, name: _operand_from_fields(fields.nested(name), False)
+)
+TARGET = FieldCodec(
+    _operand_to_fields, lambda fields, name: _operand_from_fields(fields.nested(name), True)
+)
+
+
+@dataclass(frozen=True, eq=False)
+class MatchRequest(Message):
+    """Ask a matcher to align `source` to `target` (scan, points or a robot's map).
+
+    `options` are the method's keyword options (str -> bool/int/float/str, no NaN);
+    `initial_guess` is T_target_source or None for identity.
+    """
+
+    TYPE = "match_request"
+    WIRE: ClassVar[Schema] = {
+        "method": TEXT,
+        "source": SOURCE,
+        "target": TARGET,
+        "initial_guess": optional(POSE),
+        "options": mapping((bool, int, float, str), "bool/int/float/str"),
+    }
+    method: str
+    source: Operand
+    target: Operand | MapRef
+    initial_guess: Pose2D | None = None
+    options: dict[str, Scalar] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        check_text("method", self.method)
+        object.__setattr__(self, "source", _check_operand("source", self.source, False))
+        object.__setattr__(self, "target", _check_operand("target", self.target, True))
+        if self.initial_guess is not None:
+            _check_pose("initial_guess", self.initial_guess)
+        if not isinstance(self.options, dict):
+            raise MessageError(f"options must be a dict, got {type(self.options).__name__}")
+        for key, value in self.options.items():
+            if not isinstance(key, str):
+                raise MessageError(f"options key {key!r} must be a string")
+            if type(value) not in (bool, int, float, str):
+                raise MessageError(f"options[{key!r}] must be bool/int/float/str, got {value!r}")
+            if isinstance(value, float) and math.isnan(value):
+                raise MessageError(f"options[{key!r}] must not be NaN")
+
+
+@dataclass(frozen=True, eq=False)
+class MatchResponse(Message):
+    """A matcher's answer: the fields of MatchResult, or a non-empty `error` (then not `ok`)."""
+
+    TYPE = "match_response"
+    WIRE: ClassVar[Schema] = {
+        "pose": POSE,
+        "covariance": array("<f8"),
+        "score": NUMBER,
+        "iterations": INT,
+        "converged": FLAG,
+        "status": TEXT,
+        "method": TEXT,
+        "message": TEXT,
+        "time_s": NUMBER,
+        "inliers": INT,
+        "weak_direction": optional(VECTOR3),
+        "error": TEXT,
+    }
+    pose: Pose2D
+    covariance: NDArray[np.float64]
+    score: float
+    iterations: int
+    converged: bool
+    status: str
+    method: str
+    message: str = ""
+    time_s: float = 0.0
+    inliers: int = 0
+    weak_direction: tuple[float, float, float] | None = None
+    error: str = ""
+
+    def __post_init__(self) -> None:
+        _check_pose("pose", self.pose)
+        object.__setattr__(self, "covariance", _check_covariance("covariance", self.covariance))
+        object.__setattr__(self, "score", check_finite("score", self.score))
+        object.__setattr__(self, "iterations", check_count("iterations", self.iterations))
+        object.__setattr__(self, "converged", bool(self.converged))
+        check_text("status", self.status)
+        check_text("method", self.method, allow_empty=True)
+        check_text("message", self.message, allow_empty=True)
+        time_s = check_finite("time_s", self.time_s)
+        if time_s < 0:
+            raise MessageError(f"time_s must be >= 0, got {time_s}")
+        object.__setattr__(self, "time_s", time_s)
+        object.__setattr__(self, "inliers", check_count("inliers", self.inliers))
+        if self.weak_direction is not None:
+            weak = check_array("weak_direction", self.weak_direction, np.float64, (3,))
+            object.__setattr__(self, "weak_direction", tuple(float(v) for v in weak))
+        check_text("error", self.error, allow_empty=True)
+
+    @property
+    def ok(self) -> bool:
+        return not self.error and self.status == "ok"
+
+    @classmethod
+    def from_result(cls, result: MatchResult) -> Self:
+        return cls(
+            pose=result.pose,
+            covariance=result.covariance,
+            score=result.score,
+            iterations=result.iterations,
+            converged=result.converged,
+            status=str(result.status),
+            method=result.method,
+            message=result.message,
+            time_s=result.time_s,
+            inliers=result.inliers,
+            weak_direction=result.weak_direction,
+        )
+
+    @classmethod
+    def from_error(cls, error: str, method: str = "") -> Self:
+        """A request that could not be served (bad input, no map): identity pose, no information."""
+        return cls(
+            pose=Pose2D(),
+            covariance=_no_information(),
+            score=0.0,
+            iterations=0,
+            converged=False,
+            status=ERROR_STATUS,
+            method=method,
+            message=error,
+            error=error or "unspecified error",
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class TrajectoryMessage(Message):
+    """A robot's estimated path: `poses[i]` (x, y, theta) at `stamps_s[i]`, optional covariances."""
+
+    TYPE = "trajectory"
+    WIRE: ClassVar[Schema] = {
+        "robot_id": TEXT,
+        "stamps_s": array("<f8"),
+        "poses": array("<f8"),
+        "covariances": optional(array("<f8")),
+    }
+    robot_id: str
+    stamps_s: NDArray[np.float64]
+    poses: NDArray[np.float64]
+    covariances: NDArray[np.float64] | None = None
+
+    def __post_init__(self) -> None:
+        check_text("robot_id", self.robot_id)
+        stamps = check_array("stamps_s", self.stamps_s, np.float64, (None,))
+        poses = check_array("poses", self.poses, np.float64, (len(stamps), 3))
+        object.__setattr__(self, "stamps_s", stamps)
+        object.__setattr__(self, "poses", poses)
+        if self.covariances is not None:
+            cov = check_array(
+                "covariances", self.covariances, np.float64, (len(stamps), 3, 3), allow_inf=True
+            )
+            object.__setattr__(self, "covariances", cov)

@@ -1,0 +1,180 @@
+"""Map messages: grid metadata, occupancy windows, exported images and change notices.
+
+Occupancy values follow ROS nav_msgs/OccupancyGrid: -1 unknown, 0 free .. 100 occupied.
+Grid geometry is scanflow.maps.grid.GridSpec (row index grows with y, column with x).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar, Literal, Self
+
+import numpy as np
+from numpy.typing import NDArray
+
+from scanflow.maps.grid import GridSpec
+from scanflow.wire.base import Message, check_array, check_count, check_finite, check_text
+from scanflow.wire.errors import MessageError
+from scanflow.wire.schema import BLOB, INT, NUMBER, TEXT, FieldCodec, Schema, array
+
+MAP_IMAGE_FORMATS = ("png", "pgm", "yaml", "npz")
+MapImageFormat = Literal["png", "pgm", "yaml", "npz"]
+
+
+@dataclass(frozen=True, eq=False)
+class MapMetaMessage(Message):
+    """Where a robot's map sits and which revision it is (bumped on every map update)."""
+
+    TYPE = "map_meta"
+    WIRE: ClassVar[Schema] = {
+        "robot_id": TEXT,
+        "resolution_m": NUMBER,
+        "origin_x_m": NUMBER,
+        "origin_y_m": NUMBER,
+        "rows": INT,
+        "cols": INT,
+        "revision": INT,
+        "stamp_s": NUMBER,
+    }
+    robot_id: str
+    resolution_m: float
+    origin_x_m: float
+    origin_y_m: float
+    rows: int
+    cols: int
+    revision: int
+    stamp_s: float
+
+    def __post_init__(self) -> None:
+        check_text("robot_id", self.robot_id)
+        object.__setattr__(self, "rows", check_count("rows", self.rows))
+        object.__setattr__(self, "cols", check_count("cols", self.cols))
+        object.__setattr__(self, "revision", check_count("revision", self.revision))
+        object.__setattr__(self, "stamp_s", check_finite("stamp_s", self.stamp_s))
+        for name in ("resolution_m", "origin_x_m", "origin_y_m"):
+            object.__setattr__(self, name, check_finite(name, getattr(self, name)))
+        if self.resolution_m <= 0:
+            raise MessageError(f"resolution_m must be > 0, got {self.resolution_m}")
+
+    @property
+    def spec(self) -> GridSpec:
+        return GridSpec(self.origin_x_m, self.origin_y_m, self.resolution_m, self.rows, self.cols)
+
+    @classmethod
+    def from_spec(cls, robot_id: str, spec: GridSpec, revision: int, stamp_s: float) -> Self:
+        return cls(
+            robot_id=robot_id,
+            resolution_m=spec.resolution_m,
+            origin_x_m=spec.origin_x_m,
+            origin_y_m=spec.origin_y_m,
+            rows=spec.rows,
+            cols=spec.cols,
+            revision=revision,
+            stamp_s=stamp_s,
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class MapRegionMessage(Message):
+    """A window of a map: `occupancy[i, j]` is cell (row0 + i, col0 + j) of the grid in `meta`."""
+
+    TYPE = "map_region"
+    WIRE: ClassVar[Schema] = {
+        "meta": FieldCodec(
+            MapMetaMessage.to_fields,
+            lambda fields, name: MapMetaMessage.from_fields(fields.nested(name)),
+        ),
+        "row0": INT,
+        "col0": INT,
+        "occupancy": array("|i1"),
+    }
+    meta: MapMetaMessage
+    row0: int
+    col0: int
+    occupancy: NDArray[np.int8]
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.meta, MapMetaMessage):
+            raise MessageError(f"meta must be a MapMetaMessage, got {type(self.meta).__name__}")
+        row0 = check_count("row0", self.row0)
+        col0 = check_count("col0", self.col0)
+        occ = check_array("occupancy", self.occupancy, np.int8, (None, None))
+        if row0 + occ.shape[0] > self.meta.rows or col0 + occ.shape[1] > self.meta.cols:
+            raise MessageError(
+                f"occupancy window rows {row0}..{row0 + occ.shape[0]}, cols {col0}.."
+                f"{col0 + occ.shape[1]} exceeds the {self.meta.rows}x{self.meta.cols} grid"
+            )
+        if occ.size and (occ.min() < -1 or occ.max() > 100):
+            raise MessageError(
+                f"occupancy values must be -1 or 0..100, got range {occ.min()}..{occ.max()}"
+            )
+        object.__setattr__(self, "row0", row0)
+        object.__setattr__(self, "col0", col0)
+        object.__setattr__(self, "occupancy", occ)
+
+    @property
+    def window_spec(self) -> GridSpec:
+        """The geometry of the window itself (its own origin and size)."""
+        meta = self.meta
+        return GridSpec(
+            meta.origin_x_m + self.col0 * meta.resolution_m,
+            meta.origin_y_m + self.row0 * meta.resolution_m,
+            meta.resolution_m,
+            int(self.occupancy.shape[0]),
+            int(self.occupancy.shape[1]),
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class MapImageMessage(Message):
+    """An exported map file (`format` tells which exporter wrote `data`)."""
+
+    TYPE = "map_image"
+    WIRE: ClassVar[Schema] = {"robot_id": TEXT, "revision": INT, "format": TEXT, "data": BLOB}
+    robot_id: str
+    revision: int
+    format: MapImageFormat
+    data: bytes
+
+    def __post_init__(self) -> None:
+        check_text("robot_id", self.robot_id)
+        object.__setattr__(self, "revision", check_count("revision", self.revision))
+        if self.format not in MAP_IMAGE_FORMATS:
+            raise MessageError(f"format must be one of {MAP_IMAGE_FORMATS}, got {self.format!r}")
+        if not isinstance(self.data, bytes | bytearray | memoryview):
+            raise MessageError(f"data must be bytes, got {type(self.data).__name__}")
+        object.__setattr__(self, "data", bytes(self.data))
+
+
+@dataclass(frozen=True, eq=False)
+class MapChangedMessage(Message):
+    """A map reached `revision`; cells inside the world box [min, max] (metres) changed."""
+
+    TYPE = "map_changed"
+    WIRE: ClassVar[Schema] = {
+        "robot_id": TEXT,
+        "revision": INT,
+        "stamp_s": NUMBER,
+        "min_x_m": NUMBER,
+        "min_y_m": NUMBER,
+        "max_x_m": NUMBER,
+        "max_y_m": NUMBER,
+    }
+    robot_id: str
+    revision: int
+    stamp_s: float
+    min_x_m: float
+    min_y_m: float
+    max_x_m: float
+    max_y_m: float
+
+    def __post_init__(self) -> None:
+        check_text("robot_id", self.robot_id)
+        object.__setattr__(self, "revision", check_count("revision", self.revision))
+        for name in ("stamp_s", "min_x_m", "min_y_m", "max_x_m", "max_y_m"):
+            object.__setattr__(self, name, check_finite(name, getattr(self, name)))
+        if self.min_x_m > self.max_x_m or self.min_y_m > self.max_y_m:
+            raise MessageError(
+                f"dirty box min ({self.min_x_m}, {self.min_y_m}) exceeds max "
+                f"({self.max_x_m}, {self.max_y_m})"
+            )
