@@ -17,6 +17,30 @@ from scipy import ndimage
 from scanflow.maps.grid import GridSpec
 
 
+def field_values(
+    occupied: NDArray[np.bool_],
+    resolution_m: float,
+    sigma_m: float,
+    cutoff_m: float | None = None,
+) -> NDArray[np.float64]:
+    """exp(-d^2 / (2 sigma^2)) per cell, d the distance to the nearest occupied cell centre.
+
+    With `cutoff_m`, cells farther than the cut-off get exactly 0: a cell's value then depends
+    only on obstacles within the cut-off, which is what lets maps refresh the field locally.
+    """
+    if not (np.isfinite(sigma_m) and sigma_m > 0):
+        raise ValueError(f"sigma_m must be positive and finite, got {sigma_m}")
+    if cutoff_m is not None and not cutoff_m >= 0:
+        raise ValueError(f"cutoff_m must be >= 0, got {cutoff_m}")
+    if not occupied.any():
+        return np.zeros(occupied.shape)
+    d = ndimage.distance_transform_edt(~occupied) * resolution_m
+    values = np.exp(-0.5 * (d / sigma_m) ** 2)
+    if cutoff_m is not None:
+        values[d > cutoff_m] = 0.0
+    return values
+
+
 @dataclass(frozen=True, eq=False)
 class LikelihoodField:
     """Field values on a grid (cell centres) with bilinear value + gradient lookup."""
@@ -31,16 +55,17 @@ class LikelihoodField:
 
     @staticmethod
     def from_occupied(
-        spec: GridSpec, occupied: NDArray[np.bool_], sigma_m: float
+        spec: GridSpec,
+        occupied: NDArray[np.bool_],
+        sigma_m: float,
+        cutoff_m: float | None = None,
     ) -> LikelihoodField:
-        """Build from a boolean occupancy mask (True = obstacle)."""
+        """Build from a boolean occupancy mask (True = obstacle); see `field_values`."""
         if occupied.shape != spec.shape:
             raise ValueError(f"occupied shape {occupied.shape} != grid shape {spec.shape}")
-        if not occupied.any():
-            return LikelihoodField(spec, np.zeros(spec.shape), sigma_m)
-        dist_cells = ndimage.distance_transform_edt(~occupied)
-        d = dist_cells * spec.resolution_m
-        return LikelihoodField(spec, np.exp(-0.5 * (d / sigma_m) ** 2), sigma_m)
+        return LikelihoodField(
+            spec, field_values(occupied, spec.resolution_m, sigma_m, cutoff_m), sigma_m
+        )
 
     @staticmethod
     def from_points(

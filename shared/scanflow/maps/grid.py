@@ -46,7 +46,7 @@ class GridSpec:
 
     @staticmethod
     def covering(points: NDArray[np.float64], resolution_m: float, margin_m: float) -> GridSpec:
-        """The smallest grid, aligned to multiples of the resolution, holding points plus a margin."""
+        """The smallest resolution-aligned grid holding the points plus a margin."""
         p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
         if p.size == 0:
             lo = np.array([-margin_m, -margin_m])
@@ -55,8 +55,8 @@ class GridSpec:
             lo = p.min(axis=0) - margin_m
             hi = p.max(axis=0) + margin_m
         lo = np.floor(lo / resolution_m) * resolution_m
-        cols = int(math.ceil((hi[0] - lo[0]) / resolution_m)) + 1
-        rows = int(math.ceil((hi[1] - lo[1]) / resolution_m)) + 1
+        cols = math.ceil((hi[0] - lo[0]) / resolution_m) + 1
+        rows = math.ceil((hi[1] - lo[1]) / resolution_m) + 1
         return GridSpec(float(lo[0]), float(lo[1]), resolution_m, rows, cols)
 
     def world_to_cell(self, points: NDArray[np.float64]) -> NDArray[np.int64]:
@@ -94,4 +94,116 @@ class GridSpec:
             self.resolution_m * factor,
             -(-self.rows // factor),
             -(-self.cols // factor),
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class CellBox:
+    """A half-open box of integer cells [row0, row1) x [col0, col1) on a fixed world lattice.
+
+    Growable maps index cells from a fixed lattice anchor, so boxes stay valid when the stored
+    array grows; they describe storage, extents and the dirty regions of incremental updates.
+    """
+
+    row0: int
+    col0: int
+    row1: int
+    col1: int
+
+    def __post_init__(self) -> None:
+        if self.row1 < self.row0 or self.col1 < self.col0:
+            raise ValueError(
+                f"CellBox bounds inverted: rows [{self.row0}, {self.row1}), "
+                f"cols [{self.col0}, {self.col1})"
+            )
+
+    @staticmethod
+    def around(cells: NDArray[np.int64]) -> CellBox:
+        """The smallest box holding every (row, col) cell given (at least one)."""
+        c = np.asarray(cells).reshape(-1, 2)
+        if c.shape[0] == 0:
+            raise ValueError("CellBox.around needs at least one cell, got none")
+        lo = c.min(axis=0)
+        hi = c.max(axis=0) + 1
+        return CellBox(int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1]))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.row1 - self.row0, self.col1 - self.col0)
+
+    @property
+    def is_empty(self) -> bool:
+        return self.row1 == self.row0 or self.col1 == self.col0
+
+    def union(self, other: CellBox | None) -> CellBox:
+        if other is None:
+            return self
+        return CellBox(
+            min(self.row0, other.row0),
+            min(self.col0, other.col0),
+            max(self.row1, other.row1),
+            max(self.col1, other.col1),
+        )
+
+    def intersection(self, other: CellBox) -> CellBox:
+        """The overlap of two boxes (an empty box anchored inside `self` when they are apart)."""
+        row0 = max(self.row0, other.row0)
+        col0 = max(self.col0, other.col0)
+        return CellBox(
+            row0, col0, max(row0, min(self.row1, other.row1)), max(col0, min(self.col1, other.col1))
+        )
+
+    def contains_box(self, other: CellBox) -> bool:
+        return (
+            self.row0 <= other.row0
+            and self.col0 <= other.col0
+            and other.row1 <= self.row1
+            and other.col1 <= self.col1
+        )
+
+    def expanded(self, cells: int) -> CellBox:
+        return CellBox(
+            self.row0 - cells, self.col0 - cells, self.row1 + cells, self.col1 + cells
+        )
+
+    def shifted(self, rows: int, cols: int) -> CellBox:
+        return CellBox(self.row0 + rows, self.col0 + cols, self.row1 + rows, self.col1 + cols)
+
+    def coarsened(self, factor: int) -> CellBox:
+        """The box of `factor`-times-larger lattice cells covering this one (same anchor)."""
+        if factor < 1:
+            raise ValueError(f"factor must be >= 1, got {factor}")
+        return CellBox(
+            self.row0 // factor,
+            self.col0 // factor,
+            -(-self.row1 // factor),
+            -(-self.col1 // factor),
+        )
+
+    def refined(self, factor: int) -> CellBox:
+        """The same area on the lattice `factor` times finer (inverse of `coarsened`)."""
+        if factor < 1:
+            raise ValueError(f"factor must be >= 1, got {factor}")
+        return CellBox(
+            self.row0 * factor, self.col0 * factor, self.row1 * factor, self.col1 * factor
+        )
+
+    def spec(self, anchor_x_m: float, anchor_y_m: float, resolution_m: float) -> GridSpec:
+        """The GridSpec of this box on a lattice whose cell (0, 0) has its corner at the anchor."""
+        rows, cols = self.shape
+        return GridSpec(
+            anchor_x_m + self.col0 * resolution_m,
+            anchor_y_m + self.row0 * resolution_m,
+            resolution_m,
+            rows,
+            cols,
+        )
+
+    def slices_in(self, outer: CellBox) -> tuple[slice, slice]:
+        """Index slices selecting this box inside an array that stores `outer`."""
+        if not outer.contains_box(self):
+            raise ValueError(f"{self} is not inside {outer}")
+        return (
+            slice(self.row0 - outer.row0, self.row1 - outer.row0),
+            slice(self.col0 - outer.col0, self.col1 - outer.col0),
         )

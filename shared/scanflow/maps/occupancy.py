@@ -1,0 +1,395 @@
+"""A growable log-odds occupancy grid: free along each beam, occupied at its end, clamped.
+
+Growth is amortised doubling of one contiguous array (not tiles): cells are indexed on a lattice
+fixed in the world (cell (0, 0) has its corner at the anchor), and when a scan reaches beyond the
+stored box the box at least doubles along the axis that grew, so the whole map is copied only
+O(log size) times. One contiguous array lets every derived view (distance fields, pyramids,
+exports) slice any region directly, with no tile stitching; the price is up to ~4x spare capacity
+right after a doubling, reported by `nbytes` and measured in bench/maps.py.
+
+A cell is updated at most once per scan; a cell hit by some beam of the scan is not also
+cleared by another beam of the same scan.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from scanflow.maps.grid import CellBox, GridSpec
+from scanflow.maps.raycast import mark_rays
+
+
+def _logit(p: float) -> float:
+    return math.log(p / (1.0 - p))
+
+
+@dataclass(frozen=True, slots=True)
+class OccupancyParams:
+    """Sensor model and bookkeeping for an OccupancyGrid (probabilities, metres)."""
+
+    resolution_m: float = 0.05
+    p_hit: float = 0.85
+    p_miss: float = 0.4
+    log_odds_min: float = -2.0
+    log_odds_max: float = 3.5
+    occupied_threshold: float = 0.65
+    no_return_clear_m: float = 5.0
+    max_range_m: float = 100.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.resolution_m) and self.resolution_m > 0):
+            raise ValueError(f"resolution_m must be positive, got {self.resolution_m}")
+        if not 0.5 < self.p_hit < 1.0:
+            raise ValueError(f"p_hit must be in (0.5, 1), got {self.p_hit}")
+        if not 0.0 < self.p_miss < 0.5:
+            raise ValueError(f"p_miss must be in (0, 0.5), got {self.p_miss}")
+        if not self.log_odds_min < 0.0 < self.log_odds_max:
+            raise ValueError(
+                f"need log_odds_min < 0 < log_odds_max, got "
+                f"[{self.log_odds_min}, {self.log_odds_max}]"
+            )
+        if not 0.0 < self.occupied_threshold < 1.0:
+            raise ValueError(f"occupied_threshold must be in (0, 1), got {self.occupied_threshold}")
+        if not self.no_return_clear_m >= 0.0:
+            raise ValueError(f"no_return_clear_m must be >= 0, got {self.no_return_clear_m}")
+        if not self.max_range_m > 0.0:
+            raise ValueError(f"max_range_m must be positive, got {self.max_range_m}")
+
+    @property
+    def hit_log_odds(self) -> float:
+        return _logit(self.p_hit)
+
+    @property
+    def miss_log_odds(self) -> float:
+        return _logit(self.p_miss)
+
+    def threshold_log_odds(self, probability: float | None = None) -> float:
+        """Log-odds above which a cell counts as occupied (default: occupied_threshold)."""
+        p = self.occupied_threshold if probability is None else probability
+        if not 0.0 < p < 1.0:
+            raise ValueError(f"threshold probability must be in (0, 1), got {p}")
+        return _logit(p)
+
+
+@dataclass(frozen=True, slots=True)
+class InsertResult:
+    """What one scan changed: every cell it updated, and where the occupied mask flipped."""
+
+    touched: CellBox | None
+    occupied_changed: CellBox | None
+
+
+def _as_points(name: str, value: ArrayLike) -> NDArray[np.float64]:
+    p = np.asarray(value, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 2:
+        raise ValueError(f"{name} must have shape (N, 2), got {p.shape}")
+    bad = ~np.isfinite(p).all(axis=1)
+    if bad.any():
+        raise ValueError(f"{name} has {int(bad.sum())} non-finite rows, first {p[bad][0]}")
+    return p
+
+
+def _grown_axis(
+    old: tuple[int, int] | None, need: tuple[int, int], minimum: int
+) -> tuple[int, int]:
+    """New [lo, hi) along one axis: at least double the old size, spare room where it grew."""
+    size = need[1] - need[0]
+    if old is None:
+        target = max(size, minimum)
+        lo = need[0] - (target - size) // 2
+        return lo, lo + target
+    if need == old:
+        return old
+    target = max(size, 2 * (old[1] - old[0]), minimum)
+    spare = target - size
+    grew_lo, grew_hi = need[0] < old[0], need[1] > old[1]
+    lo_pad = spare // 2 if (grew_lo and grew_hi) else (spare if grew_lo else 0)
+    lo = need[0] - lo_pad
+    return lo, lo + target
+
+
+def _true_box(mask: NDArray[np.bool_], box: CellBox) -> CellBox | None:
+    """Lattice bounding box of the True cells of a mask that stores `box` (None if none)."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    if rows.size == 0:
+        return None
+    cols = np.flatnonzero(mask.any(axis=0))
+    return CellBox(
+        box.row0 + int(rows[0]),
+        box.col0 + int(cols[0]),
+        box.row0 + int(rows[-1]) + 1,
+        box.col0 + int(cols[-1]) + 1,
+    )
+
+
+class OccupancyGrid:
+    """Log-odds occupancy on a world-fixed lattice that grows as scans reach new ground."""
+
+    def __init__(
+        self,
+        params: OccupancyParams | None = None,
+        anchor_x_m: float = 0.0,
+        anchor_y_m: float = 0.0,
+        initial_capacity_cells: int = 64,
+    ) -> None:
+        if initial_capacity_cells < 1:
+            raise ValueError(f"initial_capacity_cells must be >= 1, got {initial_capacity_cells}")
+        if not (math.isfinite(anchor_x_m) and math.isfinite(anchor_y_m)):
+            raise ValueError(f"anchor must be finite, got ({anchor_x_m}, {anchor_y_m})")
+        self.params = params or OccupancyParams()
+        self.anchor_x_m = float(anchor_x_m)
+        self.anchor_y_m = float(anchor_y_m)
+        self._initial_capacity = initial_capacity_cells
+        self._log_odds = np.zeros((0, 0), dtype=np.float32)
+        self._observed = np.zeros((0, 0), dtype=bool)
+        self._storage: CellBox | None = None
+        self._extent: CellBox | None = None
+        self.revision = 0
+        self.storage_generation = 0
+
+    @classmethod
+    def from_arrays(
+        cls,
+        log_odds: NDArray[np.floating],
+        observed: NDArray[np.bool_],
+        box: CellBox,
+        anchor_x_m: float,
+        anchor_y_m: float,
+        params: OccupancyParams | None = None,
+        revision: int = 0,
+    ) -> OccupancyGrid:
+        """A grid holding `log_odds` (clamped to the params) over `box`: used by map import."""
+        lo = np.asarray(log_odds, dtype=np.float32)
+        obs = np.asarray(observed, dtype=bool)
+        if lo.shape != box.shape or obs.shape != box.shape:
+            raise ValueError(
+                f"log_odds {lo.shape} and observed {obs.shape} must both have box shape {box.shape}"
+            )
+        if not np.isfinite(lo).all():
+            raise ValueError("log_odds has non-finite values")
+        grid = cls(params, anchor_x_m, anchor_y_m)
+        p = grid.params
+        grid._log_odds = np.clip(lo, p.log_odds_min, p.log_odds_max).astype(np.float32)
+        grid._observed = obs.copy()
+        grid._storage = box
+        grid._extent = None if box.is_empty else box
+        grid.revision = revision
+        return grid
+
+    @classmethod
+    def from_int8(
+        cls,
+        data: NDArray[np.integer],
+        origin_x_m: float,
+        origin_y_m: float,
+        params: OccupancyParams | None = None,
+    ) -> OccupancyGrid:
+        """A grid from ROS OccupancyGrid data (rows grow with y): -1 unknown, 0..100 percent."""
+        d = np.asarray(data)
+        if d.ndim != 2:
+            raise ValueError(f"data must be 2-D, got shape {d.shape}")
+        bad = (d < -1) | (d > 100)
+        if bad.any():
+            raise ValueError(f"data values must be -1 or 0..100, got {int(d[bad][0])}")
+        p_occ = np.clip(d.astype(np.float64) / 100.0, 1e-9, 1.0 - 1e-9)
+        log_odds = np.where(d >= 0, np.log(p_occ / (1.0 - p_occ)), 0.0)
+        box = CellBox(0, 0, d.shape[0], d.shape[1])
+        return cls.from_arrays(log_odds, d >= 0, box, origin_x_m, origin_y_m, params)
+
+    # ---- geometry -------------------------------------------------------------------------
+
+    @property
+    def resolution_m(self) -> float:
+        return self.params.resolution_m
+
+    @property
+    def extent(self) -> CellBox | None:
+        """Bounding box of every cell ever updated (None while empty)."""
+        return self._extent
+
+    @property
+    def storage_box(self) -> CellBox | None:
+        """The box the backing array covers (>= extent; changes only when the grid grows)."""
+        return self._storage
+
+    @property
+    def is_empty(self) -> bool:
+        return self._extent is None
+
+    @property
+    def spec(self) -> GridSpec:
+        """GridSpec of the current extent (0 x 0 at the anchor while empty)."""
+        box = self._extent or CellBox(0, 0, 0, 0)
+        return self.spec_of(box)
+
+    def spec_of(self, box: CellBox, factor: int = 1) -> GridSpec:
+        """GridSpec of a box on this lattice, or on the lattice `factor` times coarser."""
+        return box.spec(self.anchor_x_m, self.anchor_y_m, self.resolution_m * factor)
+
+    @property
+    def nbytes(self) -> int:
+        """Memory held by the backing arrays (spare capacity included)."""
+        return int(self._log_odds.nbytes + self._observed.nbytes)
+
+    def world_to_cells(self, points: NDArray[np.float64]) -> NDArray[np.int64]:
+        """Lattice (row, col) of each world point, valid however the grid grows."""
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        col = np.floor((p[:, 0] - self.anchor_x_m) / self.resolution_m).astype(np.int64)
+        row = np.floor((p[:, 1] - self.anchor_y_m) / self.resolution_m).astype(np.int64)
+        return np.column_stack((row, col))
+
+    # ---- reading --------------------------------------------------------------------------
+
+    def _extent_view(self, array: NDArray) -> NDArray:
+        if self._extent is None or self._storage is None:
+            return array[:0, :0]
+        view = array[self._extent.slices_in(self._storage)]
+        view.flags.writeable = False
+        return view
+
+    @property
+    def log_odds(self) -> NDArray[np.float32]:
+        """Read-only log-odds over the extent (0 where never observed)."""
+        return self._extent_view(self._log_odds)
+
+    @property
+    def observed(self) -> NDArray[np.bool_]:
+        """Read-only mask of cells updated at least once, over the extent."""
+        return self._extent_view(self._observed)
+
+    def probability(self) -> NDArray[np.float64]:
+        """Occupancy probability over the extent (0.5 where never observed)."""
+        return 1.0 / (1.0 + np.exp(-self.log_odds.astype(np.float64)))
+
+    def to_int8(self) -> NDArray[np.int8]:
+        """ROS OccupancyGrid data over the extent: -1 unknown, 0..100 percent occupied."""
+        percent = np.rint(100.0 * self.probability())
+        return np.where(self.observed, percent, -1).astype(np.int8)
+
+    def occupied_mask(self, threshold: float | None = None) -> NDArray[np.bool_]:
+        """Observed cells with occupancy probability above `threshold` (default: params)."""
+        return self.observed & (self.log_odds > self.params.threshold_log_odds(threshold))
+
+    def free_mask(self, threshold: float) -> NDArray[np.bool_]:
+        """Observed cells with occupancy probability below `threshold`."""
+        return self.observed & (self.log_odds < self.params.threshold_log_odds(threshold))
+
+    def occupied_in(self, box: CellBox, threshold: float | None = None) -> NDArray[np.bool_]:
+        """Occupied mask over any lattice box (False outside the stored area)."""
+        out = np.zeros(box.shape, dtype=bool)
+        if self._storage is None:
+            return out
+        inner = box.intersection(self._storage)
+        if inner.is_empty:
+            return out
+        src = inner.slices_in(self._storage)
+        lo = self._log_odds[src]
+        out[inner.slices_in(box)] = self._observed[src] & (
+            lo > self.params.threshold_log_odds(threshold)
+        )
+        return out
+
+    # ---- writing --------------------------------------------------------------------------
+
+    def _reserve(self, box: CellBox) -> CellBox:
+        """Make the backing arrays hold `box`, growing by at least doubling (amortised copies).
+
+        Returns the (possibly new) storage box.
+        """
+        old = self._storage
+        if old is not None and old.contains_box(box):
+            return old
+        need = box.union(old)
+        rows = _grown_axis(
+            None if old is None else (old.row0, old.row1),
+            (need.row0, need.row1),
+            self._initial_capacity,
+        )
+        cols = _grown_axis(
+            None if old is None else (old.col0, old.col1),
+            (need.col0, need.col1),
+            self._initial_capacity,
+        )
+        new = CellBox(rows[0], cols[0], rows[1], cols[1])
+        log_odds = np.zeros(new.shape, dtype=np.float32)
+        observed = np.zeros(new.shape, dtype=bool)
+        if old is not None:
+            dst = old.slices_in(new)
+            log_odds[dst] = self._log_odds
+            observed[dst] = self._observed
+        self._log_odds, self._observed, self._storage = log_odds, observed, new
+        self.storage_generation += 1
+        return new
+
+    def _clipped_no_return(
+        self, origin: NDArray[np.float64], ends: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        """No-return beam ends pulled in to at most no_return_clear_m from the sensor."""
+        delta = ends - origin
+        length = np.hypot(delta[:, 0], delta[:, 1])
+        scale = np.minimum(1.0, self.params.no_return_clear_m / np.maximum(length, 1e-12))
+        return origin + delta * scale[:, None]
+
+    def insert_scan(
+        self,
+        points_world: ArrayLike,
+        sensor_origin: ArrayLike,
+        no_return_endpoints: ArrayLike | None = None,
+    ) -> InsertResult:
+        """Clear cells along each beam (end excluded), mark each end occupied, clamp.
+
+        `no_return_endpoints` are points along beams that saw nothing (e.g. at max range): they
+        clear free space up to `params.no_return_clear_m` only (that last cell included).
+        Invalid input raises before the grid changes.
+        """
+        hits = _as_points("points_world", points_world)
+        origin = _as_points("sensor_origin", np.asarray(sensor_origin, dtype=np.float64)[None, :])
+        misses = (
+            np.empty((0, 2))
+            if no_return_endpoints is None
+            else _as_points("no_return_endpoints", no_return_endpoints)
+        )
+        ranges_m = np.hypot(*(hits - origin).T)
+        too_far = ranges_m > self.params.max_range_m
+        if too_far.any():
+            raise ValueError(
+                f"points_world range {ranges_m[too_far][0]:.3f} m exceeds "
+                f"max_range_m {self.params.max_range_m} m"
+            )
+        if hits.shape[0] == 0 and misses.shape[0] == 0:
+            return InsertResult(None, None)
+
+        origin_cell = self.world_to_cells(origin)
+        hit_cells = self.world_to_cells(hits)
+        miss_ends = self.world_to_cells(self._clipped_no_return(origin[0], misses))
+        # A Bresenham ray stays inside the bounding box of its two end cells.
+        box = CellBox.around(np.concatenate((origin_cell, hit_cells, miss_ends)))
+        storage = self._reserve(box)
+
+        free_mask = np.zeros(box.shape, dtype=bool)
+        mark_rays(free_mask, box, np.broadcast_to(origin_cell, hit_cells.shape), hit_cells)
+        mark_rays(
+            free_mask, box, np.broadcast_to(origin_cell, miss_ends.shape), miss_ends, True
+        )
+        hit_mask = np.zeros(box.shape, dtype=bool)
+        hit_mask[hit_cells[:, 0] - box.row0, hit_cells[:, 1] - box.col0] = True
+        free_mask &= ~hit_mask
+
+        region = box.slices_in(storage)
+        log_odds = self._log_odds[region]
+        observed = self._observed[region]
+        threshold = self.params.threshold_log_odds()
+        occupied_before = observed & (log_odds > threshold)
+        log_odds[free_mask] += np.float32(self.params.miss_log_odds)
+        log_odds[hit_mask] += np.float32(self.params.hit_log_odds)
+        np.clip(log_odds, self.params.log_odds_min, self.params.log_odds_max, out=log_odds)
+        observed |= hit_mask | free_mask
+        flipped = occupied_before != (observed & (log_odds > threshold))
+
+        self._extent = box.union(self._extent)
+        self.revision += 1
+        return InsertResult(box, _true_box(flipped, box))

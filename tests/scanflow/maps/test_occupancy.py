@@ -1,0 +1,182 @@
+"""Occupancy grid: beam updates, clamping, growth that keeps content in place, bad input."""
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scanflow.maps.grid import CellBox
+from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
+
+
+def log_odds_at(grid: OccupancyGrid, xy) -> np.ndarray:
+    """Log-odds at world points (0 outside the extent)."""
+    cells = grid.spec.world_to_cell(np.asarray(xy, dtype=float))
+    inside = grid.spec.contains(cells)
+    out = np.zeros(len(cells))
+    out[inside] = grid.log_odds[cells[inside, 0], cells[inside, 1]]
+    return out
+
+
+def ring(center, radius_m, beams=90):
+    a = np.linspace(-math.pi, math.pi, beams, endpoint=False)
+    return np.column_stack((center[0] + radius_m * np.cos(a), center[1] + radius_m * np.sin(a)))
+
+
+def test_beam_clears_free_space_and_marks_its_end():
+    params = OccupancyParams()
+    grid = OccupancyGrid(params)
+    result = grid.insert_scan([[1.025, 0.025]], (0.025, 0.025))
+    assert result.touched == CellBox(0, 0, 1, 21)
+    assert result.occupied_changed == CellBox(0, 20, 1, 21)
+    assert grid.spec.shape == (1, 21)
+    np.testing.assert_allclose(grid.log_odds[0, :20], params.miss_log_odds, rtol=1e-6)
+    assert grid.log_odds[0, 20] == pytest.approx(params.hit_log_odds, rel=1e-6)
+    assert grid.occupied_mask().sum() == 1 and grid.occupied_mask()[0, 20]
+    assert grid.to_int8()[0, 20] == round(100 * params.p_hit)
+    assert grid.to_int8()[0, 0] == round(100 * params.p_miss)
+    assert grid.revision == 1
+
+
+def test_unobserved_cells_are_unknown():
+    grid = OccupancyGrid()
+    grid.insert_scan([[1.0, 1.0]], (0.0, 0.0))
+    data = grid.to_int8()
+    probability = grid.probability()
+    assert (data == -1).sum() == (~grid.observed).sum() > 0
+    np.testing.assert_array_equal(probability[~grid.observed], 0.5)
+
+
+def test_log_odds_clamp_at_both_ends():
+    params = OccupancyParams(log_odds_min=-1.0, log_odds_max=2.0)
+    grid = OccupancyGrid(params)
+    for _ in range(20):
+        grid.insert_scan([[2.0, 0.01]], (0.01, 0.01))
+    assert grid.log_odds.max() == pytest.approx(2.0)
+    assert grid.log_odds.min() == pytest.approx(-1.0)
+
+
+def test_a_cell_hit_in_a_scan_is_not_also_cleared_by_it():
+    grid = OccupancyGrid()
+    # The first beam ends in a cell that the second beam passes through.
+    grid.insert_scan([[0.525, 0.025], [2.025, 0.025]], (0.025, 0.025))
+    assert grid.log_odds[0, 10] == pytest.approx(grid.params.hit_log_odds, rel=1e-6)
+
+
+def test_no_return_beams_clear_only_up_to_the_configured_distance():
+    grid = OccupancyGrid(OccupancyParams(no_return_clear_m=2.0))
+    grid.insert_scan(np.empty((0, 2)), (0.025, 0.025), no_return_endpoints=[[20.025, 0.025]])
+    assert not grid.occupied_mask().any()
+    assert grid.spec.shape == (1, 41)  # cells 0..40: the last one holds the point at 2 m
+    assert (grid.log_odds < 0).all()
+
+
+def test_repeated_scan_changes_no_occupancy():
+    grid = OccupancyGrid()
+    scan = ring((0.0, 0.0), 3.0)
+    grid.insert_scan(scan, (0.0, 0.0))
+    second = grid.insert_scan(scan, (0.0, 0.0))
+    assert second.touched is not None
+    assert second.occupied_changed is None
+
+
+def test_growth_in_all_four_directions_keeps_content_in_place():
+    grid = OccupancyGrid(initial_capacity_cells=8)
+    first = ring((0.0, 0.0), 2.0)
+    grid.insert_scan(first, (0.0, 0.0))
+    probe = grid.spec.cell_centers(np.argwhere(grid.observed))
+    before = log_odds_at(grid, probe)
+    assert np.count_nonzero(before) == len(probe) > 100
+    for far in ((40.0, 0.0), (-40.0, 0.0), (0.0, 40.0), (0.0, -40.0)):
+        generation = grid.storage_generation
+        grid.insert_scan(ring(far, 1.0), far)
+        assert grid.storage_generation > generation
+        np.testing.assert_array_equal(log_odds_at(grid, probe), before)
+    assert grid.spec.width_m > 80 and grid.spec.height_m > 80
+
+
+def test_growth_is_amortised():
+    grid = OccupancyGrid(initial_capacity_cells=16)
+    for i in range(200):
+        x = 0.25 * i
+        grid.insert_scan(ring((x, 0.0), 1.0, beams=16), (x, 0.0))
+    # ~50 m of travel at 5 cm is 1000 columns: a doubling grid reallocates ~log2(1000/16) times.
+    assert grid.storage_generation <= 10
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    scans=st.lists(
+        st.tuples(
+            st.floats(-5, 5), st.floats(-5, 5), st.floats(0.2, 4.0), st.integers(1, 40)
+        ),
+        min_size=1,
+        max_size=6,
+    )
+)
+def test_small_initial_capacity_gives_the_same_map_as_a_large_one(scans):
+    """Growth (many reallocations) must be invisible in the content."""
+    small = OccupancyGrid(initial_capacity_cells=1)
+    large = OccupancyGrid(initial_capacity_cells=1000)
+    for x, y, radius, beams in scans:
+        for grid in (small, large):
+            grid.insert_scan(ring((x, y), radius, beams), (x, y))
+    assert small.extent == large.extent
+    np.testing.assert_array_equal(small.log_odds, large.log_odds)
+    np.testing.assert_array_equal(small.observed, large.observed)
+
+
+def test_bad_input_raises_and_leaves_the_grid_unchanged():
+    grid = OccupancyGrid()
+    grid.insert_scan(ring((0.0, 0.0), 2.0), (0.0, 0.0))
+    before = grid.log_odds.copy()
+    with pytest.raises(ValueError, match="points_world"):
+        grid.insert_scan([[1.0, np.nan]], (0.0, 0.0))
+    with pytest.raises(ValueError, match="max_range_m"):
+        grid.insert_scan([[1e6, 0.0]], (0.0, 0.0))
+    with pytest.raises(ValueError, match="sensor_origin"):
+        grid.insert_scan([[1.0, 0.0]], (np.inf, 0.0))
+    with pytest.raises(ValueError, match=r"shape \(N, 2\)"):
+        grid.insert_scan(np.zeros((3, 3)), (0.0, 0.0))
+    assert grid.revision == 1
+    np.testing.assert_array_equal(grid.log_odds, before)
+
+
+def test_views_are_read_only():
+    grid = OccupancyGrid()
+    grid.insert_scan([[1.0, 0.0]], (0.0, 0.0))
+    with pytest.raises(ValueError):
+        grid.log_odds[0, 0] = 1.0
+
+
+def test_empty_grid():
+    grid = OccupancyGrid()
+    assert grid.is_empty and grid.spec.shape == (0, 0)
+    assert grid.insert_scan(np.empty((0, 2)), (0.0, 0.0)).touched is None
+    assert grid.to_int8().shape == (0, 0)
+
+
+@pytest.mark.parametrize(
+    ("field", "kwargs"),
+    [
+        ("p_hit", {"p_hit": 0.4}),
+        ("p_miss", {"p_miss": 0.6}),
+        ("log_odds_min", {"log_odds_min": 1.0}),
+        ("resolution_m", {"resolution_m": 0.0}),
+        ("no_return_clear_m", {"no_return_clear_m": -1.0}),
+    ],
+)
+def test_params_validation_names_the_field(field, kwargs):
+    with pytest.raises(ValueError, match=field):
+        OccupancyParams(**kwargs)
+
+
+def test_from_int8_reads_ros_convention():
+    data = np.array([[-1, 0, 100], [50, 65, 66]], dtype=np.int8)
+    grid = OccupancyGrid.from_int8(data, -1.0, 2.0)
+    assert grid.spec.origin_x_m == -1.0 and grid.spec.origin_y_m == 2.0
+    np.testing.assert_array_equal(grid.observed, data >= 0)
+    np.testing.assert_array_equal(grid.occupied_mask(), data > 65)
+    with pytest.raises(ValueError, match=r"-1 or 0\.\.100"):
+        OccupancyGrid.from_int8(np.array([[101]]), 0.0, 0.0)
