@@ -1,0 +1,1 @@
+"""The scanflow services: thin Zenoh shells (one process each) around the core library."""

@@ -1,0 +1,81 @@
+"""Thread-safe counters and per-robot sequence-gap tracking, reported in service stats."""
+
+from __future__ import annotations
+
+import threading
+from collections import defaultdict
+from dataclasses import dataclass
+
+
+class Counters:
+    """Named monotonically increasing counts, safe to bump from Zenoh callback threads."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._counts: dict[str, int] = defaultdict(int)
+
+    def add(self, name: str, amount: int = 1) -> int:
+        with self._lock:
+            self._counts[name] += amount
+            return self._counts[name]
+
+    def get(self, name: str) -> int:
+        with self._lock:
+            return self._counts.get(name, 0)
+
+    def snapshot(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self._counts)
+
+
+@dataclass
+class RobotSeq:
+    """What one robot's stream looked like: last seq seen, messages, missed and restarts."""
+
+    last_seq: int = -1
+    received: int = 0
+    missed: int = 0
+    restarts: int = 0
+
+
+class SeqTracker:
+    """Counts gaps in per-robot (per-stream) sequence numbers: nothing missed goes unreported.
+
+    A seq lower than or equal to the last one is a restart of the stream (a replay or a
+    restarted publisher): it is counted and tracking continues from it.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._streams: dict[str, RobotSeq] = {}
+
+    def observe(self, stream: str, seq: int) -> int:
+        """Record `seq` on `stream`; return how many seqs were skipped just before it."""
+        with self._lock:
+            state = self._streams.setdefault(stream, RobotSeq())
+            gap = 0
+            if state.last_seq >= 0 and seq <= state.last_seq:
+                state.restarts += 1
+            elif state.last_seq >= 0:
+                gap = seq - state.last_seq - 1
+            state.missed += gap
+            state.received += 1
+            state.last_seq = seq
+            return gap
+
+    def last_seq(self, stream: str) -> int:
+        with self._lock:
+            state = self._streams.get(stream)
+            return -1 if state is None else state.last_seq
+
+    def snapshot(self) -> dict[str, dict[str, int]]:
+        with self._lock:
+            return {
+                name: {
+                    "last_seq": s.last_seq,
+                    "received": s.received,
+                    "missed": s.missed,
+                    "restarts": s.restarts,
+                }
+                for name, s in self._streams.items()
+            }

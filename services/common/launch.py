@@ -1,0 +1,114 @@
+"""Start and stop service processes locally: used by `scanflow up`, the tests and the benchmark."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+ORDER = ("router", "deskew", "matcher", "mapserver", "gateway", "ingest")
+
+
+def free_port() -> int:
+    """A TCP port on loopback that nothing listens on right now."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def wait_for_port(port: int, timeout_s: float = 10.0) -> None:
+    """Block until something accepts TCP connections on 127.0.0.1:`port`."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=0.2):
+                return
+        except OSError as exc:
+            if time.monotonic() > deadline:
+                message = f"nothing listens on 127.0.0.1:{port} after {timeout_s} s"
+                raise TimeoutError(message) from exc
+            time.sleep(0.05)
+
+
+@dataclass
+class Launcher:
+    """Service subprocesses sharing one environment (router endpoint, prefix, settings).
+
+    Each service logs to `<log_dir>/<name>.log`. `stop_all` sends SIGTERM in reverse start
+    order and waits, then kills what is left.
+    """
+
+    env: dict[str, str]
+    log_dir: Path
+    processes: dict[str, subprocess.Popen[bytes]] = field(default_factory=dict)
+
+    @classmethod
+    def local(cls, log_dir: Path, zenoh_port: int, **settings: str) -> Launcher:
+        """A launcher whose router listens on 127.0.0.1:`zenoh_port` and services connect there."""
+        endpoint = f"tcp/127.0.0.1:{zenoh_port}"
+        env = dict(os.environ)
+        env.update(
+            SCANFLOW_ROUTER_LISTEN=endpoint,
+            SCANFLOW_ZENOH_CONNECT=endpoint,
+            SCANFLOW_ZENOH_MODE="client",
+            PYTHONUNBUFFERED="1",
+        )
+        env.update(settings)
+        log_dir.mkdir(parents=True, exist_ok=True)
+        return cls(env, log_dir)
+
+    @property
+    def zenoh_port(self) -> int:
+        return int(self.env["SCANFLOW_ZENOH_CONNECT"].rsplit(":", 1)[1])
+
+    def start(self, name: str, **settings: str) -> subprocess.Popen[bytes]:
+        """Start `python -m services.<name>` with the shared env plus `settings`."""
+        if name in self.processes and self.processes[name].poll() is None:
+            raise RuntimeError(f"service {name!r} is already running")
+        env = {**self.env, **settings}
+        log = (self.log_dir / f"{name}.log").open("ab")
+        proc = subprocess.Popen(
+            [sys.executable, "-m", f"services.{name}"], env=env, stdout=log, stderr=log
+        )
+        log.close()
+        self.processes[name] = proc
+        if name == "router":
+            wait_for_port(self.zenoh_port)
+        return proc
+
+    def stop(self, name: str, timeout_s: float = 15.0) -> int | None:
+        """SIGTERM one service and wait for it (SIGKILL after `timeout_s`); its exit code."""
+        proc = self.processes.get(name)
+        if proc is None:
+            return None
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        return proc.returncode
+
+    def kill(self, name: str) -> None:
+        """SIGKILL one service (a crash, for recovery tests)."""
+        proc = self.processes[name]
+        proc.kill()
+        proc.wait()
+
+    def stop_all(self) -> dict[str, int | None]:
+        """Stop every service, last started first; their exit codes."""
+        return {name: self.stop(name) for name in reversed(list(self.processes))}
+
+    def exited(self) -> dict[str, int]:
+        """Services that have ended, with their exit codes."""
+        return {n: p.returncode for n, p in self.processes.items() if p.poll() is not None}
+
+    def log_text(self, name: str) -> str:
+        path = self.log_dir / f"{name}.log"
+        return path.read_text(errors="replace") if path.exists() else ""

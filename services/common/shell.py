@@ -1,0 +1,226 @@
+"""What every scanflow service shares: session, health token, stats, inbox, clean shutdown.
+
+A service builds a `ServiceShell`, declares its publishers, subscribers and queryables through
+it, calls `start()` and then `run(handle)`: Zenoh callbacks only decode, count and enqueue;
+`handle(kind, message)` runs on the one worker thread; queries run on one query thread.
+SIGTERM or Ctrl-C ends `run`, then `close()` flushes, undeclares and closes the session.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import signal
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import zenoh
+from scanflow import keys
+from scanflow.config import ZenohSettings
+from scanflow.wire import ServiceStatsMessage
+
+from services.common.counters import Counters, SeqTracker
+from services.common.inbox import Inbox
+from services.common.zsession import open_session
+
+QueryHandler = Callable[[zenoh.Query], None]
+_LOG_FIRST = 10
+_LOG_EVERY = 100
+
+
+class ServiceShell:
+    """Session, liveliness token, stats queryable, counters and a bounded inbox for one service."""
+
+    def __init__(
+        self, service: str, instance: str, zenoh_settings: ZenohSettings, queue_size: int = 64
+    ) -> None:
+        self.service = keys.check_id(service, "service")
+        self.instance = keys.check_id(instance, "instance")
+        self.prefix = zenoh_settings.prefix
+        self.log = logging.getLogger(f"scanflow.{service}")
+        self.stop_event = threading.Event()
+        self.counters = Counters()
+        self.seqs = SeqTracker()
+        self.inbox = Inbox(queue_size, self.stop_event)
+        self.session = open_session(zenoh_settings)
+        self._declared: list[Any] = []
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._stats_sources: list[Callable[[], dict[str, float]]] = []
+        self._queries: queue.Queue[tuple[QueryHandler, zenoh.Query]] = queue.Queue(queue_size)
+        self._query_thread = threading.Thread(target=self._serve_queries, daemon=True)
+        self._started_s = time.monotonic()
+
+    # -- declarations -------------------------------------------------------------------
+    def publisher(self, key: str) -> zenoh.Publisher:
+        """A reliable publisher that blocks rather than drops when the network is slow."""
+        pub = self.session.declare_publisher(
+            key,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            reliability=zenoh.Reliability.RELIABLE,
+        )
+        self._declared.append(pub)
+        return pub
+
+    def put(self, key: str, payload: bytes) -> None:
+        """Publish on `key` through a cached reliable, blocking publisher."""
+        pub = self._publishers.get(key)
+        if pub is None:
+            pub = self._publishers[key] = self.publisher(key)
+        pub.put(payload)
+
+    def subscribe(
+        self,
+        key: str,
+        kind: str,
+        decode: Callable[[bytes], Any],
+        sink: Callable[[str, Any], object] | None = None,
+    ) -> None:
+        """Decode every sample on `key`; malformed ones are counted and logged, never fatal.
+
+        Decoded messages go to `sink(kind, message)` (default: the inbox, blocking when full).
+        `sink` runs on a Zenoh thread and must be quick.
+        """
+        deliver = sink or self.inbox.put
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            if sample.kind != zenoh.SampleKind.PUT:
+                return
+            try:
+                message = decode(sample.payload.to_bytes())
+            except Exception as exc:  # any decode failure: count, log, keep going
+                self._count_malformed(kind, str(sample.key_expr), exc)
+                return
+            self.counters.add(f"received.{kind}")
+            deliver(kind, message)
+
+        self._declared.append(self.session.declare_subscriber(key, on_sample))
+
+    def serve(self, key: str, handler: QueryHandler) -> None:
+        """Answer queries on `key` with `handler(query)` on the query thread (not Zenoh's)."""
+
+        def on_query(query: zenoh.Query) -> None:
+            try:
+                self._queries.put_nowait((handler, query))
+            except queue.Full:
+                self.counters.add("queries.busy")
+                query.reply_err(f"{self.service}/{self.instance} is busy: query queue full")
+
+        self._declared.append(self.session.declare_queryable(key, on_query))
+
+    def add_stats(self, source: Callable[[], dict[str, float]]) -> None:
+        """Merge the gauges `source()` returns into the stats this service reports."""
+        self._stats_sources.append(source)
+
+    # -- life cycle ---------------------------------------------------------------------
+    def start(self, install_signals: bool = True) -> None:
+        """Announce the service: stats queryable, health token; handle SIGTERM/SIGINT."""
+        stats_key = keys.stats(self.service, self.instance, self.prefix)
+        self._declared.append(self.session.declare_queryable(stats_key, self._reply_stats))
+        self._query_thread.start()
+        health_key = keys.health(self.service, self.instance, self.prefix)
+        self._declared.append(self.session.liveliness().declare_token(health_key))
+        if install_signals:
+            signal.signal(signal.SIGTERM, self._on_signal)
+            signal.signal(signal.SIGINT, self._on_signal)
+        self.log.info("%s/%s up (pid %d)", self.service, self.instance, os.getpid())
+
+    def run(
+        self,
+        handle: Callable[[str, Any], None],
+        idle: Callable[[], None] | None = None,
+        poll_s: float = 0.1,
+    ) -> None:
+        """Feed inbox items to `handle` until stopped; `idle()` runs after `poll_s` of quiet."""
+        while not self.stop_event.is_set():
+            item = self.inbox.get(poll_s)
+            if item is None:
+                if idle is not None:
+                    idle()
+                continue
+            kind, message = item
+            try:
+                handle(kind, message)
+            except Exception:  # a bad message must not stop the service
+                self.counters.add(f"errors.{kind}")
+                self.log.exception("failed to handle a %s message", kind)
+
+    def stop(self) -> None:
+        self.stop_event.set()
+
+    def close(self, flush_s: float = 0.2) -> None:
+        """Let queued puts leave, then undeclare everything and close the session."""
+        self.stop_event.set()
+        time.sleep(flush_s)
+        for entity in reversed(self._declared):
+            try:
+                entity.undeclare()
+            except zenoh.ZError:
+                self.log.debug("undeclare failed during close", exc_info=True)
+        self._declared.clear()
+        self._publishers.clear()
+        self.session.close()
+        self.log.info("%s/%s closed", self.service, self.instance)
+
+    # -- stats --------------------------------------------------------------------------
+    def stats(self) -> ServiceStatsMessage:
+        """Counters (incl. per-stream seq gaps), queue depths, RSS and service gauges."""
+        counters = self.counters.snapshot()
+        gauges: dict[str, float] = {
+            "pid": os.getpid(),
+            "uptime_s": time.monotonic() - self._started_s,
+            "rss_bytes": rss_bytes(),
+            "inbox_depth": self.inbox.depth(),
+            "inbox_high_water": self.inbox.high_water,
+        }
+        for stream, figures in self.seqs.snapshot().items():
+            gauges[f"seq.{stream}.last"] = figures.pop("last_seq")
+            counters.update({f"seq.{stream}.{name}": n for name, n in figures.items()})
+        for source in self._stats_sources:
+            gauges.update(source())
+        return ServiceStatsMessage(
+            service=self.service,
+            instance=self.instance,
+            stamp_s=time.time(),
+            counters=counters,
+            gauges=gauges,
+        )
+
+    def _reply_stats(self, query: zenoh.Query) -> None:
+        query.reply(query.key_expr, self.stats().encode())
+
+    def _serve_queries(self) -> None:
+        while not self.stop_event.is_set():
+            try:
+                handler, query = self._queries.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            try:
+                handler(query)
+                self.counters.add("queries.answered")
+            except Exception as exc:  # a bad query gets an error reply, the service goes on
+                self.counters.add("queries.failed")
+                self.log.warning("query %s failed: %s", query.selector, exc)
+                query.reply_err(f"{type(exc).__name__}: {exc}")
+            finally:
+                query.drop()
+
+    def _count_malformed(self, kind: str, key: str, exc: Exception) -> None:
+        n = self.counters.add(f"malformed.{kind}")
+        if n <= _LOG_FIRST or n % _LOG_EVERY == 0:
+            self.log.warning("malformed %s message #%d on %s: %s", kind, n, key, exc)
+
+    def _on_signal(self, signum: int, _frame: object) -> None:
+        self.log.info("signal %d: stopping", signum)
+        self.stop_event.set()
+
+
+def rss_bytes() -> int:
+    """Resident set size of this process (Linux /proc; 0 where unavailable)."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return 0

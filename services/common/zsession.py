@@ -1,0 +1,31 @@
+"""Open a Zenoh session from `ZenohSettings`: the one place services turn settings into config."""
+
+from __future__ import annotations
+
+import json
+
+import zenoh
+from scanflow.config import ZenohSettings
+
+
+def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
+    """A `zenoh.Config` with mode, connect/listen endpoints and scouting from `settings`."""
+    config = zenoh.Config()
+    config.insert_json5("mode", json.dumps(settings.mode))
+    if settings.connect:
+        config.insert_json5("connect/endpoints", json.dumps(list(settings.connect)))
+    if settings.listen:
+        config.insert_json5("listen/endpoints", json.dumps(list(settings.listen)))
+    config.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
+    return config
+
+
+def open_session(settings: ZenohSettings) -> zenoh.Session:
+    """Open a session; raises with the endpoints named when the router cannot be reached."""
+    try:
+        return zenoh.open(zenoh_config(settings))
+    except zenoh.ZError as exc:
+        raise RuntimeError(
+            f"cannot open a Zenoh session (mode={settings.mode!r}, "
+            f"connect={settings.connect!r}, listen={settings.listen!r}): {exc}"
+        ) from exc

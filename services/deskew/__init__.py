@@ -1,0 +1,1 @@
+"""Deskew: raw scans + odometry in, motion-compensated scans out (per robot, by wildcard)."""

@@ -1,0 +1,3 @@
+from services.deskew.service import main
+
+main()

@@ -1,0 +1,70 @@
+"""`scanflow up`: run router, services and gateway locally until Ctrl-C (used by `make run`)."""
+
+from __future__ import annotations
+
+import importlib.util
+import signal
+import tempfile
+import time
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from scanflow.cli import app
+
+
+@app.command()
+def up(
+    log: Annotated[Path | None, typer.Option(help="CARMEN log or ROS bag; default: sim")] = None,
+    rate: Annotated[float, typer.Option(help="x real time; 0 = as fast as possible")] = 1.0,
+    port: Annotated[int, typer.Option(help="gateway HTTP port")] = 8000,
+    zenoh_port: Annotated[int, typer.Option(help="router TCP port on 127.0.0.1")] = 7447,
+    data_dir: Annotated[Path, typer.Option(help="map snapshots")] = Path("scanflow-data"),
+    limit: Annotated[int | None, typer.Option(help="publish at most this many scans")] = None,
+) -> None:
+    """Start the whole pipeline as local processes; stop them all on Ctrl-C or SIGTERM."""
+    from services.common.launch import ORDER, Launcher
+
+    settings = {
+        "SCANFLOW_INGEST_RATE": str(rate),
+        "SCANFLOW_MAPSERVER_DATA_DIR": str(data_dir.resolve()),
+        "SCANFLOW_GATEWAY_PORT": str(port),
+    }
+    if log is not None:
+        settings["SCANFLOW_INGEST_LOG"] = str(log.resolve())
+    if limit is not None:
+        settings["SCANFLOW_INGEST_LIMIT"] = str(limit)
+    log_dir = Path(tempfile.mkdtemp(prefix="scanflow-up-"))
+    launcher = Launcher.local(log_dir, zenoh_port, **settings)
+    stopping = False
+
+    def on_signal(_signum: int, _frame: object) -> None:
+        nonlocal stopping
+        stopping = True
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    try:
+        for name in ORDER:
+            if name == "gateway" and importlib.util.find_spec("services.gateway") is None:
+                typer.echo("gateway: not installed, skipped")
+                continue
+            launcher.start(name)
+        typer.echo(f"source:   {log or 'built-in simulator'} at rate {rate}")
+        typer.echo(f"gateway:  http://127.0.0.1:{port}/")
+        typer.echo(f"zenoh:    tcp/127.0.0.1:{zenoh_port} (SCANFLOW_ZENOH_CONNECT)")
+        typer.echo(f"data dir: {data_dir.resolve()}")
+        typer.echo(f"logs:     {log_dir}")
+        typer.echo("Ctrl-C stops everything.")
+        reported: set[str] = set()
+        while not stopping:
+            for name, code in launcher.exited().items():
+                if name not in reported:
+                    reported.add(name)
+                    typer.echo(f"{name} exited with code {code} (log: {log_dir / name}.log)")
+            time.sleep(0.5)
+    finally:
+        typer.echo("stopping...")
+        for name, code in launcher.stop_all().items():
+            typer.echo(f"  {name}: exit {code}")
