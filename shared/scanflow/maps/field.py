@@ -90,12 +90,15 @@ class LikelihoodField:
 
         Points whose interpolation square leaves the grid get value 0 and gradient 0.
         """
+        rows, cols = self.spec.shape
+        if rows < 2 or cols < 2:  # no interpolation square fits: nothing is inside
+            n = np.asarray(points).reshape(-1, 2).shape[0]
+            return np.zeros(n), np.zeros((n, 2))
         rc = self.spec.world_to_continuous(points)
         r0 = np.floor(rc[:, 0]).astype(np.int64)
         c0 = np.floor(rc[:, 1]).astype(np.int64)
         fr = rc[:, 0] - r0
         fc = rc[:, 1] - c0
-        rows, cols = self.spec.shape
         inside = (r0 >= 0) & (c0 >= 0) & (r0 < rows - 1) & (c0 < cols - 1)
         r0 = np.where(inside, r0, 0)
         c0 = np.where(inside, c0, 0)
