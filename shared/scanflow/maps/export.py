@@ -1,0 +1,228 @@
+"""Save and load occupancy maps: PNG for people, PGM + YAML for ROS map_server/nav2, and a
+lossless native .npz. Every write is atomic (temporary file, then os.replace), so a reader never
+sees half a map.
+
+map_server conventions: image row 0 is the top (largest y) row; `origin` is the world pose of
+the lower-left pixel; with `negate: 0` a pixel's occupancy is (255 - value) / 255, trinary mode
+calls it occupied above `occupied_thresh`, free below `free_thresh`, unknown otherwise. We write
+the values map_saver writes: 0 occupied, 254 free, 205 unknown.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+from dataclasses import asdict, replace
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+from PIL import Image
+
+from scanflow.maps.grid import CellBox
+from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
+
+OCCUPIED_PIXEL = 0
+FREE_PIXEL = 254
+UNKNOWN_PIXEL = 205
+OCCUPIED_THRESH = 0.65
+FREE_THRESH = 0.196
+NPZ_FORMAT = "scanflow-occupancy"
+NPZ_VERSION = 1
+
+
+def _write_atomic(path: Path, data: bytes) -> Path:
+    """Write bytes to a temporary file beside `path`, then rename it over `path`."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def trinary_image(
+    grid: OccupancyGrid,
+    occupied_thresh: float = OCCUPIED_THRESH,
+    free_thresh: float = FREE_THRESH,
+) -> NDArray[np.uint8]:
+    """Grey image of the map, top row = largest y: 0 occupied, 254 free, 205 unknown."""
+    if grid.is_empty:
+        raise ValueError("grid is empty: nothing to draw")
+    if not 0.0 < free_thresh < occupied_thresh < 1.0:
+        raise ValueError(
+            f"need 0 < free_thresh < occupied_thresh < 1, got {free_thresh}, {occupied_thresh}"
+        )
+    image = np.full(grid.spec.shape, UNKNOWN_PIXEL, dtype=np.uint8)
+    image[grid.free_mask(free_thresh)] = FREE_PIXEL
+    image[grid.occupied_mask(occupied_thresh)] = OCCUPIED_PIXEL
+    return np.ascontiguousarray(image[::-1])
+
+
+def save_png(grid: OccupancyGrid, path: Path | str) -> Path:
+    """A PNG for people: free white, occupied black, unknown grey, y up."""
+    buffer = io.BytesIO()
+    Image.fromarray(trinary_image(grid), mode="L").save(buffer, format="PNG")
+    return _write_atomic(Path(path), buffer.getvalue())
+
+
+def pgm_bytes(image: NDArray[np.uint8]) -> bytes:
+    """A binary (P5) 8-bit PGM of a grey image."""
+    rows, cols = image.shape
+    header = f"P5\n# CREATOR: scanflow\n{cols} {rows}\n255\n".encode("ascii")
+    return header + np.ascontiguousarray(image, dtype=np.uint8).tobytes()
+
+
+def save_map_server(
+    grid: OccupancyGrid,
+    yaml_path: Path | str,
+    occupied_thresh: float = OCCUPIED_THRESH,
+    free_thresh: float = FREE_THRESH,
+) -> Path:
+    """Write `<name>.yaml` and `<name>.pgm` beside it, loadable by map_server/nav2 (trinary)."""
+    yaml_path = Path(yaml_path)
+    pgm_path = yaml_path.with_suffix(".pgm")
+    spec = grid.spec
+    _write_atomic(pgm_path, pgm_bytes(trinary_image(grid, occupied_thresh, free_thresh)))
+    text = (
+        f"image: {pgm_path.name}\n"
+        "mode: trinary\n"
+        f"resolution: {spec.resolution_m!r}\n"
+        f"origin: [{spec.origin_x_m!r}, {spec.origin_y_m!r}, 0.0]\n"
+        "negate: 0\n"
+        f"occupied_thresh: {occupied_thresh!r}\n"
+        f"free_thresh: {free_thresh!r}\n"
+    )
+    return _write_atomic(yaml_path, text.encode("utf-8"))
+
+
+def _parse_flat_yaml(text: str, source: Path) -> dict[str, str]:
+    """The `key: value` lines of a map_server YAML file (flat, comments allowed)."""
+    fields: dict[str, str] = {}
+    for line_no, raw in enumerate(text.splitlines(), start=1):
+        line = raw.split("#", 1)[0].strip()
+        if not line or line == "---":
+            continue
+        key, sep, value = line.partition(":")
+        if not sep:
+            raise ValueError(f"{source}:{line_no}: expected 'key: value', got {raw!r}")
+        fields[key.strip()] = value.strip().strip("'\"")
+    return fields
+
+
+def _yaml_float(fields: dict[str, str], key: str, source: Path) -> float:
+    try:
+        return float(fields[key])
+    except KeyError:
+        raise ValueError(f"{source}: missing field {key!r}") from None
+    except ValueError:
+        raise ValueError(f"{source}: field {key!r} is not a number: {fields[key]!r}") from None
+
+
+def _occupancy_from_pixels(
+    shade: NDArray[np.float64], mode: str, occupied_thresh: float, free_thresh: float
+) -> NDArray[np.int8]:
+    """map_server's pixel -> ROS occupancy (-1, 0..100) for trinary and scale modes."""
+    occ = (255.0 - shade) / 255.0
+    if mode == "trinary":
+        middle = np.full(shade.shape, -1.0)
+    else:
+        middle = np.rint(99.0 * (occ - free_thresh) / (occupied_thresh - free_thresh))
+    data = np.where(occ > occupied_thresh, 100.0, np.where(occ < free_thresh, 0.0, middle))
+    return data.astype(np.int8)
+
+
+def load_map_server(yaml_path: Path | str, params: OccupancyParams | None = None) -> OccupancyGrid:
+    """Read a map_server YAML and its image (PGM, PNG, ...) into an OccupancyGrid."""
+    yaml_path = Path(yaml_path)
+    fields = _parse_flat_yaml(yaml_path.read_text(encoding="utf-8"), yaml_path)
+    if "image" not in fields:
+        raise ValueError(f"{yaml_path}: missing field 'image'")
+    resolution_m = _yaml_float(fields, "resolution", yaml_path)
+    occupied_thresh = float(fields.get("occupied_thresh", OCCUPIED_THRESH))
+    free_thresh = float(fields.get("free_thresh", FREE_THRESH))
+    mode = fields.get("mode", "trinary")
+    if mode not in ("trinary", "scale"):
+        raise ValueError(f"{yaml_path}: field 'mode' must be trinary or scale, got {mode!r}")
+    origin = [float(v) for v in fields.get("origin", "").strip("[]").split(",") if v.strip()]
+    if len(origin) != 3 or origin[2] != 0.0:
+        raise ValueError(f"{yaml_path}: field 'origin' must be [x, y, 0.0], got {origin}")
+    with Image.open(yaml_path.parent / fields["image"]) as img:
+        grey = img.mode == "L"
+        pixels = np.asarray(img if grey else img.convert("RGB"), dtype=np.float64)
+    shade = pixels if grey else pixels.mean(axis=2)  # map_server averages the channels
+    if fields.get("negate", "0") not in ("0", "false", "False"):
+        shade = 255.0 - shade
+    data = _occupancy_from_pixels(shade[::-1], mode, occupied_thresh, free_thresh)
+    grid_params = replace(params or OccupancyParams(), resolution_m=resolution_m)
+    return OccupancyGrid.from_int8(data, origin[0], origin[1], grid_params)
+
+
+def save_npz(grid: OccupancyGrid, path: Path | str) -> Path:
+    """Lossless native format: log-odds, observed mask, lattice placement, params, revision."""
+    box = grid.extent or CellBox(0, 0, 0, 0)
+    meta = {
+        "format": NPZ_FORMAT,
+        "version": NPZ_VERSION,
+        "anchor_x_m": grid.anchor_x_m,
+        "anchor_y_m": grid.anchor_y_m,
+        "box": [box.row0, box.col0, box.row1, box.col1],
+        "params": asdict(grid.params),
+        "revision": grid.revision,
+    }
+    buffer = io.BytesIO()
+    np.savez_compressed(
+        buffer, log_odds=grid.log_odds, observed=grid.observed, meta=np.array(json.dumps(meta))
+    )
+    return _write_atomic(Path(path), buffer.getvalue())
+
+
+def load_npz(path: Path | str) -> OccupancyGrid:
+    """Read a map written by `save_npz` exactly as it was saved."""
+    path = Path(path)
+    with np.load(path, allow_pickle=False) as data:
+        meta = json.loads(str(data["meta"]))
+        if meta.get("format") != NPZ_FORMAT or meta.get("version") != NPZ_VERSION:
+            raise ValueError(
+                f"{path}: not a {NPZ_FORMAT} v{NPZ_VERSION} file "
+                f"(format {meta.get('format')!r}, version {meta.get('version')!r})"
+            )
+        return OccupancyGrid.from_arrays(
+            data["log_odds"],
+            data["observed"],
+            CellBox(*meta["box"]),
+            meta["anchor_x_m"],
+            meta["anchor_y_m"],
+            OccupancyParams(**meta["params"]),
+            meta["revision"],
+        )
+
+
+def save_map(grid: OccupancyGrid, path: Path | str) -> Path:
+    """Save by suffix: .npz native, .yaml/.yml map_server (+ .pgm), .png picture."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".npz":
+        return save_npz(grid, path)
+    if suffix in (".yaml", ".yml"):
+        return save_map_server(grid, path)
+    if suffix == ".png":
+        return save_png(grid, path)
+    raise ValueError(f"map path suffix must be .npz, .yaml, .yml or .png, got {suffix!r}")
+
+
+def load_map(path: Path | str, params: OccupancyParams | None = None) -> OccupancyGrid:
+    """Load by suffix: .npz native (exact) or .yaml/.yml map_server (with `params`' model)."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".npz":
+        return load_npz(path)
+    if suffix in (".yaml", ".yml"):
+        return load_map_server(path, params)
+    raise ValueError(f"map path suffix must be .npz, .yaml or .yml, got {suffix!r}")

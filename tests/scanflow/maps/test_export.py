@@ -1,0 +1,202 @@
+"""Map files: exact native round trip, map_server PGM/YAML as ROS reads it, PNG for people."""
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+from scanflow.geometry import Pose2D
+from scanflow.maps.export import (
+    FREE_PIXEL,
+    OCCUPIED_PIXEL,
+    UNKNOWN_PIXEL,
+    load_map,
+    save_map,
+    save_map_server,
+    save_npz,
+    trinary_image,
+)
+from scanflow.maps.matching_map import MatchingMap
+from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
+
+
+def l_shaped_room_scans(grid: OccupancyGrid, scans: int = 6) -> None:
+    """A few scans of an L-shaped set of walls, so maps have free, occupied and unknown cells."""
+    rng = np.random.default_rng(3)
+    a = np.linspace(-math.pi, math.pi, 240, endpoint=False)
+    d = np.column_stack((np.cos(a), np.sin(a)))
+    for i in range(scans):
+        center = np.array([0.2 * i - 0.7, 0.1 * i + 0.33])
+        with np.errstate(divide="ignore"):
+            t = np.min([2.5, 3.5] / np.abs(d), axis=1)
+        grid.insert_scan(center + d * t[:, None] + rng.normal(0, 0.005, (240, 2)), center)
+
+
+def classes(grid: OccupancyGrid) -> np.ndarray:
+    """0 free, 1 occupied, 2 unknown per cell, with map_server's default thresholds."""
+    out = np.full(grid.spec.shape, 2)
+    out[grid.free_mask(0.196)] = 0
+    out[grid.occupied_mask(0.65)] = 1
+    return out
+
+
+def parse_pgm(data: bytes) -> tuple[int, int, int, np.ndarray]:
+    """A tiny independent P5 parser: magic, comments, width, height, maxval, raw bytes."""
+    tokens: list[bytes] = []
+    pos = 0
+    while len(tokens) < 4:
+        while data[pos : pos + 1].isspace():
+            pos += 1
+        if data[pos : pos + 1] == b"#":
+            pos = data.index(b"\n", pos) + 1
+            continue
+        end = pos
+        while not data[end : end + 1].isspace():
+            end += 1
+        tokens.append(data[pos:end])
+        pos = end
+    assert tokens[0] == b"P5"
+    width, height, maxval = (int(t) for t in tokens[1:])
+    pixels = np.frombuffer(data[pos + 1 :], dtype=np.uint8)
+    assert pixels.size == width * height
+    return width, height, maxval, pixels.reshape(height, width)
+
+
+@pytest.fixture
+def grid() -> OccupancyGrid:
+    g = OccupancyGrid(OccupancyParams(resolution_m=0.05, p_hit=0.8), anchor_x_m=0.01)
+    l_shaped_room_scans(g)
+    return g
+
+
+def test_npz_round_trip_is_exact(tmp_path: Path, grid: OccupancyGrid):
+    path = save_map(grid, tmp_path / "map.npz")
+    loaded = load_map(path)
+    assert loaded.params == grid.params
+    assert loaded.extent == grid.extent and loaded.spec == grid.spec
+    assert (loaded.anchor_x_m, loaded.anchor_y_m) == (grid.anchor_x_m, grid.anchor_y_m)
+    assert loaded.revision == grid.revision
+    np.testing.assert_array_equal(loaded.log_odds, grid.log_odds)
+    np.testing.assert_array_equal(loaded.observed, grid.observed)
+    # The loaded map keeps growing on the same lattice as the original.
+    for g in (grid, loaded):
+        g.insert_scan([[9.0, 9.0]], (0.0, 0.0))
+    np.testing.assert_array_equal(loaded.log_odds, grid.log_odds)
+
+
+def test_npz_of_an_empty_grid(tmp_path: Path):
+    loaded = load_map(save_npz(OccupancyGrid(), tmp_path / "empty.npz"))
+    assert loaded.is_empty
+
+
+def test_npz_rejects_foreign_files(tmp_path: Path):
+    path = tmp_path / "other.npz"
+    np.savez(path, meta=np.array('{"format": "other", "version": 1}'))
+    with pytest.raises(ValueError, match="not a scanflow-occupancy"):
+        load_map(path)
+
+
+def test_map_server_files_are_what_ros_expects(tmp_path: Path, grid: OccupancyGrid):
+    yaml_path = save_map_server(grid, tmp_path / "office.yaml")
+    text = yaml_path.read_text()
+    spec = grid.spec
+    assert "image: office.pgm\n" in text
+    assert "mode: trinary\n" in text
+    assert f"resolution: {spec.resolution_m!r}\n" in text
+    assert f"origin: [{spec.origin_x_m!r}, {spec.origin_y_m!r}, 0.0]\n" in text
+    assert "negate: 0\n" in text
+    assert "occupied_thresh: 0.65\n" in text and "free_thresh: 0.196\n" in text
+    width, height, maxval, pixels = parse_pgm((tmp_path / "office.pgm").read_bytes())
+    assert (width, height, maxval) == (spec.cols, spec.rows, 255)
+    # map_server (negate 0, trinary): occupancy = (255 - pixel) / 255 against the thresholds;
+    # row 0 of the image is the top (largest y) row of the map.
+    occ = (255.0 - pixels[::-1]) / 255.0
+    ros_classes = np.where(occ > 0.65, 1, np.where(occ < 0.196, 0, 2))
+    np.testing.assert_array_equal(ros_classes, classes(grid))
+
+
+def test_map_server_round_trip_keeps_free_occupied_unknown(tmp_path: Path, grid: OccupancyGrid):
+    loaded = load_map(save_map(grid, tmp_path / "m.yaml"))
+    assert loaded.spec.shape == grid.spec.shape
+    assert loaded.spec.origin_x_m == pytest.approx(grid.spec.origin_x_m, abs=1e-12)
+    assert loaded.spec.origin_y_m == pytest.approx(grid.spec.origin_y_m, abs=1e-12)
+    want = classes(grid)
+    assert {0, 1, 2} <= set(np.unique(want))
+    np.testing.assert_array_equal(classes(loaded), want)
+
+
+def test_reads_a_hand_written_map_server_map(tmp_path: Path):
+    """A map as other tools write it: comments, quotes, PNG image, scale mode, negate."""
+    image = np.array([[0, 255, 128], [255, 255, 0]], dtype=np.uint8)  # top row first
+    Image.fromarray(image, mode="L").save(tmp_path / "hand.png")
+    (tmp_path / "hand.yaml").write_text(
+        "# saved by hand\n"
+        "image: 'hand.png'\n"
+        "resolution: 0.1\n"
+        "origin: [-1.5, 2.0, 0.0]  # lower-left pixel\n"
+        "negate: 1\n"
+        "occupied_thresh: 0.65\n"
+        "free_thresh: 0.25\n"
+        "mode: scale\n"
+    )
+    grid = load_map(tmp_path / "hand.yaml")
+    assert grid.resolution_m == 0.1
+    assert (grid.spec.origin_x_m, grid.spec.origin_y_m) == (-1.5, 2.0)
+    # negate: occupancy = value / 255; bottom row of the map is the last image row.
+    data = grid.to_int8()
+    assert data[0, 0] == data[0, 1] == data[1, 1] == 97  # 100 clamped at log_odds_max 3.5
+    assert data[0, 2] == data[1, 0] == 12  # 0 clamped at log_odds_min -2.0
+    expected = round(99 * (128 / 255 - 0.25) / (0.65 - 0.25))
+    assert abs(data[1, 2] - expected) <= 1
+
+
+@pytest.mark.parametrize(
+    ("text", "field"),
+    [
+        ("resolution: 0.05\norigin: [0, 0, 0]\n", "image"),
+        ("image: a.pgm\norigin: [0, 0, 0]\n", "resolution"),
+        ("image: a.pgm\nresolution: 0.05\norigin: [0, 0, 0.5]\n", "origin"),
+        ("image: a.pgm\nresolution: 0.05\norigin: [0, 0, 0]\nmode: raw\n", "mode"),
+    ],
+)
+def test_bad_map_server_yaml_names_the_field(tmp_path: Path, text: str, field: str):
+    (tmp_path / "bad.yaml").write_text(text)
+    with pytest.raises(ValueError, match=field):
+        load_map(tmp_path / "bad.yaml")
+
+
+def test_png_for_people(tmp_path: Path, grid: OccupancyGrid):
+    path = save_map(grid, tmp_path / "map.png")
+    with Image.open(path) as img:
+        pixels = np.asarray(img)
+    assert pixels.shape == grid.spec.shape
+    np.testing.assert_array_equal(pixels, trinary_image(grid))
+    assert set(np.unique(pixels)) == {OCCUPIED_PIXEL, FREE_PIXEL, UNKNOWN_PIXEL}
+    np.testing.assert_array_equal(pixels[::-1] == OCCUPIED_PIXEL, grid.occupied_mask(0.65))
+
+
+def test_writes_are_atomic_and_leave_no_temporaries(tmp_path: Path, grid: OccupancyGrid):
+    for name in ("a.npz", "a.yaml", "a.png"):
+        save_map(grid, tmp_path / name)
+        save_map(grid, tmp_path / name)  # overwrite in place
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npz", "a.pgm", "a.png", "a.yaml"]
+
+
+def test_unknown_suffix_and_empty_map_are_refused(tmp_path: Path):
+    with pytest.raises(ValueError, match="suffix"):
+        load_map(tmp_path / "map.bmp")
+    with pytest.raises(ValueError, match="empty"):
+        save_map(OccupancyGrid(), tmp_path / "map.png")
+
+
+def test_a_loaded_map_can_be_matched_against(tmp_path: Path, grid: OccupancyGrid):
+    """Localisation on a prior map: the field of a loaded map attracts a shifted wall point."""
+    for name in ("prior.npz", "prior.yaml"):
+        world = MatchingMap(load_map(save_map(grid, tmp_path / name)))
+        assert not world.is_empty
+        field = world.likelihood_field()
+        wall = world.occupied_points()
+        value, grad = field.sample(Pose2D(0.03, 0.0, 0.0).transform_points(wall))
+        assert value.mean() > 0.5
+        assert grad[:, 0].mean() < 0  # pulls the points back towards -x
