@@ -1,0 +1,32 @@
+"""Motion compensation (deskewing) of rotating 2D lidar scans.
+
+`deskew(scan, sources, reference)` re-expresses every beam in the frame of one reference pose,
+with poses from an `OdometryBuffer`, a `ConstantVelocityModel`, or none; the result says which.
+"""
+
+from scanflow.deskew.buffer import OdometryBuffer
+from scanflow.deskew.compensate import (
+    DEFAULT_REFERENCE,
+    REFERENCES,
+    DeskewResult,
+    Reference,
+    deskew,
+)
+from scanflow.deskew.source import DeskewError, PoseSource, choose_source
+from scanflow.deskew.twist import se2_exp, se2_log
+from scanflow.deskew.velocity import ConstantVelocityModel
+
+__all__ = [
+    "DEFAULT_REFERENCE",
+    "REFERENCES",
+    "ConstantVelocityModel",
+    "DeskewError",
+    "DeskewResult",
+    "OdometryBuffer",
+    "PoseSource",
+    "Reference",
+    "choose_source",
+    "deskew",
+    "se2_exp",
+    "se2_log",
+]

@@ -1,0 +1,137 @@
+"""Per-beam motion compensation: re-express every beam in the frame of one reference pose.
+
+Beam i was measured at time t_i from pose T(t_i); its endpoint in the reference frame is
+p_ref = T(t_ref)^-1 * T(t_i) * p_i (the seed's formula, vectorised over all beams). With the
+relative pose (x_i, y_i, theta_i) = T(t_ref)^-1 T(t_i), that is
+p_ref = (x_i + r_i cos(alpha_i + theta_i), y_i + r_i sin(alpha_i + theta_i)).
+
+Default reference: "start", the pose at `scan.stamp_s` (the first beam). It is the stamp every
+other module already sees (ROS header convention), so the matcher and the frontend attach the
+deskewed points to that stamp without re-stamping, and the simulator's ground truth uses it too.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property, lru_cache
+from typing import Literal, get_args
+
+import numpy as np
+from numpy.typing import NDArray
+
+from scanflow.deskew import kernels
+from scanflow.deskew.source import DeskewError, PoseSource, choose_source
+from scanflow.scan import LaserScan
+
+Reference = Literal["start", "middle", "end"]
+REFERENCES: tuple[str, ...] = get_args(Reference)
+DEFAULT_REFERENCE: Reference = "start"
+SourceUsed = Literal["odometry", "constant_velocity", "none"]
+
+
+@dataclass(frozen=True, eq=False)
+class DeskewResult:
+    """A motion-compensated scan: valid beams as points in the frame of the reference pose."""
+
+    points: NDArray[np.float64]
+    reference: Reference
+    reference_stamp_s: float
+    source_used: str
+    times_assumed: bool
+    message: str
+    beam_count: int
+    valid_count: int
+
+    @cached_property
+    def ranges_m(self) -> NDArray[np.float64]:
+        """Range of each compensated point from the reference pose (computed on first use)."""
+        return np.hypot(self.points[:, 0], self.points[:, 1])
+
+    @cached_property
+    def angles_rad(self) -> NDArray[np.float64]:
+        """Bearing of each compensated point in the reference frame (computed on first use)."""
+        return np.arctan2(self.points[:, 1], self.points[:, 0])
+
+
+def deskew(
+    scan: LaserScan,
+    sources: PoseSource | list[PoseSource] | tuple[PoseSource, ...] | None = None,
+    reference: Reference = DEFAULT_REFERENCE,
+) -> DeskewResult:
+    """Compensate the scan's motion with the first source that covers its sweep.
+
+    Falls back to no correction (source_used "none", with the reason in `message`) when no
+    source covers it, the scan has zero duration, or it has no valid beams; never raises for
+    a well-formed `LaserScan`. Raises DeskewError only for an unknown `reference`.
+    """
+    if reference not in REFERENCES:
+        raise DeskewError(f"reference must be one of {REFERENCES}, got {reference!r}")
+    offsets_s = _time_offsets(scan)
+    start_s = scan.stamp_s
+    end_s = scan.stamp_s + (float(offsets_s[-1]) if offsets_s.size else 0.0)
+    reference_s = {"start": start_s, "middle": 0.5 * (start_s + end_s), "end": end_s}[reference]
+    valid = scan.valid_mask
+    layout = (scan.beam_count, scan.angle_min_rad, scan.angle_increment_rad)
+
+    def uncorrected(message: str) -> DeskewResult:
+        zeros = np.zeros(scan.beam_count)
+        points = kernels.beams_in_reference(
+            scan.ranges_m, _beam_angles(*layout), valid, zeros, zeros, zeros
+        )
+        return _result(scan, points, reference, reference_s, "none", message)
+
+    if not valid.any():
+        return uncorrected(f"scan has no valid beams ({scan.beam_count} beams, all invalid)")
+    if end_s == start_s and offsets_s[0] == 0.0:
+        return uncorrected("scan has zero duration: no motion within the sweep to correct")
+    source, reasons = choose_source(
+        sources, min(start_s + float(offsets_s[0]), reference_s), max(end_s, reference_s)
+    )
+    if source is None:
+        return uncorrected(f"no pose source covers the sweep: {reasons}")
+    x, y, theta = source.relative_poses(scan.stamp_s + offsets_s, reference_s)
+    points = kernels.beams_in_reference(scan.ranges_m, _beam_angles(*layout), valid, x, y, theta)
+    return _result(scan, points, reference, reference_s, source.name, reasons)
+
+
+def _result(
+    scan: LaserScan,
+    points: NDArray[np.float64],
+    reference: Reference,
+    reference_s: float,
+    source_used: str,
+    message: str,
+) -> DeskewResult:
+    return DeskewResult(
+        points=points,
+        reference=reference,
+        reference_stamp_s=reference_s,
+        source_used=source_used,
+        times_assumed=scan.beam_times_assumed,
+        message=message,
+        beam_count=scan.beam_count,
+        valid_count=int(points.shape[0]),
+    )
+
+
+def _time_offsets(scan: LaserScan) -> NDArray[np.float64]:
+    """Measured per-beam offsets, or the cached uniform ones for this beam count and duration."""
+    if scan.beam_time_offsets_s is not None:
+        return scan.beam_time_offsets_s
+    return _uniform_offsets(scan.beam_count, scan.scan_duration_s)
+
+
+@lru_cache(maxsize=64)
+def _uniform_offsets(beam_count: int, scan_duration_s: float) -> NDArray[np.float64]:
+    """Beam i fires at i * duration / count, as `LaserScan.time_offsets_s` assumes."""
+    offsets = np.arange(beam_count) * (scan_duration_s / beam_count) if beam_count else np.zeros(0)
+    offsets.flags.writeable = False
+    return offsets
+
+
+@lru_cache(maxsize=64)
+def _beam_angles(beam_count: int, angle_min_rad: float, angle_increment_rad: float) -> NDArray:
+    """Beam angles of one scan layout, computed once per layout."""
+    angles = angle_min_rad + angle_increment_rad * np.arange(beam_count)
+    angles.flags.writeable = False
+    return angles

@@ -1,0 +1,49 @@
+"""What deskewing needs from a source of poses over time, and how the first usable one is chosen."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+PoseArrays = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]
+
+
+class DeskewError(ValueError):
+    """Deskewing input that cannot be used; the message names the field and the value."""
+
+
+class PoseSource(Protocol):
+    """Robot poses at arbitrary times, or a reason why some times cannot be covered."""
+
+    name: str
+
+    def coverage_gap(self, start_s: float, end_s: float) -> str | None:
+        """None when poses over [start_s, end_s] are available, else why not (for the result)."""
+        ...
+
+    def poses_at(self, times_s: NDArray[np.float64]) -> PoseArrays:
+        """Poses (x, y, theta) at sorted times; raises DeskewError when not covered."""
+        ...
+
+    def relative_poses(self, times_s: NDArray[np.float64], reference_s: float) -> PoseArrays:
+        """Poses at sorted times expressed in the frame of the pose at `reference_s`."""
+        ...
+
+
+def choose_source(
+    sources: PoseSource | Sequence[PoseSource] | None, start_s: float, end_s: float
+) -> tuple[PoseSource | None, str]:
+    """The first source that covers [start_s, end_s], and the reasons the earlier ones did not."""
+    if sources is None:
+        return None, "no pose source given"
+    candidates = sources if isinstance(sources, list | tuple) else (sources,)
+    reasons = []
+    for source in candidates:
+        gap = source.coverage_gap(start_s, end_s)
+        if gap is None:
+            return source, "; ".join(reasons)
+        reasons.append(f"{source.name}: {gap}")
+    return None, "; ".join(reasons) if reasons else "no pose source given"

@@ -1,0 +1,93 @@
+"""Constant-velocity motion prior from the last two estimated poses (what KISS-ICP uses).
+
+The robot is assumed to keep the body-frame twist it had between the last two pose estimates,
+so the pose at time t is `T_last * exp((t - t_last) * twist)`: an arc, exact for constant motion.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from scanflow.deskew.source import DeskewError, PoseArrays
+from scanflow.deskew.twist import se2_exp, se2_log
+from scanflow.geometry import Pose2D, compose_arrays
+
+
+class ConstantVelocityModel:
+    """Predicts poses from the twist between the last two `update` poses.
+
+    Predictions reach at most `max_horizon_s` from the last pose: beyond that the robot has had
+    time to change its motion and the prior is refused. A pose older than the last one resets the
+    model (time went backwards), which then needs two new poses.
+    """
+
+    name = "constant_velocity"
+
+    def __init__(self, max_horizon_s: float = 0.5) -> None:
+        if not (math.isfinite(max_horizon_s) and max_horizon_s > 0):
+            raise DeskewError(f"max_horizon_s must be finite and > 0, got {max_horizon_s!r}")
+        self.max_horizon_s = float(max_horizon_s)
+        self._last: tuple[float, Pose2D] | None = None
+        self._twist: NDArray[np.float64] | None = None
+        self.reset_reason = ""
+
+    @property
+    def twist(self) -> NDArray[np.float64] | None:
+        """Body-frame velocity (vx m/s, vy m/s, omega rad/s), or None before two poses."""
+        return None if self._twist is None else self._twist.copy()
+
+    def update(self, stamp_s: float, pose: Pose2D) -> None:
+        """Record the estimated pose at `stamp_s` (normally the scan stamp it was matched at)."""
+        stamp_s = float(stamp_s)
+        if not math.isfinite(stamp_s):
+            raise DeskewError(f"ConstantVelocityModel stamp_s must be finite, got {stamp_s!r}")
+        if self._last is not None:
+            last_s, last_pose = self._last
+            if stamp_s < last_s:
+                self.reset_reason = f"time went backwards from {last_s:.6f} s to {stamp_s:.6f} s"
+                self._twist = None
+            elif stamp_s > last_s:
+                step = se2_log(pose.relative_to(last_pose).to_array())[0]
+                self._twist = step / (stamp_s - last_s)
+                self.reset_reason = ""
+        self._last = (stamp_s, pose)
+
+    def coverage_gap(self, start_s: float, end_s: float) -> str | None:
+        """None when the prior can predict [start_s, end_s], else why not."""
+        if self._twist is None or self._last is None:
+            held = 0 if self._last is None else 1
+            why = f" ({self.reset_reason})" if self.reset_reason else ""
+            return f"needs two poses at different times, has {held}{why}"
+        last_s = self._last[0]
+        horizon_s = max(abs(start_s - last_s), abs(end_s - last_s))
+        if horizon_s > self.max_horizon_s:
+            return (
+                f"sweep is {horizon_s:.4f} s from the last pose at {last_s:.6f} s, beyond "
+                f"max_horizon_s={self.max_horizon_s}"
+            )
+        return None
+
+    def poses_at(self, times_s: ArrayLike) -> PoseArrays:
+        """Predicted poses (x, y, theta) at the given times; DeskewError if beyond the horizon."""
+        t = np.asarray(times_s, dtype=np.float64)
+        self._require(float(t.min()), float(t.max()))
+        last_s, last_pose = self._last  # type: ignore[misc]
+        poses = compose_arrays(last_pose.to_array(), self._motion(t - last_s))
+        return poses[:, 0], poses[:, 1], poses[:, 2]
+
+    def relative_poses(self, times_s: NDArray[np.float64], reference_s: float) -> PoseArrays:
+        """Poses at `times_s` in the frame of the pose at `reference_s`: exp((t - ref) * twist)."""
+        self._require(min(float(times_s[0]), reference_s), max(float(times_s[-1]), reference_s))
+        rel = self._motion(times_s - reference_s)
+        return rel[:, 0], rel[:, 1], rel[:, 2]
+
+    def _motion(self, dt_s: NDArray[np.float64]) -> NDArray[np.float64]:
+        return se2_exp(dt_s[:, None] * self._twist[None, :])  # type: ignore[index]
+
+    def _require(self, start_s: float, end_s: float) -> None:
+        gap = self.coverage_gap(start_s, end_s)
+        if gap is not None:
+            raise DeskewError(f"constant-velocity model cannot cover [{start_s}, {end_s}] s: {gap}")

@@ -1,0 +1,34 @@
+"""Vectorised ray casting of many rays against all wall segments at once."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+_PARALLEL_EPS = 1e-12
+
+
+def cast_rays(
+    origins: NDArray[np.float64],
+    angles_rad: NDArray[np.float64],
+    segments: NDArray[np.float64],
+    range_max_m: float,
+) -> NDArray[np.float64]:
+    """Distance (N,) from each origin (N, 2) along its world angle to the nearest segment (M, 4).
+
+    Segments are rows (x0, y0, x1, y1). Rays that hit nothing within `range_max_m` get inf.
+    Broadcasts rays x segments, fine for ~1500 rays x ~200 segments.
+    """
+    dx, dy = np.cos(angles_rad)[:, None], np.sin(angles_rad)[:, None]
+    ox, oy = origins[:, 0:1], origins[:, 1:2]
+    ax, ay = segments[None, :, 0], segments[None, :, 1]
+    ex, ey = segments[None, :, 2] - ax, segments[None, :, 3] - ay
+    denom = dx * ey - dy * ex
+    wx, wy = ax - ox, ay - oy
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (wx * ey - wy * ex) / denom
+        u = (wx * dy - wy * dx) / denom
+    hit = (np.abs(denom) > _PARALLEL_EPS) & (t > 0.0) & (u >= 0.0) & (u <= 1.0)
+    distance = np.where(hit, t, np.inf).min(axis=1)
+    distance[distance > range_max_m] = np.inf
+    return distance
