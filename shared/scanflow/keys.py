@@ -17,6 +17,9 @@ Layout (``<prefix>`` defaults to ``scanflow``; ``<robot>`` is a robot id):
 | <prefix>/match                        | queryable  | MatchRequest (scan-to-scan)    |
 | <prefix>/health/<service>/<instance>  | liveliness | (token, no payload)            |
 | <prefix>/stats/<service>/<instance>   | queryable  | ServiceStatsMessage            |
+
+Ids are single chunks (see `check_id`); a prefix may span several chunks ("site1/scanflow").
+Robot ids "health" and "stats" are reserved: their keys would collide with the service keys.
 """
 
 from __future__ import annotations
@@ -25,6 +28,8 @@ import re
 
 DEFAULT_PREFIX = "scanflow"
 _ID_RE = re.compile(r"^[A-Za-z0-9_\-.]{1,64}$")
+# A robot with one of these ids would share keys with the per-service keys below the prefix.
+RESERVED_ROBOT_IDS = frozenset({"health", "stats"})
 
 
 class KeyExprError(ValueError):
@@ -38,6 +43,23 @@ def check_id(value: str, what: str = "robot id") -> str:
             f"{what} {value!r} is invalid: use 1-64 letters, digits, '_', '-' or '.'"
         )
     return value
+
+
+def check_robot_id(value: str) -> str:
+    """A robot id: a valid id that is not one of the RESERVED_ROBOT_IDS."""
+    check_id(value, "robot id")
+    if value in RESERVED_ROBOT_IDS:
+        raise KeyExprError(f"robot id {value!r} is reserved (keys below it belong to services)")
+    return value
+
+
+def check_prefix(prefix: str) -> str:
+    """A key prefix: one or more id chunks joined by '/', e.g. 'scanflow' or 'site1/scanflow'."""
+    if not isinstance(prefix, str):
+        raise KeyExprError(f"prefix must be a string, got {prefix!r}")
+    for chunk in prefix.split("/"):
+        check_id(chunk, f"prefix {prefix!r} chunk")
+    return prefix
 
 
 def raw_scan(robot: str = "*", prefix: str = DEFAULT_PREFIX) -> str:
@@ -61,11 +83,11 @@ def robot_match(robot: str = "*", prefix: str = DEFAULT_PREFIX) -> str:
 
 
 def scan_match(prefix: str = DEFAULT_PREFIX) -> str:
-    return f"{prefix}/match"
+    return f"{check_prefix(prefix)}/match"
 
 
 def map_key(robot: str = "*", what: str = "meta", prefix: str = DEFAULT_PREFIX) -> str:
-    return _key(robot, f"map/{what}", prefix)
+    return _key(robot, f"map/{check_id(what, 'map topic')}", prefix)
 
 
 def trajectory(robot: str = "*", prefix: str = DEFAULT_PREFIX) -> str:
@@ -73,19 +95,20 @@ def trajectory(robot: str = "*", prefix: str = DEFAULT_PREFIX) -> str:
 
 
 def health(service: str = "*", instance: str = "*", prefix: str = DEFAULT_PREFIX) -> str:
-    return f"{prefix}/health/{_chunk(service, 'service')}/{_chunk(instance, 'instance')}"
+    return _service_key("health", service, instance, prefix)
 
 
 def stats(service: str = "*", instance: str = "*", prefix: str = DEFAULT_PREFIX) -> str:
-    return f"{prefix}/stats/{_chunk(service, 'service')}/{_chunk(instance, 'instance')}"
+    return _service_key("stats", service, instance, prefix)
 
 
 def robot_of(key: str, prefix: str = DEFAULT_PREFIX) -> str:
-    """The robot id in a concrete per-robot key."""
-    parts = str(key).split("/")
-    if len(parts) < 3 or parts[0] != prefix:
+    """The robot id in a concrete per-robot key (the chunk right after the prefix)."""
+    head = check_prefix(prefix) + "/"
+    parts = str(key).removeprefix(head).split("/")
+    if not str(key).startswith(head) or len(parts) < 2:
         raise KeyExprError(f"key {key!r} is not a per-robot key under {prefix!r}")
-    return check_id(parts[1])
+    return check_robot_id(parts[0])
 
 
 def _chunk(value: str, what: str) -> str:
@@ -93,4 +116,11 @@ def _chunk(value: str, what: str) -> str:
 
 
 def _key(robot: str, suffix: str, prefix: str) -> str:
-    return f"{prefix}/{_chunk(robot, 'robot id')}/{suffix}"
+    robot = robot if robot == "*" else check_robot_id(robot)
+    return f"{check_prefix(prefix)}/{robot}/{suffix}"
+
+
+def _service_key(kind: str, service: str, instance: str, prefix: str) -> str:
+    return (
+        f"{check_prefix(prefix)}/{kind}/{_chunk(service, 'service')}/{_chunk(instance, 'instance')}"
+    )

@@ -102,8 +102,10 @@ def decode_array(envelope: Any, where: str, dtype: str) -> NDArray[Any]:
         raise SchemaError(
             f"{where}.s: expected a list of at most {MAX_NDIM} sizes, got {_short(shape)}"
         )
-    if not all(type(n) is int and n >= 0 for n in shape):
-        raise SchemaError(f"{where}.s: sizes must be non-negative integers, got {_short(shape)}")
+    if not all(type(n) is int and 0 <= n <= MAX_PAYLOAD_BYTES for n in shape):
+        raise SchemaError(
+            f"{where}.s: sizes must be integers in 0..{MAX_PAYLOAD_BYTES}, got {_short(shape)}"
+        )
     raw = env.blob("b")
     itemsize = np.dtype(dtype).itemsize
     if math.prod(shape) * itemsize != len(raw):

@@ -1,0 +1,106 @@
+"""Settings: every section reads its own SCANFLOW_<SECTION>_ variables; list parsing; defaults."""
+
+from __future__ import annotations
+
+import inspect
+
+import pytest
+from pydantic import ValidationError
+from pydantic_settings import BaseSettings
+from scanflow import config
+
+
+@pytest.fixture(autouse=True)
+def clean_env(monkeypatch: pytest.MonkeyPatch) -> pytest.MonkeyPatch:
+    import os
+
+    for name in list(os.environ):
+        if name.startswith("SCANFLOW_"):
+            monkeypatch.delenv(name)
+    return monkeypatch
+
+
+def _sections() -> list[type[BaseSettings]]:
+    """Every settings class the module defines that is used directly (bases are skipped)."""
+    return [c for c in _classes() if c.model_config.get("env_prefix")]
+
+
+def _classes() -> list[type[BaseSettings]]:
+    return [
+        c
+        for _, c in inspect.getmembers(config, inspect.isclass)
+        if issubclass(c, BaseSettings) and c.__module__ == config.__name__
+    ]
+
+
+def _bases() -> list[type[BaseSettings]]:
+    """Settings classes without an env prefix: shared bases for the sections."""
+    return [c for c in _classes() if not c.model_config.get("env_prefix")]
+
+
+def test_every_section_has_its_own_scanflow_prefix() -> None:
+    sections = _sections()
+    assert config.ZenohSettings in sections
+    prefixes = [c.model_config["env_prefix"] for c in sections]
+    assert all(p.startswith("SCANFLOW_") and p.endswith("_") for p in prefixes), prefixes
+    assert len(set(prefixes)) == len(prefixes), prefixes
+
+
+@pytest.mark.parametrize("section", _sections(), ids=lambda c: c.__name__)
+def test_every_section_builds_from_defaults(section: type[BaseSettings]) -> None:
+    section()
+
+
+def test_zenoh_defaults() -> None:
+    s = config.ZenohSettings()
+    assert (s.mode, s.connect, s.listen, s.prefix) == (
+        "client",
+        ["tcp/127.0.0.1:7447"],
+        [],
+        "scanflow",
+    )
+
+
+@pytest.mark.parametrize(
+    ("raw", "expected"),
+    [
+        ("tcp/10.0.0.2:7447", ["tcp/10.0.0.2:7447"]),
+        ("tcp/a:1, tcp/b:2 ,", ["tcp/a:1", "tcp/b:2"]),
+        ('["tcp/a:1", "udp/b:2"]', ["tcp/a:1", "udp/b:2"]),
+        ("", []),
+    ],
+)
+def test_zenoh_lists_take_csv_or_json(clean_env, raw: str, expected: list[str]) -> None:
+    clean_env.setenv("SCANFLOW_ZENOH_CONNECT", raw)
+    clean_env.setenv("SCANFLOW_ZENOH_LISTEN", raw)
+    s = config.ZenohSettings()
+    assert s.connect == expected
+    assert s.listen == expected
+
+
+@pytest.mark.parametrize(
+    ("name", "value", "field"),
+    [
+        ("SCANFLOW_ZENOH_MODE", "satellite", "mode"),
+        ("SCANFLOW_ZENOH_CONNECT", "[not json", "connect"),
+        ("SCANFLOW_ZENOH_MULTICAST_SCOUTING", "maybe", "multicast_scouting"),
+    ],
+)
+def test_bad_values_name_the_field(clean_env, name: str, value: str, field: str) -> None:
+    clean_env.setenv(name, value)
+    with pytest.raises(ValidationError, match=field):
+        config.ZenohSettings()
+
+
+@pytest.mark.parametrize("section", _sections(), ids=lambda c: c.__name__)
+def test_inherited_fields_read_only_the_sections_prefix(clean_env, section) -> None:
+    """Fields from a prefix-less base class must not pick up bare variables like INSTANCE."""
+    prefix = section.model_config["env_prefix"]
+    bases = [b for b in section.__mro__[1:] if b in _bases()]
+    inherited = {n for b in bases for n, i in b.model_fields.items() if i.annotation is str}
+    for name in sorted(inherited):
+        clean_env.setenv(name.upper(), "from-bare-variable")
+        clean_env.setenv(f"{prefix}{name.upper()}", "from-section")
+        assert getattr(section(), name) == "from-section"
+        clean_env.delenv(f"{prefix}{name.upper()}")
+        assert getattr(section(), name) != "from-bare-variable"
