@@ -1,8 +1,10 @@
 """A map that scan-to-map matchers take as their target: an occupancy grid plus derived views.
 
-Views (likelihood fields per pyramid level, occupied points) are refreshed lazily, on first
-access after an update, and only around where the scan flipped cells between free/unknown and
-occupied, so keeping them current costs in proportion to the region a scan touched.
+The likelihood fields (one per pyramid level) are refreshed lazily, on first access after an
+update, and only around where the scan flipped cells between free/unknown and occupied, so
+keeping them current costs in proportion to the region a scan touched. Occupied points, the
+max-pool stack and NDT cells are rebuilt whole (their constructors take the whole map) on first
+access after a change of the occupied cells.
 
 The default field sigma is 2 cells of the grid (0.10 m at 5 cm): wide enough for a smooth
 gradient across a wall and a basin of a few cells, narrow enough to keep walls distinct; level k
@@ -12,11 +14,15 @@ of the pyramid scales it by 2**k with its cells. Fields are cut off at `cutoff_s
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from scanflow.maps.field import LikelihoodField
 from scanflow.maps.maxpool import MaxPoolStack
+from scanflow.maps.ndt_cells import NDTCells
 from scanflow.maps.occupancy import InsertResult, OccupancyGrid
 from scanflow.maps.pyramid import FieldLayer
 
@@ -40,8 +46,9 @@ class MatchingMap:
         self.cutoff_sigmas = cutoff_sigmas
         self._layers: dict[int, FieldLayer] = {}
         self._occupied_points: NDArray[np.float64] | None = None
-        self._maxpool: dict[tuple[int, int], tuple[int, MaxPoolStack]] = {}
+        self._rebuilt: dict[tuple[object, ...], tuple[int, Any]] = {}
         self._seen_revision = self.grid.revision
+        self._occupied_version = 0
 
     @property
     def resolution_m(self) -> float:
@@ -52,6 +59,16 @@ class MatchingMap:
         return self.grid.revision
 
     @property
+    def nbytes(self) -> int:
+        """Memory held by the grid and every view built so far."""
+        views = sum(layer.nbytes for layer in self._layers.values())
+        for _, view in self._rebuilt.values():
+            views += _nbytes(view)
+        if self._occupied_points is not None:
+            views += self._occupied_points.nbytes
+        return self.grid.nbytes + views
+
+    @property
     def is_empty(self) -> bool:
         """True while no cell of the map counts as occupied (nothing to match against)."""
         return self.occupied_points().shape[0] == 0
@@ -60,9 +77,10 @@ class MatchingMap:
         """Drop every view if the grid was written to other than through `update`."""
         if self.grid.revision != self._seen_revision:
             self._layers.clear()
-            self._maxpool.clear()
+            self._rebuilt.clear()
             self._occupied_points = None
             self._seen_revision = self.grid.revision
+            self._occupied_version += 1
 
     def update(
         self,
@@ -78,6 +96,7 @@ class MatchingMap:
             for layer in self._layers.values():
                 layer.mark_dirty(result.occupied_changed)
             self._occupied_points = None
+            self._occupied_version += 1
         return result
 
     def _layer(self, level: int) -> FieldLayer:
@@ -115,15 +134,39 @@ class MatchingMap:
             self._occupied_points = points
         return self._occupied_points
 
+    def _per_occupancy(self, key: tuple[object, ...], build: Callable[[], Any]) -> Any:
+        """A view rebuilt whole when the occupied cells changed, cached otherwise."""
+        self._sync()
+        cached = self._rebuilt.get(key)
+        if cached is None or cached[0] != self._occupied_version:
+            cached = (self._occupied_version, build())
+            self._rebuilt[key] = cached
+        return cached[1]
+
     def maxpool_stack(self, depth: int, level: int = 0) -> MaxPoolStack:
         """Branch-and-bound max-pooled scores of the level's likelihood field, 2**depth deep.
 
-        Rebuilt over the whole field when the map changed (cached per map revision otherwise).
+        Rebuilt over the whole field when the occupied cells changed.
         """
-        key = (depth, level)
-        cached = self._maxpool.get(key)
-        field = self.likelihood_field(level)
-        if cached is None or cached[0] != self.grid.revision:
-            cached = (self.grid.revision, MaxPoolStack.from_values(field.spec, field.values, depth))
-            self._maxpool[key] = cached
-        return cached[1]
+
+        def build() -> MaxPoolStack:
+            field = self.likelihood_field(level)
+            return MaxPoolStack.from_values(field.spec, field.values, depth)
+
+        return self._per_occupancy(("maxpool", depth, level), build)
+
+    def ndt_cells(self, cell_size_m: float) -> NDTCells:
+        """NDT distributions of the occupied cell centres, cells aligned to the map lattice
+        anchor so they do not shift as the map grows. Rebuilt when the occupied cells changed."""
+        return self._per_occupancy(
+            ("ndt", cell_size_m),
+            lambda: NDTCells.from_points(
+                self.occupied_points(), cell_size_m, (self.grid.anchor_x_m, self.grid.anchor_y_m)
+            ),
+        )
+
+
+def _nbytes(view: MaxPoolStack | NDTCells) -> int:
+    if isinstance(view, MaxPoolStack):
+        return sum(level.nbytes for level in view.levels)
+    return view.index.nbytes + view.means.nbytes + view.inv_covs.nbytes + view.counts.nbytes

@@ -59,6 +59,10 @@ class FieldLayer:
         self._generation = -1
         self._pending: CellBox | None = None
 
+    @property
+    def nbytes(self) -> int:
+        return int(self._values.nbytes)
+
     def mark_dirty(self, fine_box: CellBox) -> None:
         """Note that the grid's occupied mask changed inside `fine_box` (grid lattice)."""
         self._pending = fine_box.coarsened(self.factor).union(self._pending)

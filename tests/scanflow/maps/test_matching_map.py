@@ -169,3 +169,19 @@ def test_maxpool_stack_follows_the_field():
 def test_cellbox_rejects_inverted_bounds():
     with pytest.raises(ValueError, match="inverted"):
         CellBox(2, 0, 1, 5)
+
+
+def test_ndt_cells_follow_occupied_points_and_the_lattice():
+    world = MatchingMap()
+    world.update(room_scan((0.0, 0.0), 2.0, beams=720), (0.0, 0.0))
+    cells = world.ndt_cells(0.5)
+    assert len(cells) > 10
+    assert cells.counts.sum() <= world.occupied_points().shape[0]
+    # Cell corners sit on the lattice anchored at the map anchor (0, 0).
+    assert cells.spec.origin_x_m / 0.5 == pytest.approx(round(cells.spec.origin_x_m / 0.5))
+    assert world.ndt_cells(0.5) is cells
+    world.update(room_scan((0.0, 0.0), 2.0, beams=720), (0.0, 0.0))  # nothing flips
+    assert world.ndt_cells(0.5) is cells
+    world.update([[1.0, 1.0], [1.02, 1.0], [1.0, 1.02]], (0.0, 0.0))
+    assert world.ndt_cells(0.5) is not cells
+    assert world.nbytes > world.grid.nbytes
