@@ -17,13 +17,16 @@ TWO_PI = 2.0 * math.pi
 
 def normalize_angle(angle_rad: float) -> float:
     """Wrap an angle to [-pi, pi)."""
-    return (angle_rad + math.pi) % TWO_PI - math.pi
+    wrapped = (angle_rad + math.pi) % TWO_PI - math.pi
+    # The modulo can round up to 2*pi for inputs just below -pi; keep the interval half-open.
+    return wrapped - TWO_PI if wrapped >= math.pi else wrapped
 
 
 def normalize_angles(angles_rad: ArrayLike) -> NDArray[np.float64]:
     """Vectorised `normalize_angle`."""
     a = np.asarray(angles_rad, dtype=np.float64)
-    return (a + np.pi) % TWO_PI - np.pi
+    wrapped = (a + np.pi) % TWO_PI - np.pi
+    return np.where(wrapped >= np.pi, wrapped - TWO_PI, wrapped)
 
 
 def angle_diff(a_rad: float, b_rad: float) -> float:

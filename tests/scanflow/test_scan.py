@@ -1,0 +1,123 @@
+"""LaserScan and Odometry: validity masking, dropped counts, field errors, timing, points."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+from scanflow.geometry import Pose2D
+from scanflow.scan import LaserScan, Odometry, ScanError
+
+
+def make_scan(ranges, **fields) -> LaserScan:
+    defaults = {"angle_min_rad": -math.pi / 2, "angle_increment_rad": math.pi / 180}
+    return LaserScan(ranges_m=np.asarray(ranges, dtype=np.float32), **(defaults | fields))
+
+
+def test_invalid_beams_are_masked_and_counted() -> None:
+    ranges = [1.0, math.nan, math.inf, -1.0, 0.0, 0.05, 10.0, 12.0, 9.99]
+    scan = make_scan(ranges, range_min_m=0.1, range_max_m=10.0)
+    expected = [True, False, False, False, False, False, False, False, True]
+    np.testing.assert_array_equal(scan.valid_mask, expected)
+    assert scan.valid_count == 2 and scan.dropped_count == 7
+    assert scan.beam_count == len(ranges)
+    np.testing.assert_allclose(np.hypot(*scan.points().T), [1.0, 9.99], rtol=1e-6)
+    assert scan.points(valid_only=False).shape == (len(ranges), 2)
+
+
+@given(arrays(np.float32, st.integers(1, 200), elements=st.floats(-5, 50, width=32)))
+def test_mask_agrees_with_the_rule(ranges: np.ndarray) -> None:
+    scan = make_scan(ranges, range_min_m=0.2, range_max_m=30.0)
+    rule = [r > 0 and 0.2 <= r < 30.0 for r in ranges.tolist()]
+    np.testing.assert_array_equal(scan.valid_mask, rule)
+    assert scan.valid_count + scan.dropped_count == ranges.size
+
+
+@pytest.mark.parametrize(
+    ("fields", "field_name"),
+    [
+        ({"beam_time_offsets_s": np.zeros(3)}, "beam_time_offsets_s"),
+        ({"intensities": np.zeros(5)}, "intensities"),
+        ({"angle_min_rad": math.nan}, "angle_min_rad"),
+        ({"angle_increment_rad": math.inf}, "angle_increment_rad"),
+        ({"stamp_s": math.nan}, "stamp_s"),
+        ({"range_min_m": -1.0}, "range_min_m"),
+        ({"range_max_m": math.nan}, "range_max_m"),
+        ({"range_min_m": 5.0, "range_max_m": 4.0}, "range_max_m"),
+        ({"scan_duration_s": -0.1}, "scan_duration_s"),
+        ({"robot_id": ""}, "robot_id"),
+        ({"seq": -1}, "seq"),
+        ({"beam_time_offsets_s": [0.0, 0.2, 0.1, 0.3]}, "beam_time_offsets_s"),
+        ({"beam_time_offsets_s": [0.0, math.nan, 0.1, 0.3]}, "beam_time_offsets_s"),
+    ],
+)
+def test_inconsistent_fields_raise_naming_the_field(fields: dict, field_name: str) -> None:
+    with pytest.raises(ScanError, match=field_name):
+        make_scan([1.0, 2.0, 3.0, 4.0], **fields)
+
+
+def test_ranges_must_be_one_dimensional() -> None:
+    with pytest.raises(ScanError, match="ranges_m"):
+        make_scan(np.ones((2, 3)))
+
+
+def test_uniform_time_offsets_from_duration() -> None:
+    scan = make_scan(np.ones(4), stamp_s=10.0, scan_duration_s=0.1)
+    assert scan.beam_times_assumed
+    np.testing.assert_allclose(scan.time_offsets_s, [0.0, 0.025, 0.05, 0.075])
+    assert scan.end_stamp_s == pytest.approx(10.075)
+
+
+def test_measured_offsets_are_used() -> None:
+    offsets = [0.0, 0.01, 0.03, 0.04]
+    scan = make_scan(np.ones(4), stamp_s=2.0, beam_time_offsets_s=offsets)
+    assert not scan.beam_times_assumed
+    np.testing.assert_array_equal(scan.time_offsets_s, offsets)
+    assert scan.end_stamp_s == pytest.approx(2.04)
+
+
+def test_zero_duration_means_simultaneous_beams() -> None:
+    scan = make_scan(np.ones(5), stamp_s=3.0)
+    np.testing.assert_array_equal(scan.time_offsets_s, np.zeros(5))
+    assert scan.end_stamp_s == 3.0
+
+
+@given(
+    arrays(np.float32, st.integers(1, 100), elements=st.floats(0.125, 40, width=32)),
+    st.floats(-math.pi, math.pi),
+    st.floats(1e-4, 0.1),
+)
+def test_points_are_polar_to_cartesian(ranges: np.ndarray, angle_min: float, inc: float) -> None:
+    scan = make_scan(ranges, angle_min_rad=angle_min, angle_increment_rad=inc)
+    pts = scan.points()
+    i = np.arange(ranges.size)
+    r = ranges.astype(np.float64)
+    np.testing.assert_allclose(pts[:, 0], r * np.cos(angle_min + i * inc), atol=1e-9)
+    np.testing.assert_allclose(pts[:, 1], r * np.sin(angle_min + i * inc), atol=1e-9)
+
+
+def test_with_ranges_keeps_layout_and_timing() -> None:
+    scan = make_scan(np.ones(3), stamp_s=4.0, scan_duration_s=0.3, robot_id="r1", seq=7)
+    other = scan.with_ranges([2.0, math.nan, 3.0])
+    assert (other.stamp_s, other.scan_duration_s, other.robot_id, other.seq) == (4.0, 0.3, "r1", 7)
+    assert other.dropped_count == 1
+    np.testing.assert_array_equal(other.angles_rad, scan.angles_rad)
+
+
+def test_odometry_validation() -> None:
+    odom = Odometry(1.5, Pose2D(1, 2, 3), velocity=(0.5, 0, 0.1), robot_id="r")
+    assert odom.velocity == (0.5, 0.0, 0.1)
+    with pytest.raises(ScanError, match="stamp_s"):
+        Odometry(math.nan, Pose2D())
+    with pytest.raises(ScanError, match="pose"):
+        Odometry(0.0, (1, 2, 3))  # type: ignore[arg-type]
+    with pytest.raises(ScanError, match="velocity"):
+        Odometry(0.0, Pose2D(), velocity=(1.0, 2.0))  # type: ignore[arg-type]
+    with pytest.raises(ScanError, match=r"velocity\[2\]"):
+        Odometry(0.0, Pose2D(), velocity=(1.0, 2.0, math.inf))
+    with pytest.raises(ScanError, match="robot_id"):
+        Odometry(0.0, Pose2D(), robot_id="")
