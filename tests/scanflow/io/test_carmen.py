@@ -62,7 +62,7 @@ def independent_counts(path: Path) -> tuple[int, int, int]:
                 lasers += 1
                 tokens = line.split()
                 n = int(tokens[1])
-                no_return += sum(float(t) >= 50.0 for t in tokens[2 : 2 + n])
+                no_return += int(np.count_nonzero(np.array(tokens[2 : 2 + n], float) >= 50.0))
             elif line.startswith("ODOM"):
                 odoms += 1
     return lasers, odoms, no_return
