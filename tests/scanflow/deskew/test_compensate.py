@@ -1,0 +1,205 @@
+import math
+from itertools import islice
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scanflow.deskew import (
+    DEFAULT_REFERENCE,
+    ConstantVelocityModel,
+    DeskewError,
+    OdometryBuffer,
+    deskew,
+)
+from scanflow.geometry import Pose2D
+from scanflow.scan import LaserScan, ScanError
+from scanflow.sim import ConstantVelocityTrajectory, SimConfig, simulate
+
+QUIET = {"range_noise_m": 0.0, "dropout_prob": 0.0, "odom_scale_error": 0.0, "odom_yaw_noise": 0.0}
+
+
+def _scan(n=8, duration_s=0.1, stamp_s=1.0, offsets=None, ranges=None):
+    return LaserScan(
+        ranges_m=np.full(n, 4.0) if ranges is None else ranges,
+        angle_min_rad=-math.pi,
+        angle_increment_rad=2 * math.pi / max(n, 1),
+        range_max_m=30.0,
+        stamp_s=stamp_s,
+        scan_duration_s=duration_s,
+        beam_time_offsets_s=offsets,
+    )
+
+
+def _buffer_from(trajectory, start_s, end_s, rate_hz=50.0):
+    buffer = OdometryBuffer()
+    for t in np.arange(start_s, end_s, 1.0 / rate_hz):
+        buffer.add(t, Pose2D.from_array(trajectory.pose_at(t)[0]))
+    return buffer
+
+
+def test_default_reference_is_the_scan_stamp():
+    assert DEFAULT_REFERENCE == "start"
+
+
+def test_exact_on_simulator_with_noise_free_odometry():
+    trajectory = ConstantVelocityTrajectory(Pose2D(7.5, 2.0, 0.0), 1.0, math.pi)
+    config = SimConfig(
+        duration_s=1.0,
+        fov_deg=360,
+        range_noise_m=0.02,
+        dropout_prob=0.05,
+        odom_scale_error=0.0,
+        odom_yaw_noise=0.0,
+    )
+    buffer = OdometryBuffer()
+    errors, raw_errors = [], []
+    for frame in simulate(config, trajectory):
+        for sample in frame.odometry:
+            buffer.add_odometry(sample)
+        result = deskew(frame.scan, buffer)
+        assert result.source_used == "odometry" and not result.times_assumed
+        assert result.valid_count == frame.scan.valid_count
+        errors.append(np.linalg.norm(result.points - frame.true_points, axis=1))
+        raw_errors.append(np.linalg.norm(frame.scan.points() - frame.true_points, axis=1))
+    errors = np.concatenate(errors)
+    # Only the chord-vs-arc error of linear interpolation remains: v * w * dt^2 / 8.
+    assert errors.max() <= 1.0 * math.pi * 0.02**2 / 8 + 1e-9
+    assert np.concatenate(raw_errors).mean() > 100 * errors.mean()
+
+
+def test_seed_formula_on_a_hand_computed_case():
+    # Two beams: at t=0 from the origin looking along +x, at t=0.1 after moving 0.1 m along +x and
+    # turning 90 deg (the segment end pose), beam angle 0. Seed: p_ref = T_ref^-1 * T_beam * p.
+    scan = _scan(n=2, ranges=np.array([2.0, 3.0]), offsets=np.array([0.0, 0.1]), stamp_s=0.0)
+    scan = LaserScan(
+        ranges_m=np.array([2.0, 3.0]),
+        angle_min_rad=0.0,
+        angle_increment_rad=0.0,
+        stamp_s=0.0,
+        beam_time_offsets_s=np.array([0.0, 0.1]),
+    )
+    buffer = OdometryBuffer()
+    buffer.add(0.0, Pose2D(0.0, 0.0, 0.0))
+    buffer.add(0.1, Pose2D(0.1, 0.0, math.pi / 2))
+    start = deskew(scan, buffer, "start")
+    np.testing.assert_allclose(start.points, [[2.0, 0.0], [0.1, 3.0]], atol=1e-12)
+    end = deskew(scan, buffer, "end")
+    # In the end frame (at (0.1, 0) facing +y): first beam's endpoint (2, 0) -> (0, -1.9).
+    np.testing.assert_allclose(end.points, [[0.0, -1.9], [3.0, 0.0]], atol=1e-12)
+    np.testing.assert_allclose(end.ranges_m, [1.9, 3.0])
+    np.testing.assert_allclose(end.angles_rad, [-math.pi / 2, 0.0], atol=1e-12)
+    middle = deskew(scan, buffer, "middle")
+    assert middle.reference_stamp_s == pytest.approx(0.05)
+
+
+def test_falls_back_to_constant_velocity_then_none():
+    trajectory = ConstantVelocityTrajectory(Pose2D(), 1.0, math.pi)
+    scan = _scan(n=360, stamp_s=1.0)
+    stale = _buffer_from(trajectory, 0.0, 0.5)
+    model = ConstantVelocityModel()
+    for t in (0.8, 0.9):
+        model.update(t, Pose2D.from_array(trajectory.pose_at(t)[0]))
+    result = deskew(scan, [stale, model])
+    assert result.source_used == "constant_velocity"
+    assert "odometry: sweep ends" in result.message
+    assert result.times_assumed
+    # ground truth for uniform beam times on this circle
+    beam_poses = trajectory.pose_at(1.0 + scan.time_offsets_s)
+    start = Pose2D.from_array(beam_poses[0])
+    truth = np.array(
+        [
+            start.inverse().transform_points(Pose2D.from_array(p).transform_points(q))[0]
+            for p, q in zip(beam_poses, scan.points(), strict=True)
+        ]
+    )
+    np.testing.assert_allclose(result.points, truth, atol=1e-9)
+    none = deskew(scan, [stale, ConstantVelocityModel()])
+    assert none.source_used == "none"
+    assert "constant_velocity: needs two poses" in none.message
+    np.testing.assert_allclose(none.points, scan.points())
+    assert deskew(scan, None).message == "no pose source covers the sweep: no pose source given"
+
+
+def test_zero_duration_empty_and_all_invalid_scans_are_reported_not_raised():
+    buffer = _buffer_from(ConstantVelocityTrajectory(Pose2D(), 1.0, 0.0), 0.0, 2.0)
+    zero = deskew(_scan(duration_s=0.0), buffer)
+    assert zero.source_used == "none" and "zero duration" in zero.message
+    np.testing.assert_allclose(zero.points, _scan(duration_s=0.0).points())
+    invalid = deskew(_scan(ranges=np.full(8, np.nan)), buffer)
+    assert invalid.points.shape == (0, 2) and "no valid beams" in invalid.message
+    empty = deskew(_scan(n=0, ranges=np.zeros(0)), buffer)
+    assert empty.beam_count == 0 and empty.source_used == "none"
+
+
+def test_odometry_gap_falls_back_with_the_reason():
+    buffer = OdometryBuffer(max_gap_s=0.05)
+    for t in (0.9, 0.95, 1.2, 1.25):
+        buffer.add(t, Pose2D(t, 0.0, 0.0))
+    result = deskew(_scan(stamp_s=1.0), buffer)
+    assert result.source_used == "none" and "odometry gap" in result.message
+
+
+def test_bad_reference_and_bad_beam_times_are_clear_errors():
+    with pytest.raises(DeskewError, match="reference must be one of"):
+        deskew(_scan(), None, "later")
+    with pytest.raises(ScanError, match="non-decreasing"):
+        _scan(n=3, offsets=np.array([0.0, 0.2, 0.1]))
+    with pytest.raises(ScanError, match="non-finite"):
+        _scan(n=3, offsets=np.array([0.0, np.nan, 0.1]))
+
+
+def test_uniform_offsets_match_the_scan_model():
+    from scanflow.deskew.compensate import _time_offsets
+
+    for n, duration in ((360, 0.1), (1, 0.1), (5, 0.0)):
+        scan = _scan(n=n, duration_s=duration, ranges=np.full(n, 1.0))
+        np.testing.assert_array_equal(_time_offsets(scan), scan.time_offsets_s)
+
+
+poses = st.builds(
+    Pose2D,
+    st.floats(-50, 50),
+    st.floats(-50, 50),
+    st.floats(-math.pi, math.pi),
+)
+twists = st.tuples(st.floats(-1.5, 1.5), st.floats(-0.3, 0.3), st.floats(-math.pi, math.pi))
+
+
+@settings(max_examples=60, deadline=None)
+@given(poses, st.integers(2, 400), st.floats(0.01, 0.2))
+def test_zero_motion_is_the_identity(pose, n, duration_s):
+    buffer = OdometryBuffer()
+    for t in np.arange(0.9, 1.4, 0.02):
+        buffer.add(t, pose)
+    scan = _scan(n=n, duration_s=duration_s, ranges=np.linspace(0.5, 20.0, n))
+    for reference in ("start", "middle", "end"):
+        result = deskew(scan, buffer, reference)
+        assert result.source_used == "odometry"
+        np.testing.assert_allclose(result.points, scan.points(), atol=1e-9)
+
+
+@settings(max_examples=60, deadline=None)
+@given(poses, twists, st.integers(2, 400))
+def test_end_equals_start_moved_by_the_relative_pose(start, twist, n):
+    trajectory = ConstantVelocityTrajectory(start, twist[0], twist[2], vy_mps=twist[1])
+    buffer = _buffer_from(trajectory, 0.9, 1.3)
+    scan = _scan(n=n, ranges=np.linspace(0.5, 20.0, n))
+    at_start = deskew(scan, buffer, "start")
+    at_end = deskew(scan, buffer, "end")
+    x, y, theta = buffer.relative_poses(np.array([scan.end_stamp_s]), scan.stamp_s)
+    end_in_start = Pose2D(x[0], y[0], theta[0])
+    np.testing.assert_allclose(
+        end_in_start.inverse().transform_points(at_start.points), at_end.points, atol=1e-9
+    )
+
+
+def test_cli_style_run_reports_sources(tmp_path):
+    config = SimConfig(duration_s=0.5, **QUIET)
+    buffer = OdometryBuffer()
+    used = set()
+    for frame in islice(simulate(config), 5):
+        for sample in frame.odometry:
+            buffer.add_odometry(sample)
+        used.add(deskew(frame.scan, buffer).source_used)
+    assert used == {"odometry"}
