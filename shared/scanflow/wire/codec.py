@@ -32,6 +32,7 @@ MAX_MAP_LEN = 4096
 MAX_ARRAY_LEN = 16
 MAX_NDIM = 4
 ALLOWED_DTYPES = frozenset({"|i1", "|u1", "<i2", "<u2", "<i4", "<u4", "<i8", "<u8", "<f4", "<f8"})
+_DTYPES = {name: np.dtype(name) for name in ALLOWED_DTYPES}
 Scalar = bool | int | float | str
 
 _UNPACK_ERRORS = (ValueError, TypeError, OverflowError, msgpack.UnpackException)
@@ -85,7 +86,7 @@ def unpack_message(data: Any) -> tuple[str, Fields]:
 
 def encode_array(values: ArrayLike, dtype: str) -> dict[str, Any]:
     """The array envelope: dtype string, shape list and raw little-endian bytes."""
-    a = np.ascontiguousarray(values, dtype=np.dtype(dtype))
+    a = np.ascontiguousarray(values, dtype=_DTYPES[dtype])
     return {"d": dtype, "s": list(a.shape), "b": a.tobytes()}
 
 
@@ -107,13 +108,13 @@ def decode_array(envelope: Any, where: str, dtype: str) -> NDArray[Any]:
             f"{where}.s: sizes must be integers in 0..{MAX_PAYLOAD_BYTES}, got {_short(shape)}"
         )
     raw = env.blob("b")
-    itemsize = np.dtype(dtype).itemsize
+    itemsize = _DTYPES[dtype].itemsize
     if math.prod(shape) * itemsize != len(raw):
         raise SchemaError(
             f"{where}.b: {len(raw)} bytes do not fit shape {shape} of {dtype} "
             f"({itemsize} bytes each)"
         )
-    return np.frombuffer(raw, dtype=np.dtype(dtype)).reshape(shape)
+    return np.frombuffer(raw, dtype=_DTYPES[dtype]).reshape(shape)
 
 
 def encode_pose(pose: Pose2D) -> list[float]:
