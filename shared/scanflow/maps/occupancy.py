@@ -175,8 +175,8 @@ class OccupancyGrid:
         p = grid.params
         grid._log_odds = np.clip(lo, p.log_odds_min, p.log_odds_max).astype(np.float32)
         grid._observed = obs.copy()
-        grid._storage = box
-        grid._extent = None if box.is_empty else box
+        if not box.is_empty:
+            grid._storage = grid._extent = box
         grid.revision = revision
         return grid
 
