@@ -106,9 +106,10 @@ class LaserScan:
     @cached_property
     def valid_mask(self) -> NDArray[np.bool_]:
         """True for beams with a usable return (see the module docstring)."""
+        # Comparisons with NaN are False, so NaN and +-inf fall out without an isfinite pass.
         r = self.ranges_m
-        with np.errstate(invalid="ignore"):
-            return np.isfinite(r) & (r > 0) & (r >= self.range_min_m) & (r < self.range_max_m)
+        above_min = (r >= self.range_min_m) if self.range_min_m > 0 else (r > 0)
+        return above_min & (r < self.range_max_m) & (r < np.inf)
 
     @property
     def valid_count(self) -> int:
