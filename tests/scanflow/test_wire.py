@@ -304,6 +304,18 @@ def test_message_helpers_carry_match_results() -> None:
     assert (error.ok, error.status, error.error) == (False, "error", "no map for robot 'x'")
 
 
+def test_numpy_scalars_become_plain_python_values() -> None:
+    request = wire.MatchRequest(
+        "icp", np.zeros((1, 2)), wire.MapRef("r"), options={"k": np.float32(0.5), "n": np.int64(3)}
+    )
+    stats = wire.ServiceStatsMessage(
+        "s", "i", np.float64(1.0), {"c": np.uint8(2)}, {"g": np.int16(4)}
+    )
+    assert wire.MatchRequest.decode(request.encode()).options == {"k": 0.5, "n": 3}
+    decoded = wire.ServiceStatsMessage.decode(stats.encode())
+    assert (decoded.counters, decoded.gauges) == ({"c": 2}, {"g": 4.0})
+
+
 def test_map_messages_expose_grid_geometry() -> None:
     meta = wire.MapMetaMessage("r", 0.5, -2.0, 1.0, 10, 20, 3, 0.0)
     region = wire.MapRegionMessage(meta, 2, 4, np.zeros((3, 5), np.int8))
@@ -462,6 +474,18 @@ def test_malformed_payloads_raise_decode_errors(data: bytes, error: type[Excepti
         wire.decode_any(data)
 
 
+def test_error_messages_stay_short_for_huge_hostile_strings() -> None:
+    huge = "x" * 60_000
+    for changes in ({"type": huge}, {"robot_id": ""}, {"frame_id": 5}):
+        with pytest.raises(wire.DecodeError) as info:
+            wire.decode_any(_payload(SCAN, **changes))
+        assert len(str(info.value)) < 400
+    image = wire.MapImageMessage("r", 1, "png", b"")
+    with pytest.raises(wire.SchemaError, match="format must be one of") as info:
+        wire.decode_any(_payload(image, format=huge))
+    assert len(str(info.value)) < 400
+
+
 def test_oversized_payload_is_rejected_before_unpacking() -> None:
     data = bytes(wire.MAX_PAYLOAD_BYTES + 1)
     with pytest.raises(wire.PayloadTooLarge, match="over MAX_PAYLOAD_BYTES"):
@@ -504,6 +528,8 @@ def test_encoding_over_the_limit_is_refused() -> None:
         (lambda: wire.TrajectoryMessage("r", np.zeros(2), np.zeros((3, 3))), "poses"),
         (lambda: wire.MapMetaMessage("r", 0.0, 0, 0, 1, 1, 0, 0.0), "resolution_m"),
         (lambda: wire.ServiceStatsMessage("s", "i", 0.0, gauges={"g": math.nan}), "gauges"),
+        (lambda: wire.ServiceStatsMessage("s", "i", 0.0, gauges={"g": None}), "gauges"),
+        (lambda: wire.ServiceStatsMessage("s", "i", 0.0, counters={"c": -1}), "counters"),
         (lambda: wire.ScanMessage("not a scan"), "scan"),  # type: ignore[arg-type]
     ],
 )

@@ -13,7 +13,7 @@ from typing import Any, ClassVar, Self
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scanflow.wire.codec import Fields, pack_message, unpack_message
+from scanflow.wire.codec import Fields, clip, pack_message, short, unpack_message
 from scanflow.wire.errors import DecodeError, MessageError, SchemaError
 from scanflow.wire.schema import Schema, decode_fields, encode_fields
 
@@ -53,7 +53,7 @@ class Message:
         """Decode a payload that must hold this message type; raises DecodeError otherwise."""
         type_name, fields = unpack_message(data)
         if type_name != cls.TYPE:
-            raise SchemaError(f"message.type: expected {cls.TYPE!r}, got {type_name!r}")
+            raise SchemaError(f"message.type: expected {cls.TYPE!r}, got {short(type_name)}")
         return cls.build(fields)
 
     @classmethod
@@ -63,7 +63,7 @@ class Message:
         except DecodeError:
             raise
         except ValueError as exc:
-            raise SchemaError(f"{fields.where}: {exc}") from exc
+            raise SchemaError(clip(f"{fields.where}: {exc}")) from exc
 
 
 def decode_any(data: bytes | bytearray | memoryview) -> Message:
@@ -72,7 +72,7 @@ def decode_any(data: bytes | bytearray | memoryview) -> Message:
     cls = _REGISTRY.get(type_name)
     if cls is None:
         known = ", ".join(sorted(_REGISTRY))
-        raise SchemaError(f"message.type: unknown type {type_name!r} (known: {known})")
+        raise SchemaError(f"message.type: unknown type {short(type_name)} (known: {known})")
     return cls.build(fields)
 
 

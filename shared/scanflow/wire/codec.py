@@ -38,7 +38,16 @@ Scalar = bool | int | float | str
 _UNPACK_ERRORS = (ValueError, TypeError, OverflowError, msgpack.UnpackException)
 _repr = reprlib.Repr()
 _repr.maxstring = _repr.maxother = 40
-_short = _repr.repr
+MAX_ERROR_CHARS = 300
+
+
+def short(value: Any) -> str:
+    """A bounded repr: error messages must not echo megabytes of a hostile payload."""
+    return _repr.repr(value)
+
+
+def clip(text: str) -> str:
+    return text if len(text) <= MAX_ERROR_CHARS else text[:MAX_ERROR_CHARS] + "..."
 
 
 def pack_message(type_name: str, fields: dict[str, Any]) -> bytes:
@@ -95,17 +104,17 @@ def decode_array(envelope: Any, where: str, dtype: str) -> NDArray[Any]:
     env = Fields(envelope, where)
     found = env.text("d")
     if found not in ALLOWED_DTYPES:
-        raise SchemaError(f"{where}.d: dtype {_short(found)} is not allowed")
+        raise SchemaError(f"{where}.d: dtype {short(found)} is not allowed")
     if found != dtype:
         raise SchemaError(f"{where}.d: expected dtype {dtype!r}, got {found!r}")
     shape = env.get("s")
     if not isinstance(shape, list) or len(shape) > MAX_NDIM:
         raise SchemaError(
-            f"{where}.s: expected a list of at most {MAX_NDIM} sizes, got {_short(shape)}"
+            f"{where}.s: expected a list of at most {MAX_NDIM} sizes, got {short(shape)}"
         )
     if not all(type(n) is int and 0 <= n <= MAX_PAYLOAD_BYTES for n in shape):
         raise SchemaError(
-            f"{where}.s: sizes must be integers in 0..{MAX_PAYLOAD_BYTES}, got {_short(shape)}"
+            f"{where}.s: sizes must be integers in 0..{MAX_PAYLOAD_BYTES}, got {short(shape)}"
         )
     raw = env.blob("b")
     itemsize = _DTYPES[dtype].itemsize
@@ -139,7 +148,7 @@ class Fields:
         value = self.get(name)
         if type(value) not in types:
             raise SchemaError(
-                f"{self.where}.{name}: expected {what}, got {type(value).__name__} {_short(value)}"
+                f"{self.where}.{name}: expected {what}, got {type(value).__name__} {short(value)}"
             )
         return value
 
@@ -177,7 +186,7 @@ class Fields:
         if not isinstance(value, list) or len(value) != count:
             raise SchemaError(f"{self.where}.{name}: expected a list of {count} numbers")
         if not all(type(v) in (int, float) for v in value):
-            raise SchemaError(f"{self.where}.{name}: expected numbers, got {_short(value)}")
+            raise SchemaError(f"{self.where}.{name}: expected numbers, got {short(value)}")
         return tuple(float(v) for v in value)
 
     def pose(self, name: str) -> Pose2D:
@@ -197,9 +206,9 @@ class Fields:
             raise SchemaError(f"{self.where}.{name}: expected a map, got {type(value).__name__}")
         for key, item in value.items():
             if type(key) is not str:
-                raise SchemaError(f"{self.where}.{name}: key {_short(key)} is not a string")
+                raise SchemaError(f"{self.where}.{name}: key {short(key)} is not a string")
             if type(item) not in types:
                 raise SchemaError(
-                    f"{self.where}.{name}[{key!r}]: expected {what}, got {type(item).__name__}"
+                    f"{self.where}.{name}[{short(key)}]: expected {what}, got {type(item).__name__}"
                 )
         return value

@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 from scanflow.geometry import Pose2D
 from scanflow.scan import LaserScan
 from scanflow.wire.base import Message, check_array, check_count, check_finite, check_text
-from scanflow.wire.codec import Fields, Scalar, encode_array
+from scanflow.wire.codec import Fields, Scalar, encode_array, short
 from scanflow.wire.errors import MessageError, SchemaError
 from scanflow.wire.scans import scan_from_fields, scan_to_fields
 from scanflow.wire.schema import (
@@ -147,7 +147,7 @@ def _operand_from_fields(f: Fields, allow_map: bool) -> Operand | MapRef:
     if kind == "map" and allow_map:
         return MapRef(f.text("robot_id"))
     allowed = "'scan', 'points' or 'map'" if allow_map else "'scan' or 'points'"
-    raise SchemaError(f"{f.where}.kind: expected {allowed}, got {kind!r}")
+    raise SchemaError(f"{f.where}.kind: expected {allowed}, got {short(kind)}")
 
 
 SOURCE = FieldCodec(
@@ -188,13 +188,20 @@ class MatchRequest(Message):
             _check_pose("initial_guess", self.initial_guess)
         if not isinstance(self.options, dict):
             raise MessageError(f"options must be a dict, got {type(self.options).__name__}")
-        for key, value in self.options.items():
-            if not isinstance(key, str):
-                raise MessageError(f"options key {key!r} must be a string")
-            if type(value) not in (bool, int, float, str):
-                raise MessageError(f"options[{key!r}] must be bool/int/float/str, got {value!r}")
-            if isinstance(value, float) and math.isnan(value):
-                raise MessageError(f"options[{key!r}] must not be NaN")
+        object.__setattr__(self, "options", {k: _option(k, v) for k, v in self.options.items()})
+
+
+def _option(key: Any, value: Any) -> Scalar:
+    """An option value as a plain Python scalar (numpy scalars unwrapped); NaN refused."""
+    if not isinstance(key, str):
+        raise MessageError(f"options key {key!r} must be a string")
+    if isinstance(value, np.generic):
+        value = value.item()
+    if type(value) not in (bool, int, float, str):
+        raise MessageError(f"options[{key!r}] must be bool/int/float/str, got {value!r}")
+    if isinstance(value, float) and math.isnan(value):
+        raise MessageError(f"options[{key!r}] must not be NaN")
+    return value
 
 
 @dataclass(frozen=True, eq=False)

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
+
+import numpy as np
 
 from scanflow.wire.base import Message, check_count, check_finite, check_text
 from scanflow.wire.errors import MessageError
@@ -40,10 +43,7 @@ class ServiceStatsMessage(Message):
             _key("counters", k): check_count(f"counters[{k!r}]", v)
             for k, v in self.counters.items()
         }
-        gauges = {_key("gauges", k): float(v) for k, v in self.gauges.items()}
-        for key, value in gauges.items():
-            if math.isnan(value):
-                raise MessageError(f"gauges[{key!r}] must not be NaN")
+        gauges = {_key("gauges", k): _gauge(k, v) for k, v in self.gauges.items()}
         object.__setattr__(self, "counters", counters)
         object.__setattr__(self, "gauges", gauges)
 
@@ -52,3 +52,11 @@ def _key(name: str, key: Any) -> str:
     if not isinstance(key, str):
         raise MessageError(f"{name} key {key!r} must be a string")
     return key
+
+
+def _gauge(key: str, value: Any) -> float:
+    if isinstance(value, bool | np.bool_) or not isinstance(value, numbers.Real):
+        raise MessageError(f"gauges[{key!r}] must be a number, got {value!r}")
+    if math.isnan(value):
+        raise MessageError(f"gauges[{key!r}] must not be NaN")
+    return float(value)
