@@ -83,11 +83,13 @@ def unpack_message(data: Any) -> tuple[str, Fields]:
             max_ext_len=0,
         )
     except _UNPACK_ERRORS as exc:
-        raise DecodeError(f"payload is not valid msgpack within the limits: {exc}") from exc
+        raise DecodeError(clip(f"payload is not valid msgpack within the limits: {exc}")) from exc
     fields = Fields(obj, "message")
     version = fields.integer("v")
     if version != SCHEMA_VERSION:
-        raise VersionError(f"message.v: schema version {version} unsupported (this reader: 1)")
+        raise VersionError(
+            f"message.v: schema version {version} unsupported (this reader: {SCHEMA_VERSION})"
+        )
     type_name = fields.text("type")
     fields.where = type_name
     return type_name, fields
