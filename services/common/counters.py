@@ -63,6 +63,17 @@ class SeqTracker:
             state.last_seq = seq
             return gap
 
+    def resume(self, stream: str, last_seq: int) -> None:
+        """Continue a stream from `last_seq` (e.g. read from a snapshot after a restart)."""
+        with self._lock:
+            self._streams.setdefault(stream, RobotSeq()).last_seq = last_seq
+
+    def is_restart(self, stream: str, seq: int) -> bool:
+        """True when `seq` does not move the stream forward (a replay or restarted publisher)."""
+        with self._lock:
+            state = self._streams.get(stream)
+            return state is not None and 0 <= seq <= state.last_seq
+
     def last_seq(self, stream: str) -> int:
         with self._lock:
             state = self._streams.get(stream)

@@ -83,11 +83,27 @@ class ServiceShell:
         Decoded messages go to `sink(kind, message)` (default: the inbox, blocking when full).
         `sink` runs on a Zenoh thread and must be quick.
         """
+        self.subscribe_routes(key, [(key, kind, decode)], sink)
+
+    def subscribe_routes(
+        self,
+        key: str,
+        routes: list[tuple[str, str, Callable[[bytes], Any]]],
+        sink: Callable[[str, Any], object] | None = None,
+    ) -> None:
+        """One subscriber on `key`, dispatching each sample to the first route whose key
+        expression matches it: `(route_key, kind, decode)`. Samples of several topics then
+        arrive in publication order, which separate subscribers do not guarantee."""
         deliver = sink or self.inbox.put
+        compiled = [(zenoh.KeyExpr(k), kind, decode) for k, kind, decode in routes]
 
         def on_sample(sample: zenoh.Sample) -> None:
             if sample.kind != zenoh.SampleKind.PUT:
                 return
+            route = next((r for r in compiled if r[0].intersects(sample.key_expr)), None)
+            if route is None:
+                return
+            _, kind, decode = route
             try:
                 message = decode(sample.payload.to_bytes())
             except Exception as exc:  # any decode failure: count, log, keep going

@@ -38,14 +38,17 @@ class DeskewService:
         self.shell = ServiceShell("deskew", settings.instance, zenoh_settings, settings.queue_size)
         prefix = self.shell.prefix
         self.robots: dict[str, _Robot] = {}
-        self.shell.subscribe(keys.raw_scan("*", prefix), "scan", ScanMessage.decode)
-        self.shell.subscribe(keys.odom("*", prefix), "odom", OdometryMessage.decode)
+        routes = [
+            (keys.raw_scan("*", prefix), "scan", ScanMessage.decode),
+            (keys.odom("*", prefix), "odom", OdometryMessage.decode),
+        ]
+        self.shell.subscribe_routes(keys.robot_streams("*", prefix), routes)
         self.shell.add_stats(lambda: {"robots": len(self.robots), "pending": self._pending()})
 
     def handle(self, kind: str, message: ScanMessage | OdometryMessage) -> None:
         robot_id = message.robot_id
         stream = f"{robot_id}/{kind}"
-        restarted = 0 <= message.seq <= self.shell.seqs.last_seq(stream)
+        restarted = self.shell.seqs.is_restart(stream, message.seq)
         self.shell.seqs.observe(stream, message.seq)
         robot = self.robots.setdefault(robot_id, _Robot())
         if isinstance(message, OdometryMessage):
@@ -80,6 +83,11 @@ class DeskewService:
 
     def _publish(self, robot_id: str, scan: LaserScan, odometry: OdometryBuffer) -> None:
         result = deskew(scan, odometry)
+        self.shell.log.debug(
+            "scan %d: %d odometry samples up to %.3f s, source %s",
+            scan.seq, len(odometry), odometry.stamps_s[-1] if len(odometry) else -1.0,
+            result.source_used,
+        )
         self.shell.counters.add(f"deskewed.{result.source_used}")
         message = DeskewedScanMessage(
             robot_id=robot_id,

@@ -21,10 +21,9 @@ def sim_events(duration_s: float, seed: int, robot_id: str) -> Iterator[Event]:
     """The built-in simulator: each frame's odometry samples, then its (distorted) scan."""
     from scanflow.sim import SimConfig, simulate
 
-    for frame in simulate(SimConfig(duration_s=duration_s, seed=seed)):
-        for odom in frame.odometry:
-            yield dataclasses.replace(odom, robot_id=robot_id)
-        yield dataclasses.replace(frame.scan, robot_id=robot_id)
+    for frame in simulate(SimConfig(duration_s=duration_s, seed=seed, robot_id=robot_id)):
+        yield from frame.odometry
+        yield frame.scan
 
 
 def log_events(path: str | Path, robot_id: str) -> Iterator[Event]:

@@ -14,9 +14,13 @@ Layout (``<prefix>`` defaults to ``scanflow``; ``<robot>`` is a robot id):
 | <prefix>/<robot>/map/region           | queryable  | MapRegionMessage               |
 | <prefix>/<robot>/map/changed          | pub/sub    | MapChangedMessage              |
 | <prefix>/<robot>/trajectory           | queryable  | TrajectoryMessage              |
+| <prefix>/<robot>/**                   | subscriber | all of a robot's streams (*)   |
 | <prefix>/match                        | queryable  | MatchRequest (scan-to-scan)    |
 | <prefix>/health/<service>/<instance>  | liveliness | (token, no payload)            |
 | <prefix>/stats/<service>/<instance>   | queryable  | ServiceStatsMessage            |
+
+(*) Zenoh keeps publication order only within one subscriber: a service that needs odometry
+and scans in the order they were published subscribes once to `robot_streams` and dispatches.
 
 Ids are single chunks (see `check_id`); a prefix may span several chunks ("site1/scanflow").
 Robot ids "health" and "stats" are reserved: their keys would collide with the service keys.
@@ -84,6 +88,11 @@ def robot_match(robot: str = "*", prefix: str = DEFAULT_PREFIX) -> str:
 
 def scan_match(prefix: str = DEFAULT_PREFIX) -> str:
     return f"{check_prefix(prefix)}/match"
+
+
+def robot_streams(robot: str = "*", prefix: str = DEFAULT_PREFIX) -> str:
+    """Every key below a robot (one subscriber keeps the publication order across topics)."""
+    return _key(robot, "**", prefix)
 
 
 def map_key(robot: str = "*", what: str = "meta", prefix: str = DEFAULT_PREFIX) -> str:

@@ -1,0 +1,129 @@
+"""Fixtures for service tests: a real router on a free loopback port and a bus client."""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+import zenoh
+from scanflow import keys
+from scanflow.config import ZenohSettings
+from scanflow.wire import ServiceStatsMessage, decode_any
+
+from services.common.launch import Launcher, free_port
+from services.common.zsession import open_session
+
+_DEFAULT_DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
+DATA_DIR = Path(os.environ.get("SCANFLOW_DATA_DIR", _DEFAULT_DATA))
+
+
+@pytest.fixture
+def data_file() -> Callable[[str], Path]:
+    """Path of a real log by name; skips the test when the data is not there."""
+
+    def find(name: str) -> Path:
+        path = DATA_DIR / name
+        if not path.exists():
+            pytest.skip(f"real log {path} is not available (set SCANFLOW_DATA_DIR)")
+        return path
+
+    return find
+
+
+def wait_until(predicate: Callable[[], object], timeout_s: float, what: str) -> object:
+    """Poll `predicate` until it returns something truthy; fail naming `what` on timeout."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+        time.sleep(0.1)
+
+
+class Bus:
+    """A test's own Zenoh client: record topics, query stats, put raw bytes."""
+
+    def __init__(self, port: int) -> None:
+        self.session = open_session(ZenohSettings(connect=[f"tcp/127.0.0.1:{port}"]))
+        self.received: dict[str, list] = {}
+        self._subs = []
+
+    def record(self, key: str) -> list:
+        """Decode and keep every message on `key` (wildcards allowed)."""
+        bucket = self.received.setdefault(key, [])
+        self._subs.append(
+            self.session.declare_subscriber(
+                key, lambda s: bucket.append(decode_any(s.payload.to_bytes()))
+            )
+        )
+        return bucket
+
+    def get(self, selector: str, timeout_s: float = 5.0) -> list:
+        """Decoded OK replies to a query; error replies raise."""
+        out = []
+        for reply in self.session.get(selector, timeout=timeout_s):
+            if reply.ok is None:
+                raise AssertionError(f"{selector}: {reply.err.payload.to_string()}")
+            out.append(decode_any(reply.ok.payload.to_bytes()))
+        return out
+
+    def stats(self, service: str, instance: str = "0") -> ServiceStatsMessage | None:
+        replies = self.get(keys.stats(service, instance), timeout_s=3.0)
+        return replies[0] if replies else None
+
+    def alive(self) -> set[str]:
+        """`service/instance` of every health token present."""
+        tokens = set()
+        for reply in self.session.liveliness().get(keys.health(), timeout=2.0):
+            if reply.ok is not None:
+                tokens.add("/".join(str(reply.ok.key_expr).split("/")[-2:]))
+        return tokens
+
+    def put(self, key: str, payload: bytes) -> None:
+        self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+
+    wait_until = staticmethod(wait_until)
+
+    def close(self) -> None:
+        self.session.close()
+
+
+@pytest.fixture
+def launcher(tmp_path: Path) -> Iterator[Launcher]:
+    """A router on a free port; services started through it are all stopped at the end."""
+    launch = Launcher.local(
+        tmp_path / "logs",
+        free_port(),
+        SCANFLOW_MAPSERVER_DATA_DIR=str(tmp_path / "data"),
+        SCANFLOW_INGEST_RATE="0",
+        SCANFLOW_INGEST_DRAIN_TIMEOUT_S="30",
+    )
+    launch.start("router")
+    yield launch
+    codes = launch.stop_all()
+    for name in launch.processes:
+        print(f"---- {name} (exit {codes.get(name)}) ----\n{launch.log_text(name)[-3000:]}")
+
+
+@pytest.fixture
+def bus(launcher: Launcher) -> Iterator[Bus]:
+    client = Bus(launcher.zenoh_port)
+    yield client
+    client.close()
+
+
+@pytest.fixture
+def start(launcher: Launcher, bus: Bus) -> Callable[..., None]:
+    """start(name, **settings): start a service and wait until its health token shows."""
+
+    def start_service(name: str, **settings: str) -> None:
+        launcher.start(name, **settings)
+        instance = settings.get(f"SCANFLOW_{name.upper()}_INSTANCE", "0")
+        wait_until(lambda: f"{name}/{instance}" in bus.alive(), 30.0, f"{name} health token")
+
+    return start_service

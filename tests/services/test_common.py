@@ -1,0 +1,133 @@
+"""Unit checks of the service shell pieces that need no network: counters, seqs, inbox, flow."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from services.common.counters import Counters, SeqTracker
+from services.common.inbox import Inbox
+from services.ingest.flow import CreditWindow, Pacer
+
+
+def test_counters_from_many_threads():
+    counters = Counters()
+
+    def bump():
+        for _ in range(1000):
+            counters.add("x")
+
+    threads = [threading.Thread(target=bump) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert counters.snapshot() == {"x": 4000}
+
+
+@given(st.lists(st.integers(0, 50), min_size=1, max_size=60))
+def test_seq_tracker_counts_every_missing_seq(seqs):
+    tracker = SeqTracker()
+    expected_missed = expected_restarts = 0
+    last = -1
+    for seq in seqs:
+        if last >= 0 and seq <= last:
+            expected_restarts += 1
+        elif last >= 0:
+            expected_missed += seq - last - 1
+        last = seq
+        tracker.observe("r/scan", seq)
+    snap = tracker.snapshot()["r/scan"]
+    assert snap == {
+        "last_seq": seqs[-1],
+        "received": len(seqs),
+        "missed": expected_missed,
+        "restarts": expected_restarts,
+    }
+
+
+def test_seq_tracker_resume_counts_the_gap_after_a_restart():
+    tracker = SeqTracker()
+    tracker.resume("r/pose", 9)
+    assert tracker.is_restart("r/pose", 3)
+    assert tracker.observe("r/pose", 15) == 5
+
+
+def test_inbox_blocks_instead_of_dropping_and_releases_on_stop():
+    stop = threading.Event()
+    inbox = Inbox(2, stop)
+    assert inbox.put("a", 1) and inbox.put("a", 2)
+    done = threading.Event()
+
+    def producer():
+        inbox.put("a", 3)
+        done.set()
+
+    threading.Thread(target=producer, daemon=True).start()
+    assert not done.wait(0.3)  # full: the producer waits
+    assert inbox.get() == ("a", 1)
+    assert done.wait(2.0)
+    assert [inbox.get(), inbox.get()] == [("a", 2), ("a", 3)]
+    stop.set()
+    assert inbox.put("a", 4) is False  # stopping: refuses rather than block shutdown
+
+
+def test_credit_window_waits_for_poses():
+    stop = threading.Event()
+    credit = CreditWindow(window=2, stall_timeout_s=30.0, stop=stop)
+    assert credit.acquire("r", 0) and credit.acquire("r", 1)
+    released = threading.Event()
+
+    def publisher():
+        credit.acquire("r", 3)  # needs the pose of scan 1
+        released.set()
+
+    threading.Thread(target=publisher, daemon=True).start()
+    credit.on_pose("r", 0)
+    assert not released.wait(0.3)
+    credit.on_pose("r", 1)
+    assert released.wait(2.0)
+    assert credit.stalls == 0
+
+
+def test_credit_window_resumes_after_a_stall_and_counts_it():
+    credit = CreditWindow(window=1, stall_timeout_s=0.2, stop=threading.Event())
+    assert credit.acquire("r", 5)  # nothing acknowledged, no pose comes: stall, then go
+    assert credit.stalls == 1
+    assert credit.acquire("r", 6)  # the window restarted at scan 5
+    assert not credit.drain("r", 6, timeout_s=0.1)
+    credit.on_pose("r", 6)
+    assert credit.drain("r", 6, timeout_s=0.1)
+
+
+class _RecordingStop(threading.Event):
+    """A stop event whose waits are recorded instead of slept."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.waits: list[float] = []
+
+    def wait(self, timeout=None):
+        self.waits.append(timeout)
+        return False
+
+
+def test_pacer_follows_stamps_at_the_rate_and_ignores_backward_stamps(monkeypatch):
+    monkeypatch.setattr(time, "monotonic", lambda: 1000.0)
+    stop = _RecordingStop()
+    pacer = Pacer(rate=10.0, stop=stop)
+    for stamp in (100.0, 100.5, 101.0, 50.0):
+        pacer.wait(stamp)
+    assert stop.waits == pytest.approx([0.05, 0.1])
+
+
+def test_pacer_at_rate_zero_never_waits():
+    stop = _RecordingStop()
+    pacer = Pacer(rate=0.0, stop=stop)
+    for stamp in (1.0, 2.0, 3.0):
+        pacer.wait(stamp)
+    assert stop.waits == []

@@ -1,0 +1,52 @@
+"""The deskew service on real processes: every scan comes out, equal to the library's deskew."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scanflow import keys
+from scanflow.deskew import OdometryBuffer, deskew
+from scanflow.scan import LaserScan
+from scanflow.wire import ScanMessage
+
+from services.ingest.sources import source_events
+
+pytestmark = [pytest.mark.integration]
+
+SIM = {"SCANFLOW_INGEST_SIM_DURATION_S": "3", "SCANFLOW_INGEST_SIM_SEED": "4"}
+
+
+def reference_deskew(events) -> dict[int, np.ndarray]:
+    """The library's deskew of each scan with all odometry published before it."""
+    buffer = OdometryBuffer()
+    out = {}
+    for event in events:
+        if isinstance(event, LaserScan):
+            out[event.seq] = deskew(event, buffer).points.astype(np.float32)
+        else:
+            buffer.add_odometry(event)
+    return out
+
+
+def test_every_scan_is_deskewed_like_the_library_and_junk_is_counted(launcher, bus, start):
+    deskewed = bus.record(keys.deskewed_scan())
+    start("deskew")
+    junk = [b"", b"\x00garbage", ScanMessage.__name__.encode()]
+    for payload in junk:
+        bus.put(keys.raw_scan("robot"), payload)
+        bus.put(keys.odom("robot"), payload)
+    launcher.start(
+        "ingest", SCANFLOW_INGEST_WINDOW="0", SCANFLOW_INGEST_DRAIN_TIMEOUT_S="0.5", **SIM
+    )
+    expected = reference_deskew(source_events(None, "robot", 3.0, 4, None))
+    bus.wait_until(lambda: len(deskewed) >= len(expected), 60.0, "all deskewed scans")
+    assert [m.seq for m in deskewed] == sorted(expected)
+    for message in deskewed:
+        assert message.source_used == "odometry"
+        np.testing.assert_array_equal(message.points, expected[message.seq])
+    stats = bus.stats("deskew")
+    assert stats.counters["malformed.scan"] == len(junk)
+    assert stats.counters["malformed.odom"] == len(junk)
+    assert stats.counters["received.scan"] == len(expected)
+    assert stats.counters["seq.robot/scan.missed"] == 0
+    assert launcher.processes["deskew"].poll() is None
