@@ -115,3 +115,48 @@ class MapServerSettings(ServiceSettings):
     snapshot_interval_s: float = Field(10.0, gt=0.0)
     changed_rate_hz: float = Field(2.0, gt=0.0, description="at most this many change notices/s")
     pending_limit: int = Field(2000, ge=1, description="scans held while waiting for their pose")
+
+
+class FrontendSettings(BaseSettings):
+    """The scan-to-map tracking front end (SCANFLOW_FRONTEND_*): method, checks, motion filter.
+
+    Read from the environment only when a service or the CLI constructs it; library code gets
+    an instance passed in (see `scanflow.frontend`).
+    """
+
+    model_config = SettingsConfigDict(env_prefix="SCANFLOW_FRONTEND_", extra="ignore")
+
+    method: str = Field("gn", description="scan-to-map method (scanflow.matching name)")
+    fallback_method: str = Field(
+        "csm", description="global-window search that seeds `method` when it fails; '' = none"
+    )
+    fallback_linear_m: float = Field(1.0, gt=0.0, description="fallback search half-width")
+    fallback_angular_deg: float = Field(30.0, gt=0.0, description="fallback search half-angle")
+    map_resolution_m: float = Field(0.05, gt=0.0)
+    min_points: int = Field(30, ge=3, description="fewer valid points: scan rejected")
+    max_correction_m: float = Field(
+        1.0, gt=0.0, description="largest accepted |match - prediction| translation"
+    )
+    max_correction_deg: float = Field(30.0, gt=0.0, description="same, heading")
+    min_score: float = Field(0.2, description="lowest accepted match score")
+    max_position_std_m: float = Field(0.5, gt=0.0, description="largest accepted sqrt(var x/y)")
+    max_heading_std_deg: float = Field(10.0, gt=0.0)
+    accept_degenerate: bool = Field(
+        True, description="accept matches constrained in two directions only (corridors)"
+    )
+    max_odom_step_m: float = Field(3.0, gt=0.0, description="larger odometry steps are jumps")
+    max_odom_step_deg: float = Field(120.0, gt=0.0)
+    cv_horizon_s: float = Field(
+        1.0, gt=0.0, description="constant-velocity prediction reach without odometry"
+    )
+    odom_noise_m_per_m: float = Field(
+        0.1, ge=0.0, description="prediction std growth per metre travelled (unmatched scans)"
+    )
+    odom_noise_rad_per_rad: float = Field(0.1, ge=0.0)
+    prediction_floor_std_m: float = Field(0.05, ge=0.0)
+    prediction_floor_std_deg: float = Field(2.0, ge=0.0)
+    insert_min_distance_m: float = Field(0.2, ge=0.0, description="motion filter: distance")
+    insert_min_angle_deg: float = Field(10.0, ge=0.0, description="motion filter: heading")
+    insert_max_interval_s: float = Field(
+        5.0, gt=0.0, description="motion filter: insert anyway after this long"
+    )

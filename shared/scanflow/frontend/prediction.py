@@ -1,0 +1,104 @@
+"""Pose prediction for the next scan: the odometry increment composed into the map frame, or
+a constant-velocity extrapolation of the last estimates when there is no (usable) odometry.
+
+The odometry and map frames differ by the drift accumulated so far, so only odometry
+*increments* are meaningful: T_map_t = T_map_(t-1) * inverse(T_odom_(t-1)) * T_odom_t
+(second seed, part 1).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import StrEnum
+
+from scanflow.deskew import ConstantVelocityModel
+from scanflow.geometry import Pose2D
+
+
+class PredictionSource(StrEnum):
+    """Where a predicted pose came from."""
+
+    INITIAL = "initial"
+    ODOMETRY = "odometry"
+    CONSTANT_VELOCITY = "constant_velocity"
+    HOLD = "hold"
+
+
+def compose_odometry_increment(
+    last_map_pose: Pose2D, last_odom_pose: Pose2D, odom_pose: Pose2D
+) -> Pose2D:
+    """T_map_t = T_map_(t-1) * inverse(T_odom_(t-1)) * T_odom_t."""
+    return last_map_pose * (last_odom_pose.inverse() * odom_pose)
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """A predicted map pose, the motion since the last estimate, and how it was obtained."""
+
+    pose: Pose2D
+    motion: Pose2D
+    source: PredictionSource
+    message: str = ""
+
+
+class MotionPredictor:
+    """Tracks the last estimate (map and odometry poses) and predicts the next scan's pose.
+
+    An odometry step longer than `max_odom_step_m` or turning more than `max_odom_step_rad` is
+    taken as a jump (a reset or a glitch of the odometry source) and ignored for this scan; the
+    next step is measured from the jumped-to odometry pose, so one glitch costs one prediction.
+    """
+
+    def __init__(
+        self, max_odom_step_m: float, max_odom_step_rad: float, cv_horizon_s: float
+    ) -> None:
+        for name, value in (
+            ("max_odom_step_m", max_odom_step_m),
+            ("max_odom_step_rad", max_odom_step_rad),
+        ):
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be finite and > 0, got {value!r}")
+        self.max_odom_step_m = float(max_odom_step_m)
+        self.max_odom_step_rad = float(max_odom_step_rad)
+        self._velocity = ConstantVelocityModel(max_horizon_s=cv_horizon_s)
+        self._last_pose: Pose2D | None = None
+        self._last_odom: Pose2D | None = None
+
+    @property
+    def last_pose(self) -> Pose2D | None:
+        return self._last_pose
+
+    def predict(self, stamp_s: float, odom_pose: Pose2D | None) -> Prediction:
+        """The expected map pose at `stamp_s` given the odometry pose there (None if unknown)."""
+        last = self._last_pose
+        if last is None:
+            return Prediction(Pose2D(), Pose2D(), PredictionSource.INITIAL)
+        note = ""
+        if odom_pose is not None and self._last_odom is not None:
+            step = odom_pose.relative_to(self._last_odom)
+            if (
+                step.translation_norm() <= self.max_odom_step_m
+                and abs(step.theta) <= self.max_odom_step_rad
+            ):
+                pose = compose_odometry_increment(last, self._last_odom, odom_pose)
+                return Prediction(pose, step, PredictionSource.ODOMETRY)
+            note = (
+                f"odometry jumped {step.translation_norm():.2f} m / "
+                f"{math.degrees(step.theta):.1f} deg (limits {self.max_odom_step_m} m / "
+                f"{math.degrees(self.max_odom_step_rad):.1f} deg): ignored; "
+            )
+        if self._velocity.coverage_gap(stamp_s, stamp_s) is None:
+            x, y, theta = self._velocity.poses_at([stamp_s])
+            pose = Pose2D(float(x[0]), float(y[0]), float(theta[0]))
+            return Prediction(
+                pose, pose.relative_to(last), PredictionSource.CONSTANT_VELOCITY, note
+            )
+        return Prediction(last, Pose2D(), PredictionSource.HOLD, note + "no motion prior: held")
+
+    def update(self, stamp_s: float, pose: Pose2D, odom_pose: Pose2D | None) -> None:
+        """Record the pose estimated at `stamp_s` (matched or predicted) and its odometry pose."""
+        self._velocity.update(stamp_s, pose)
+        self._last_pose = pose
+        # A scan without odometry breaks the chain: the next increment needs both ends.
+        self._last_odom = odom_pose

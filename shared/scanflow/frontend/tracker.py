@@ -1,0 +1,233 @@
+"""Scan-to-map tracking for one robot: predict, match against the robot's own map, check, insert.
+
+`Frontend(settings).process(points_m, stamp_s, odom_pose, seq) -> FrontendOutput`, once per
+deskewed scan, in stamp order. `points_m` are the scan's valid endpoints in the sensor frame at
+`stamp_s` (a `DeskewResult.points`); `odom_pose` is the wheel-odometry pose at `stamp_s` in the
+odometry frame, or None. Output poses are T_map_sensor.
+
+Per scan:
+1. predict: the odometry increment since the last scan composed onto the last estimate
+   (a jump beyond the limits is ignored), else constant velocity, else the last pose;
+2. match the points against the map from the prediction with `settings.method`; if the checks of
+   `acceptance` fail and a fallback is set, a correlative search (`settings.fallback_method`)
+   over +-fallback_linear_m / +-fallback_angular_deg seeds the method again;
+3. accepted: the pose is the match, the map gets the scan when the motion filter allows it;
+   rejected (or too few points): the pose is the prediction with its covariance grown by the
+   motion since the last accepted match, the map is untouched, the status and message say why.
+The first usable scan initialises the map at `initial_pose`. The front end never raises for a
+bad scan; it reports it and carries on. Memory: the map plus 32 bytes of trajectory per scan.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from enum import StrEnum
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from scanflow.config import FrontendSettings
+from scanflow.frontend.acceptance import AcceptanceLimits, rejection_reason
+from scanflow.frontend.motion_filter import MotionFilter
+from scanflow.frontend.prediction import MotionPredictor, Prediction
+from scanflow.frontend.trajectory import TrajectoryStore
+from scanflow.geometry import Pose2D
+from scanflow.maps.matching_map import MatchingMap
+from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
+from scanflow.matching import MatchResult, match
+from scanflow.matching.api import as_points
+
+
+class FrontendStatus(StrEnum):
+    """What the front end did with a scan. The first three mean the pose is a match."""
+
+    INITIALISED = "initialised"
+    TRACKED = "tracked"
+    RECOVERED = "recovered"
+    REJECTED = "rejected"
+    TOO_FEW_POINTS = "too_few_points"
+
+
+ACCEPTED = frozenset({FrontendStatus.INITIALISED, FrontendStatus.TRACKED, FrontendStatus.RECOVERED})
+
+
+@dataclass(frozen=True, eq=False)
+class FrontendOutput:
+    """The front end's estimate for one scan (pose = T_map_sensor at `stamp_s`)."""
+
+    seq: int
+    stamp_s: float
+    pose: Pose2D
+    covariance: NDArray[np.float64]
+    status: FrontendStatus
+    method: str
+    iterations: int
+    score: float
+    message: str
+    inserted: bool
+    prediction_source: str
+    match_time_s: float = 0.0
+    insert_time_s: float = 0.0
+
+    @property
+    def accepted(self) -> bool:
+        return self.status in ACCEPTED
+
+
+@dataclass
+class _Step:
+    """One scan on its way through `Frontend.process`."""
+
+    prediction: Prediction
+    points: NDArray[np.float64]
+    stamp_s: float
+    odom_pose: Pose2D | None
+    seq: int
+    match_time_s: float = 0.0
+
+
+def default_settings() -> FrontendSettings:
+    """The documented defaults, without reading the environment (library code never does)."""
+    return FrontendSettings.model_construct()
+
+
+class Frontend:
+    """Tracks one robot against its own growing map (see the module docstring)."""
+
+    def __init__(
+        self,
+        settings: FrontendSettings | None = None,
+        initial_pose: Pose2D | None = None,
+        grid: OccupancyGrid | None = None,
+    ) -> None:
+        s = settings if settings is not None else default_settings()
+        self.settings = s
+        self.initial_pose = initial_pose or Pose2D()
+        params = OccupancyParams(resolution_m=s.map_resolution_m)
+        self.map = MatchingMap(grid if grid is not None else OccupancyGrid(params))
+        self.trajectory = TrajectoryStore()
+        self._limits = AcceptanceLimits(
+            max_correction_m=s.max_correction_m,
+            max_correction_rad=math.radians(s.max_correction_deg),
+            min_score=s.min_score,
+            max_position_std_m=s.max_position_std_m,
+            max_heading_std_rad=math.radians(s.max_heading_std_deg),
+            accept_degenerate=s.accept_degenerate,
+        )
+        self._predictor = MotionPredictor(
+            s.max_odom_step_m, math.radians(s.max_odom_step_deg), s.cv_horizon_s
+        )
+        self._filter = MotionFilter(
+            s.insert_min_distance_m, math.radians(s.insert_min_angle_deg), s.insert_max_interval_s
+        )
+        self._initialised = not self.map.is_empty
+        self._covariance = np.zeros((3, 3))
+
+    @property
+    def pose(self) -> Pose2D | None:
+        """The latest estimate, None before the first scan."""
+        return self._predictor.last_pose
+
+    def process(
+        self,
+        points_m: ArrayLike,
+        stamp_s: float,
+        odom_pose: Pose2D | None = None,
+        seq: int = 0,
+    ) -> FrontendOutput:
+        """Track one scan (see the module docstring); never raises for bad scan content."""
+        points = as_points(points_m, "points_m")
+        prediction = self._predict(stamp_s, odom_pose)
+        step = _Step(prediction, points, float(stamp_s), odom_pose, seq)
+        if len(points) < self.settings.min_points:
+            reason = f"{len(points)} valid points, need min_points={self.settings.min_points}"
+            return self._finish(step, FrontendStatus.TOO_FEW_POINTS, None, reason)
+        if not self._initialised:
+            self._initialised = True
+            return self._finish(step, FrontendStatus.INITIALISED, None, "map initialised")
+        t0 = time.perf_counter()
+        result, status, note = self._match(points, prediction.pose)
+        step.match_time_s = time.perf_counter() - t0
+        return self._finish(step, status, result, note)
+
+    def _predict(self, stamp_s: float, odom_pose: Pose2D | None) -> Prediction:
+        prediction = self._predictor.predict(stamp_s, odom_pose)
+        if self._predictor.last_pose is None:
+            return Prediction(self.initial_pose, Pose2D(), prediction.source, prediction.message)
+        return prediction
+
+    def _match(
+        self, points: NDArray[np.float64], guess: Pose2D
+    ) -> tuple[MatchResult, FrontendStatus, str]:
+        """The local match, else the fallback search refined locally, with a note on why."""
+        s = self.settings
+        result = match(points, self.map, guess, method=s.method)
+        reason = rejection_reason(result, guess, self._limits)
+        if not reason:
+            return result, FrontendStatus.TRACKED, result.message
+        if not s.fallback_method:
+            return result, FrontendStatus.REJECTED, reason
+        coarse = match(
+            points, self.map, guess, method=s.fallback_method,
+            linear_m=s.fallback_linear_m, angular_rad=math.radians(s.fallback_angular_deg),
+            resolution_m=s.map_resolution_m,
+        )
+        if not coarse.ok:
+            return result, FrontendStatus.REJECTED, f"{reason}; fallback: {coarse.message}"
+        refined = match(points, self.map, coarse.pose, method=s.method)
+        fallback_reason = rejection_reason(refined, guess, self._limits)
+        if fallback_reason:
+            return refined, FrontendStatus.REJECTED, f"{reason}; after fallback: {fallback_reason}"
+        return refined, FrontendStatus.RECOVERED, f"recovered by {s.fallback_method}: {reason}"
+
+    def _finish(
+        self, step: _Step, status: FrontendStatus, result: MatchResult | None, note: str
+    ) -> FrontendOutput:
+        """Adopt the match (accepted) or the prediction (rejected), insert if due, report."""
+        if status in ACCEPTED:
+            pose = step.prediction.pose if result is None else result.pose
+            self._covariance = np.zeros((3, 3)) if result is None else result.covariance
+        else:
+            # The map is not touched; uncertainty grows with the motion since the last match.
+            pose = step.prediction.pose
+            self._covariance = self._covariance + self._motion_noise(step.prediction.motion)
+        self._predictor.update(step.stamp_s, pose, step.odom_pose)
+        self.trajectory.append(step.stamp_s, pose)
+        inserted, insert_time_s = False, 0.0
+        if status in ACCEPTED and self._filter.should_insert(step.stamp_s, pose):
+            t0 = time.perf_counter()
+            self._insert(step.points, pose)
+            insert_time_s = time.perf_counter() - t0
+            self._filter.mark_inserted(step.stamp_s, pose)
+            inserted = True
+        return FrontendOutput(
+            seq=step.seq,
+            stamp_s=step.stamp_s,
+            pose=pose,
+            covariance=self._covariance.copy(),
+            status=status,
+            method="" if result is None else result.method,
+            iterations=0 if result is None else result.iterations,
+            score=0.0 if result is None else result.score,
+            message=step.prediction.message + note,
+            inserted=inserted,
+            prediction_source=str(step.prediction.source),
+            match_time_s=step.match_time_s,
+            insert_time_s=insert_time_s,
+        )
+
+    def _insert(self, points: NDArray[np.float64], pose: Pose2D) -> None:
+        """Insert the scan's points (within the grid's max range) seen from `pose`."""
+        max_range_m = self.map.grid.params.max_range_m
+        in_range = np.hypot(points[:, 0], points[:, 1]) <= max_range_m
+        self.map.update(pose.transform_points(points[in_range]), (pose.x, pose.y))
+
+    def _motion_noise(self, motion: Pose2D) -> NDArray[np.float64]:
+        s = self.settings
+        std_m = max(s.prediction_floor_std_m, s.odom_noise_m_per_m * motion.translation_norm())
+        std_rad = max(
+            math.radians(s.prediction_floor_std_deg), s.odom_noise_rad_per_rad * abs(motion.theta)
+        )
+        return np.diag([std_m**2, std_m**2, std_rad**2])
