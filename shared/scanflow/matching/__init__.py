@@ -3,6 +3,16 @@
 One module per method; importing this package registers all of them.
 """
 
+from scanflow.matching import (  # noqa: F401  (importing registers the methods)
+    csm,
+    gn,
+    hybrid,
+    icp,
+    lm,
+    ndt,
+    plicp,
+    svd,
+)
 from scanflow.matching.api import (
     DEFAULT_METHOD,
     MatchInputError,

@@ -1,0 +1,91 @@
+"""Gauss-Newton scan-to-map matching on a smooth likelihood field (Hector SLAM; seed 2, part 1).
+
+Each iteration solves H dx = -g for the field cost (see field_cost), restricted to the
+directions H constrains, and stops on a step small in BOTH translation and |rotation|. A step
+larger than the limits ends the match with STEP_LIMIT (the linearisation cannot be trusted that
+far), a cost rising well above its level start with DIVERGED.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from scanflow.geometry import Pose2D
+from scanflow.maps.field import LikelihoodField
+from scanflow.matching.api import MatchResult, MatchStatus, register_method
+from scanflow.matching.checks import characteristic_length_m
+from scanflow.matching.field_cost import (
+    LevelOutcome,
+    converged_step,
+    field_cost,
+    linearise,
+    run_coarse_to_fine,
+    solve_well_determined,
+)
+
+
+@register_method("gn")
+def match_gn(
+    source: NDArray[np.float64],
+    target: object,
+    guess: Pose2D,
+    *,
+    levels: int = 3,
+    resolution_m: float = 0.05,
+    sigma_m: float = 0.1,
+    max_iterations: int = 30,
+    translation_tol_m: float = 1e-3,
+    rotation_tol_rad: float = 1e-3,
+    max_step_m: float = 0.5,
+    max_step_rad: float = 0.35,
+) -> MatchResult:
+    """Hector-style Gauss-Newton, coarse to fine over `levels` fields (cell size x2 per level)."""
+    length_m = characteristic_length_m(source)
+
+    def solve_level(
+        field: LikelihoodField, points: NDArray[np.float64], pose: NDArray[np.float64], finest: bool
+    ) -> LevelOutcome:
+        for it in range(1, max_iterations + 1):
+            lin = linearise(field, points, pose)
+            step = solve_well_determined(lin.hessian, -lin.gradient, length_m)
+            if step is None and it > 1:
+                # Landed where the bilinear field is flat around the points: a stationary point.
+                return LevelOutcome(pose, it, None)
+            if step is None:
+                return LevelOutcome(
+                    pose, it, MatchStatus.ILL_CONDITIONED, "H constrains fewer than two directions"
+                )
+            if math.hypot(step[0], step[1]) > max_step_m or abs(step[2]) > max_step_rad:
+                return LevelOutcome(
+                    pose,
+                    it,
+                    MatchStatus.STEP_LIMIT,
+                    f"step {np.round(step, 4).tolist()} exceeds the limits "
+                    f"({max_step_m} m, {max_step_rad} rad)",
+                )
+            trial_cost = field_cost(field, points, pose + step)
+            # Bilinear fields have kinks at the cell centres: halve a step that overshoots one.
+            while trial_cost > lin.cost and not converged_step(
+                step, translation_tol_m, rotation_tol_rad
+            ):
+                step = 0.5 * step
+                trial_cost = field_cost(field, points, pose + step)
+            if trial_cost <= lin.cost:
+                pose = pose + step
+            if converged_step(step, translation_tol_m, rotation_tol_rad):
+                return LevelOutcome(pose, it, None)
+        if finest:
+            return LevelOutcome(
+                pose,
+                max_iterations,
+                MatchStatus.MAX_ITERATIONS,
+                f"no convergence in {max_iterations} iterations",
+            )
+        return LevelOutcome(pose, max_iterations, None)
+
+    return run_coarse_to_fine(
+        "gn", source, target, guess, solve_level, levels, resolution_m, sigma_m
+    )

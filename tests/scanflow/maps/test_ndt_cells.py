@@ -1,0 +1,57 @@
+"""NDTCells: per-cell moments, eigenvalue floor, lookups and the four shifted grids."""
+
+import numpy as np
+import pytest
+from scanflow.maps.ndt_cells import (
+    EIGEN_FLOOR_M2,
+    EIGEN_FLOOR_RATIO,
+    MIN_CELL_POINTS,
+    NDTCells,
+    overlapping_cells,
+)
+
+
+def test_cells_hold_the_mean_and_inverse_covariance_of_their_points() -> None:
+    rng = np.random.default_rng(3)
+    cov = np.array([[0.02, 0.01], [0.01, 0.03]])
+    pts = rng.multivariate_normal([10.5, -20.5], cov, size=400)
+    pts = pts[(np.abs(pts - [10.5, -20.5]) < 0.5).all(axis=1)]
+    cells = NDTCells.from_points(pts, 1.0, offset_m=(0.0, 0.0))
+    k = cells.lookup(np.array([[10.5, -20.5]]))[0]
+    assert k >= 0 and cells.counts[k] == len(pts)
+    np.testing.assert_allclose(cells.means[k], pts.mean(axis=0), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.inv(cells.inv_covs[k]), np.cov(pts.T), rtol=1e-9)
+
+
+def test_collinear_points_get_a_floored_covariance() -> None:
+    x = np.linspace(0.05, 0.95, 50)
+    cells = NDTCells.from_points(np.column_stack((x, np.full_like(x, 0.5))), 1.0)
+    vals = np.linalg.eigvalsh(np.linalg.inv(cells.inv_covs[0]))
+    assert vals[0] == pytest.approx(max(EIGEN_FLOOR_RATIO * vals[1], EIGEN_FLOOR_M2))
+    assert np.all(np.isfinite(cells.inv_covs))
+
+
+def test_sparse_cells_are_dropped_and_lookups_outside_return_minus_one() -> None:
+    pts = np.array([[0.1, 0.1]] * MIN_CELL_POINTS + [[2.5, 2.5]] * (MIN_CELL_POINTS - 1))
+    cells = NDTCells.from_points(pts, 1.0)
+    assert len(cells) == 1
+    got = cells.lookup(np.array([[0.5, 0.5], [2.5, 2.5], [-50.0, 3.0], [99.0, 99.0]]))
+    np.testing.assert_array_equal(got, [0, -1, -1, -1])
+
+
+def test_empty_point_set_gives_no_cells() -> None:
+    cells = NDTCells.from_points(np.zeros((0, 2)), 0.5)
+    assert len(cells) == 0
+    assert (cells.lookup(np.array([[0.0, 0.0]])) == -1).all()
+
+
+def test_four_grids_are_shifted_by_half_a_cell() -> None:
+    rng = np.random.default_rng(0)
+    grids = overlapping_cells(rng.uniform(-3, 3, (2000, 2)), 1.0)
+    frac = [(g.spec.origin_x_m % 1.0, g.spec.origin_y_m % 1.0) for g in grids]
+    np.testing.assert_allclose(frac, [(0, 0), (0.5, 0), (0, 0.5), (0.5, 0.5)], atol=1e-9)
+
+
+def test_bad_cell_size_is_rejected() -> None:
+    with pytest.raises(ValueError, match="cell_size_m"):
+        NDTCells.from_points(np.zeros((5, 2)), 0.0)

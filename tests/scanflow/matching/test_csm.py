@@ -1,0 +1,89 @@
+"""Correlative matching: branch and bound equals the exhaustive optimum, statuses, refinement."""
+
+import math
+
+import numpy as np
+import pytest
+from scanflow.geometry import Pose2D
+from scanflow.matching import MatchStatus, match
+
+
+def random_world(rng: np.random.Generator) -> np.ndarray:
+    """A box with a few random wall segments inside."""
+    box = [[-4, -4, 4, -4], [4, -4, 4, 4], [4, 4, -4, 4], [-4, 4, -4, -4]]
+    inner = []
+    for _ in range(rng.integers(1, 6)):
+        x, y, a, length = (
+            rng.uniform(-3, 3),
+            rng.uniform(-3, 3),
+            rng.uniform(0, np.pi),
+            rng.uniform(0.3, 2),
+        )
+        inner.append([x, y, x + length * np.cos(a), y + length * np.sin(a)])
+    return np.array(box + inner, dtype=np.float64)
+
+
+@pytest.mark.slow  # the first call compiles the numba kernels (cached afterwards)
+def test_branch_and_bound_returns_exactly_the_exhaustive_optimum(caster) -> None:
+    rng = np.random.default_rng(2024)
+    window = {
+        "linear_m": 0.3,
+        "angular_rad": math.radians(5),
+        "angular_resolution_rad": math.radians(1),
+    }
+    for case in range(50):
+        world = random_world(rng)
+        a = Pose2D(rng.uniform(-2, 2), rng.uniform(-2, 2), rng.uniform(-3, 3))
+        b = a * Pose2D(rng.normal(0, 0.1), rng.normal(0, 0.1), rng.normal(0, 0.05))
+        target = caster(world, a, beams=90, noise_m=0.02, rng=rng)
+        source = caster(world, b, beams=90, noise_m=0.02, rng=rng)
+        guess = b.relative_to(a) * Pose2D(
+            rng.normal(0, 0.1), rng.normal(0, 0.1), rng.normal(0, 0.05)
+        )
+        if case % 10 == 0:
+            source = source[:12]  # few points: many equal scores, the tie-break decides
+        fast = match(source, target, guess, method="csm", **window)
+        ref = match(source, target, guess, method="csm_exhaustive", **window)
+        assert fast.score == ref.score, case
+        assert fast.pose == ref.pose, case
+        assert fast.extra["cell_offset"] == ref.extra["cell_offset"], case
+
+
+def test_finds_a_large_offset_and_refines_it(room, caster) -> None:
+    rng = np.random.default_rng(9)
+    a, b = Pose2D(0.0, 0.0, 0.0), Pose2D(0.6, -0.5, 0.35)
+    target = caster(room, a, noise_m=0.01, rng=rng)
+    source = caster(room, b, noise_m=0.01, rng=rng)
+    truth = b.relative_to(a)
+    coarse = match(source, target, Pose2D(), method="csm")
+    err = coarse.pose.relative_to(truth)
+    assert coarse.ok and err.translation_norm() < 0.08 and abs(err.theta) < math.radians(1.0)
+    for refine in ("gn", "lm"):
+        fine = match(source, target, Pose2D(), method="csm", refine=refine)
+        err = fine.pose.relative_to(truth)
+        assert fine.ok and fine.method == f"csm+{refine}"
+        assert err.translation_norm() < 0.02 and abs(err.theta) < math.radians(0.3)
+
+
+def test_statuses(room, caster) -> None:
+    scan = caster(room, Pose2D())
+    assert match(scan, np.zeros((0, 2)), method="csm").status is MatchStatus.EMPTY_MAP
+    assert match(scan[:5], scan, method="csm").status is MatchStatus.TOO_FEW_POINTS
+    far = match(scan, scan + 100.0, method="csm")
+    assert far.status is MatchStatus.NO_OVERLAP and not far.converged
+    with pytest.raises(ValueError, match="linear_m"):
+        match(scan, scan, method="csm", linear_m=-1.0)
+
+
+def test_covariance_is_calibrated(room, caster, room_map_points) -> None:
+    """NEES of the Olson covariance averages near 3 (generous band)."""
+    rng = np.random.default_rng(12)
+    nees = []
+    for _ in range(30):
+        true = Pose2D(rng.uniform(-2, 2), rng.uniform(-2, 1.5), rng.uniform(-3, 3))
+        scan = caster(room, true, beams=180, noise_m=0.02, rng=rng)
+        guess = true * Pose2D(rng.normal(0, 0.1), rng.normal(0, 0.1), rng.normal(0, 0.03))
+        r = match(scan, room_map_points, guess, method="csm", linear_m=0.3, angular_rad=0.1)
+        e = r.pose.relative_to(true).to_array()
+        nees.append(e @ np.linalg.solve(r.covariance, e))
+    assert 1.0 < np.mean(nees) < 9.0, np.mean(nees)

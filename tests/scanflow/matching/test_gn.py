@@ -1,0 +1,113 @@
+"""Gauss-Newton on the likelihood field: convergence, every failure status, covariance."""
+
+import math
+
+import numpy as np
+import pytest
+from scanflow.geometry import Pose2D
+from scanflow.matching import MatchStatus, match
+from scanflow.matching.field_cost import converged_step, field_cost, linearise, points_field
+
+
+def perturbed(rng: np.random.Generator, pose: Pose2D, sigma_m: float, sigma_rad: float) -> Pose2D:
+    return pose * Pose2D(rng.normal(0, sigma_m), rng.normal(0, sigma_m), rng.normal(0, sigma_rad))
+
+
+@pytest.mark.parametrize("method", ["gn", "lm"])
+def test_converges_on_a_map_from_perturbed_starts(method, room, caster, room_map_points) -> None:
+    rng = np.random.default_rng(7)
+    for _ in range(8):
+        true = Pose2D(rng.uniform(-2, 2), rng.uniform(-2, 1.5), rng.uniform(-3, 3))
+        scan = caster(room, true, noise_m=0.01, rng=rng)
+        r = match(scan, room_map_points, perturbed(rng, true, 0.15, 0.08), method=method)
+        err = r.pose.relative_to(true)
+        assert r.status is MatchStatus.OK, r.message
+        assert err.translation_norm() < 0.03 and abs(err.theta) < math.radians(0.5)
+
+
+@pytest.mark.parametrize("method", ["gn", "lm"])
+def test_scan_to_scan(method, room, caster) -> None:
+    rng = np.random.default_rng(8)
+    a, b = Pose2D(0.0, 0.0, 0.0), Pose2D(0.25, -0.1, 0.12)
+    target = caster(room, a, noise_m=0.005, rng=rng)
+    source = caster(room, b, noise_m=0.005, rng=rng)
+    truth = b.relative_to(a)
+    r = match(source, target, Pose2D(), method=method)
+    err = r.pose.relative_to(truth)
+    assert r.ok and err.translation_norm() < 0.03 and abs(err.theta) < math.radians(0.5)
+
+
+def test_jacobian_matches_finite_differences(room_map_points, room, caster) -> None:
+    field = points_field(room_map_points, 0.05, 0.1)
+    pts = caster(room, Pose2D(0.3, 0.2, 0.4))
+    pose = np.array([0.33, 0.17, 0.41])
+    lin = linearise(field, pts, pose)
+    eps = 1e-6
+    num = [
+        (field_cost(field, pts, pose + eps * e) - field_cost(field, pts, pose - eps * e))
+        / (2 * eps)
+        for e in np.eye(3)
+    ]
+    # d(sum r^2)/dpose = 2 J^T r
+    np.testing.assert_allclose(2 * lin.gradient, num, rtol=1e-3, atol=1e-3)
+
+
+def test_convergence_needs_small_translation_and_small_absolute_rotation() -> None:
+    assert converged_step(np.array([1e-5, 0.0, -1e-5]), 1e-3, 1e-3)
+    assert not converged_step(np.array([1e-5, 0.0, -0.2]), 1e-3, 1e-3)  # the seed's bug
+    assert not converged_step(np.array([0.01, 0.0, 0.0]), 1e-3, 1e-3)
+
+
+@pytest.mark.parametrize("method", ["gn", "lm"])
+def test_failure_statuses(method, room, caster, corridor) -> None:
+    scan = caster(room, Pose2D())
+    assert match(scan, np.zeros((0, 2)), method=method).status is MatchStatus.EMPTY_MAP
+    assert match(scan[:3], scan, method=method).status is MatchStatus.TOO_FEW_POINTS
+    far = match(scan, scan + 500.0, method=method)
+    assert far.status is MatchStatus.NO_OVERLAP and not far.converged
+
+
+@pytest.mark.parametrize("method", ["gn", "lm"])
+def test_corridor_is_degenerate_along_its_axis(
+    method, corridor, caster, corridor_map_points
+) -> None:
+    source = caster(corridor, Pose2D(0.3, 0.05, 0.03), max_range_m=8.0)
+    r = match(source, corridor_map_points, Pose2D(0.3, 0.0, 0.0), method=method)
+    assert r.status is MatchStatus.DEGENERATE
+    assert abs(r.weak_direction[0]) > 0.95
+    assert abs(r.pose.y - 0.05) < 0.02 and abs(r.pose.theta - 0.03) < 0.01
+
+
+def test_huge_step_stops_with_step_limit(room, caster, room_map_points) -> None:
+    true = Pose2D(0.5, 0.2, 0.3)
+    r = match(
+        caster(room, true), room_map_points, Pose2D(0.8, 0.2, 0.3), method="gn", max_step_m=0.01
+    )
+    assert r.status is MatchStatus.STEP_LIMIT and r.pose == Pose2D(0.8, 0.2, 0.3)
+
+
+def test_max_iterations(room, caster, room_map_points) -> None:
+    r = match(
+        caster(room, Pose2D(0.5, 0.2, 0.3)),
+        room_map_points,
+        Pose2D(0.6, 0.2, 0.3),
+        method="gn",
+        max_iterations=1,
+        levels=1,
+    )
+    assert r.status is MatchStatus.MAX_ITERATIONS
+
+
+@pytest.mark.parametrize("method", ["gn", "lm"])
+def test_covariance_is_calibrated(method, room, caster, room_map_points) -> None:
+    """Normalised estimation error squared averages near 3 (generous band)."""
+    rng = np.random.default_rng(11)
+    nees = []
+    for _ in range(30):
+        true = Pose2D(rng.uniform(-2, 2), rng.uniform(-2, 1.5), rng.uniform(-3, 3))
+        scan = caster(room, true, beams=180, noise_m=0.03, rng=rng)
+        r = match(scan, room_map_points, perturbed(rng, true, 0.05, 0.03), method=method)
+        assert r.ok
+        e = r.pose.relative_to(true).to_array()
+        nees.append(e @ np.linalg.solve(r.covariance, e))
+    assert 1.0 < np.mean(nees) < 9.0, np.mean(nees)
