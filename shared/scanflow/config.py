@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 
@@ -115,6 +115,25 @@ class MapServerSettings(ServiceSettings):
     snapshot_interval_s: float = Field(10.0, gt=0.0)
     changed_rate_hz: float = Field(2.0, gt=0.0, description="at most this many change notices/s")
     pending_limit: int = Field(2000, ge=1, description="scans held while waiting for their pose")
+
+
+class GatewaySettings(BaseSettings):
+    """The HTTP gateway (SCANFLOW_GATEWAY_*): bind address, API key, request limits, cache size."""
+
+    model_config = SettingsConfigDict(env_prefix="SCANFLOW_GATEWAY_", extra="ignore")
+
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=1, le=65535)
+    api_key: SecretStr | None = Field(
+        None, description="X-API-Key required by ingest and match (unset: those are open)"
+    )
+    guard_reads: bool = Field(False, description="require the API key on read endpoints too")
+    max_body_bytes: int = Field(4 * 1024 * 1024, ge=1024, description="bigger bodies get 413")
+    max_beams: int = Field(8192, ge=1, le=100_000, description="beams per scan in a request")
+    query_timeout_s: float = Field(5.0, gt=0.0, le=120.0, description="Zenoh query deadline")
+    trajectory_cache_len: int = Field(20_000, ge=2, description="poses kept per robot")
+    stream_queue_len: int = Field(256, ge=1, description="events buffered per stream client")
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
 
 
 class FrontendSettings(BaseSettings):

@@ -1,0 +1,25 @@
+"""`python -m services.gateway`: serve the gateway with uvicorn (SCANFLOW_GATEWAY_*, _ZENOH_*)."""
+
+from __future__ import annotations
+
+import uvicorn
+from scanflow.config import GatewaySettings
+
+from services.common.logs import configure_logging
+from services.gateway.app import create_app
+
+
+def main() -> None:
+    settings = GatewaySettings()
+    configure_logging(settings.log_level)
+    uvicorn.run(
+        create_app(settings),
+        host=settings.host,
+        port=settings.port,
+        log_level=settings.log_level.lower(),
+        timeout_graceful_shutdown=2,
+    )
+
+
+if __name__ == "__main__":
+    main()

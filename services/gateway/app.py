@@ -1,0 +1,94 @@
+"""The FastAPI application: routers under /api/v1, /metrics, the web page at /, safety layers."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import Any
+
+import anyio.to_thread
+from fastapi import FastAPI, Request
+from fastapi.openapi.utils import get_openapi
+from fastapi.responses import FileResponse, JSONResponse
+from fastapi.staticfiles import StaticFiles
+from pydantic import BaseModel
+from scanflow.config import GatewaySettings, ZenohSettings
+
+from services.gateway.backend import BackendError, ZenohBackend
+from services.gateway.limits import BodyLimit, RequestTiming
+from services.gateway.metrics import Metrics
+from services.gateway.models import MatchIn, OdometryIn, ScanIn
+from services.gateway.routers import API_ROUTERS, ROOT_ROUTERS
+
+API_PREFIX = "/api/v1"
+STATIC_DIR = Path(__file__).parent / "static"
+BODY_MODELS: tuple[type[BaseModel], ...] = (MatchIn, ScanIn, OdometryIn)
+log = logging.getLogger("scanflow.gateway")
+
+
+def create_app(
+    settings: GatewaySettings | None = None,
+    backend: ZenohBackend | None = None,
+    zenoh_settings: ZenohSettings | None = None,
+) -> FastAPI:
+    """The gateway app; without `backend` it opens (and closes) its own Zenoh session."""
+    settings = settings or GatewaySettings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        if backend is None:
+            z = zenoh_settings or ZenohSettings()
+            app.state.backend = await anyio.to_thread.run_sync(ZenohBackend.open, settings, z)
+        if settings.api_key is None:
+            log.warning("SCANFLOW_GATEWAY_API_KEY is not set: ingest and match are open")
+        try:
+            yield
+        finally:
+            if backend is None:
+                app.state.backend.close()
+
+    app = FastAPI(
+        title="scanflow gateway",
+        version="1",
+        summary="HTTP access to the scanflow 2D LiDAR pipeline (poses, match, maps, ingest).",
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.backend = backend
+    app.state.metrics = Metrics()
+    for router in API_ROUTERS:
+        app.include_router(router, prefix=API_PREFIX)
+    for router in ROOT_ROUTERS:
+        app.include_router(router)
+    app.add_exception_handler(BackendError, _backend_error)  # type: ignore[arg-type]
+    app.add_middleware(BodyLimit, max_body_bytes=settings.max_body_bytes)
+    app.add_middleware(RequestTiming, metrics=app.state.metrics)
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+
+    @app.get("/", include_in_schema=False)
+    def index() -> FileResponse:
+        return FileResponse(STATIC_DIR / "index.html")
+
+    app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
+    return app
+
+
+async def _backend_error(_request: Request, exc: BackendError) -> JSONResponse:
+    return JSONResponse({"detail": exc.reason}, status_code=exc.status_code)
+
+
+def _openapi(app: FastAPI) -> dict[str, Any]:
+    """The generated schema plus the body models routes read by hand (JSON or msgpack)."""
+    if app.openapi_schema is None:
+        schema = get_openapi(
+            title=app.title, version=app.version, summary=app.summary, routes=app.routes
+        )
+        components = schema.setdefault("components", {}).setdefault("schemas", {})
+        for model in BODY_MODELS:
+            body = model.model_json_schema(ref_template="#/components/schemas/{model}")
+            components.update(body.pop("$defs", {}))
+            components[model.__name__] = body
+        app.openapi_schema = schema
+    return app.openapi_schema

@@ -1,0 +1,226 @@
+"""The gateway's one Zenoh session: pose/scan/map subscriptions, liveliness, queries, publishing.
+
+Zenoh callbacks only decode and record (TrackStore, EventHub); blocking queries are meant to
+run in a worker thread (`aquery`). A query that nobody answers fails fast with 503, one that
+times out with 504, an error reply with a status derived from the remote exception.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import defaultdict
+from dataclasses import dataclass
+
+import anyio.to_thread
+import zenoh
+from scanflow import keys
+from scanflow.config import GatewaySettings, ZenohSettings
+from scanflow.wire import DecodeError, MapChangedMessage, PoseEstimateMessage
+
+from services.common.zsession import open_session
+from services.gateway.events import EventHub
+from services.gateway.metrics import Metrics
+from services.gateway.models import PoseOut
+from services.gateway.tracks import TrackStore
+
+log = logging.getLogger("scanflow.gateway")
+EXPECTED_SERVICES = ("router", "deskew", "matcher", "mapserver")
+_ERROR_STATUS = {  # remote exception name -> HTTP status
+    "LookupError": 404,
+    "KeyError": 404,
+    "ValueError": 422,
+    "MatchInputError": 422,
+    "KeyExprError": 422,
+    "DecodeError": 422,
+    "SchemaError": 422,
+}
+
+
+class BackendError(Exception):
+    """A bus operation that failed; `status_code` is the HTTP answer, `reason` says why."""
+
+    def __init__(self, status_code: int, reason: str) -> None:
+        super().__init__(reason)
+        self.status_code = status_code
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class Reply:
+    key: str
+    payload: bytes
+
+
+def error_status(text: str) -> int:
+    """HTTP status for an error reply: 'Timeout' 504, 'busy' 503, known exceptions 404/422."""
+    if text == "Timeout":
+        return 504
+    if "busy" in text:
+        return 503
+    return _ERROR_STATUS.get(text.split(":", 1)[0].strip(), 502)
+
+
+class ZenohBackend:
+    """Everything the HTTP side needs from the bus, safe to call from any thread."""
+
+    def __init__(
+        self, session: zenoh.Session, settings: GatewaySettings, zenoh_settings: ZenohSettings
+    ) -> None:
+        self.session = session
+        self.settings = settings
+        self.mode = zenoh_settings.mode
+        self.prefix = keys.check_prefix(zenoh_settings.prefix)
+        self.tracks = TrackStore(settings.trajectory_cache_len)
+        self.events = EventHub(settings.stream_queue_len)
+        self.metrics = Metrics()
+        self._lock = threading.Lock()
+        self._alive: set[tuple[str, str]] = set()
+        self._seqs: dict[tuple[str, str], int] = defaultdict(lambda: -1)
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._declared: list[object] = []
+        self._closed = False
+
+    @classmethod
+    def open(cls, settings: GatewaySettings, zenoh_settings: ZenohSettings) -> ZenohBackend:
+        backend = cls(open_session(zenoh_settings), settings, zenoh_settings)
+        backend.start()
+        return backend
+
+    def start(self) -> None:
+        """Declare the subscriptions the HTTP side reads from."""
+        p = self.prefix
+        sub = self.session.declare_subscriber
+        self._declared += [
+            sub(keys.pose("*", p), self._on_pose),
+            sub(keys.raw_scan("*", p), self._on_scan),
+            sub(keys.map_key("*", "changed", p), self._on_map_changed),
+            self.session.liveliness().declare_subscriber(
+                keys.health("*", "*", p), self._on_liveliness, history=True
+            ),
+        ]
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for entity in reversed(self._declared + list(self._publishers.values())):
+            try:
+                entity.undeclare()  # type: ignore[attr-defined]
+            except zenoh.ZError:
+                log.debug("undeclare failed during close", exc_info=True)
+        self.session.close()
+
+    # -- subscriptions (Zenoh threads) ----------------------------------------------------
+    def _robot_of(self, sample: zenoh.Sample) -> str | None:
+        try:
+            return keys.robot_of(str(sample.key_expr), self.prefix)
+        except keys.KeyExprError:
+            return None
+
+    def _on_pose(self, sample: zenoh.Sample) -> None:
+        try:
+            estimate = PoseEstimateMessage.decode(sample.payload.to_bytes())
+        except DecodeError as exc:
+            self.metrics.count("scanflow_gateway_malformed_total", kind="pose")
+            log.warning("malformed pose on %s: %s", sample.key_expr, exc)
+            return
+        self.tracks.add_pose(estimate)
+        self.metrics.count("scanflow_gateway_poses_received_total")
+        self.events.publish(estimate.robot_id, "pose", PoseOut.from_estimate(estimate).model_dump())
+
+    def _on_scan(self, sample: zenoh.Sample) -> None:
+        robot = self._robot_of(sample)
+        if robot is not None:
+            self.tracks.saw_scan(robot)
+
+    def _on_map_changed(self, sample: zenoh.Sample) -> None:
+        try:
+            notice = MapChangedMessage.decode(sample.payload.to_bytes())
+        except DecodeError as exc:
+            self.metrics.count("scanflow_gateway_malformed_total", kind="map_changed")
+            log.warning("malformed map notice on %s: %s", sample.key_expr, exc)
+            return
+        self.tracks.saw_map(notice.robot_id, notice.revision)
+        box = [notice.min_x_m, notice.min_y_m, notice.max_x_m, notice.max_y_m]
+        self.events.publish(
+            notice.robot_id, "map", {"revision": notice.revision, "box_m": box}
+        )
+
+    def _on_liveliness(self, sample: zenoh.Sample) -> None:
+        parts = str(sample.key_expr).split("/")
+        entry = (parts[-2], parts[-1])
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._alive.add(entry)
+            else:
+                self._alive.discard(entry)
+
+    # -- reads ----------------------------------------------------------------------------
+    def alive_services(self) -> list[tuple[str, str]]:
+        with self._lock:
+            return sorted(self._alive)
+
+    def session_info(self) -> dict[str, object]:
+        closed = self._closed or self.session.is_closed()
+        info = self.session.info
+        return {
+            "open": not closed,
+            "mode": self.mode,
+            "zid": "" if closed else str(info.zid()),
+            "routers": [] if closed else [str(z) for z in info.routers_zid()],
+            "peers": [] if closed else [str(z) for z in info.peers_zid()],
+        }
+
+    def query(
+        self, selector: str, payload: bytes | None = None, timeout_s: float | None = None
+    ) -> list[Reply]:
+        """OK replies to `selector` (blocking); raises BackendError when none came back."""
+        timeout_s = self.settings.query_timeout_s if timeout_s is None else timeout_s
+        if self._closed:
+            raise BackendError(503, "the gateway's Zenoh session is closed")
+        ok: list[Reply] = []
+        errors: list[str] = []
+        for reply in self.session.get(selector, payload=payload, timeout=timeout_s):
+            if reply.ok is not None:
+                ok.append(Reply(str(reply.ok.key_expr), reply.ok.payload.to_bytes()))
+            else:
+                errors.append(reply.err.payload.to_string())
+        if ok:
+            return ok
+        if errors:
+            status = max(error_status(e) for e in errors)
+            reason = "; ".join(sorted(set(errors)))
+            if status == 504:
+                reason = f"no answer on {selector} within {timeout_s} s"
+            raise BackendError(status, reason)
+        raise BackendError(503, f"no service answers {selector} (is it running?)")
+
+    async def aquery(
+        self, selector: str, payload: bytes | None = None, timeout_s: float | None = None
+    ) -> list[Reply]:
+        """`query` in a worker thread, so the event loop never waits on the bus."""
+        return await anyio.to_thread.run_sync(lambda: self.query(selector, payload, timeout_s))
+
+    # -- writes ---------------------------------------------------------------------------
+    def next_seq(self, robot_id: str, stream: str, given: int | None) -> int:
+        """The seq to publish: the client's, or one past the last one on this stream."""
+        with self._lock:
+            seq = self._seqs[(robot_id, stream)] + 1 if given is None else given
+            self._seqs[(robot_id, stream)] = seq
+            return seq
+
+    def publish(self, key: str, payload: bytes) -> None:
+        """Reliable put through a cached publisher that blocks rather than drops."""
+        with self._lock:
+            pub = self._publishers.get(key)
+            if pub is None:
+                pub = self._publishers[key] = self.session.declare_publisher(
+                    key,
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                    reliability=zenoh.Reliability.RELIABLE,
+                )
+        pub.put(payload)
+
+    async def apublish(self, key: str, payload: bytes) -> None:
+        await anyio.to_thread.run_sync(lambda: self.publish(key, payload))

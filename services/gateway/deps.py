@@ -1,0 +1,69 @@
+"""Shared request dependencies: settings, the Zenoh backend, API-key guards, robot ids."""
+
+from __future__ import annotations
+
+import secrets
+from typing import Annotated
+
+from fastapi import Depends, HTTPException, Path, Request, Security
+from fastapi.security import APIKeyHeader
+from scanflow import keys
+from scanflow.config import GatewaySettings
+
+from services.gateway.backend import ZenohBackend
+
+api_key_header = APIKeyHeader(
+    name="X-API-Key", auto_error=False, description="SCANFLOW_GATEWAY_API_KEY"
+)
+
+
+def get_settings(request: Request) -> GatewaySettings:
+    return request.app.state.settings
+
+
+def get_backend(request: Request) -> ZenohBackend:
+    return request.app.state.backend
+
+
+def _check_key(settings: GatewaySettings, given: str | None) -> None:
+    expected = settings.api_key
+    if expected is None:
+        return
+    if given is None:
+        raise HTTPException(401, "missing X-API-Key header", {"WWW-Authenticate": "X-API-Key"})
+    if not secrets.compare_digest(given.encode(), expected.get_secret_value().encode()):
+        raise HTTPException(403, "X-API-Key is not valid")
+
+
+def require_key(
+    settings: Annotated[GatewaySettings, Depends(get_settings)],
+    given: Annotated[str | None, Security(api_key_header)],
+) -> None:
+    """Writes and compute (ingest, match) need the API key when one is configured."""
+    _check_key(settings, given)
+
+
+def guard_reads(
+    settings: Annotated[GatewaySettings, Depends(get_settings)],
+    given: Annotated[str | None, Security(api_key_header)],
+) -> None:
+    """Reads need the key only with SCANFLOW_GATEWAY_GUARD_READS=true."""
+    if settings.guard_reads:
+        _check_key(settings, given)
+
+
+def robot_id(
+    robot: Annotated[
+        str, Path(pattern=r"^[A-Za-z0-9_\-.]{1,64}$", description="robot id", examples=["robot"])
+    ],
+) -> str:
+    """The {robot} path parameter, checked like every key chunk (reserved ids refused)."""
+    try:
+        return keys.check_robot_id(robot)
+    except keys.KeyExprError as exc:
+        raise HTTPException(422, f"path.robot: {exc}") from exc
+
+
+Backend = Annotated[ZenohBackend, Depends(get_backend)]
+Settings = Annotated[GatewaySettings, Depends(get_settings)]
+Robot = Annotated[str, Depends(robot_id)]

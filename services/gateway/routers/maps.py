@@ -1,0 +1,82 @@
+"""A robot's map from the map server: metadata, PNG, PGM + YAML (map_server), optional region.
+
+The whole map comes from the map server's image queryable as it exported it; a region (world
+box x0, y0, x1, y1 in metres) comes from its region queryable and is written by the library's
+exporters here.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Depends, HTTPException, Query
+from fastapi.responses import Response
+from scanflow import keys
+from scanflow.maps.export import save_map_server, save_png
+from scanflow.maps.occupancy import OccupancyGrid
+from scanflow.wire import MapImageMessage, MapMetaMessage, MapRegionMessage
+
+from services.gateway.deps import Backend, Robot, guard_reads
+from services.gateway.models import MapMetaOut
+
+router = APIRouter(tags=["maps"], dependencies=[Depends(guard_reads)])
+Bound = Annotated[float | None, Query(ge=-1e6, le=1e6, description="metres")]
+MEDIA = {"png": "image/png", "pgm": "image/x-portable-graymap", "yaml": "application/yaml"}
+ANSWERS = {404: {"description": "no map for this robot"}, 422: {"description": "bad region"},
+           503: {"description": "no map server answers"}, 504: {"description": "timed out"}}
+
+
+@router.get("/robots/{robot}/map", response_model=MapMetaOut, responses=ANSWERS,
+            summary="Map metadata: resolution, origin, size, revision")
+async def map_meta(robot: Robot, backend: Backend) -> MapMetaOut:
+    replies = await backend.aquery(keys.map_key(robot, "meta", backend.prefix))
+    return MapMetaOut.from_message(MapMetaMessage.decode(replies[0].payload))
+
+
+@router.get(
+    "/robots/{robot}/map.{fmt}",
+    response_class=Response,
+    responses={**ANSWERS, 200: {"content": {m: {} for m in MEDIA.values()},
+                                "description": "the map file"}},
+    summary="The map as PNG, or PGM + YAML for ROS map_server (optionally a region)",
+)
+async def map_file(
+    robot: Robot,
+    backend: Backend,
+    fmt: Literal["png", "pgm", "yaml"],
+    x0: Bound = None,
+    y0: Bound = None,
+    x1: Bound = None,
+    y1: Bound = None,
+) -> Response:
+    bounds = (x0, y0, x1, y1)
+    headers = {"Cache-Control": "no-cache"}
+    if all(b is None for b in bounds):
+        selector = f"{keys.map_key(robot, 'image', backend.prefix)}?format={fmt}"
+        image = MapImageMessage.decode((await backend.aquery(selector))[0].payload)
+        headers["X-Map-Revision"] = str(image.revision)
+        return Response(image.data, media_type=MEDIA[fmt], headers=headers)
+    if any(b is None for b in bounds):
+        raise HTTPException(422, f"query: give all of x0, y0, x1, y1 or none, got {bounds}")
+    if x0 > x1 or y0 > y1:  # type: ignore[operator]
+        raise HTTPException(422, f"query: need x0 <= x1 and y0 <= y1, got {bounds}")
+    selector = f"{keys.map_key(robot, 'region', backend.prefix)}?x0={x0};y0={y0};x1={x1};y1={y1}"
+    region = MapRegionMessage.decode((await backend.aquery(selector))[0].payload)
+    if region.occupancy.size == 0:
+        raise HTTPException(404, f"the map of {robot!r} has no cells in {bounds}")
+    headers["X-Map-Revision"] = str(region.meta.revision)
+    return Response(export_region(region, fmt), media_type=MEDIA[fmt], headers=headers)
+
+
+def export_region(region: MapRegionMessage, fmt: str) -> bytes:
+    """The region written by the library's PNG or map_server exporter."""
+    spec = region.window_spec
+    grid = OccupancyGrid.from_int8(region.occupancy, spec.origin_x_m, spec.origin_y_m)
+    with tempfile.TemporaryDirectory(prefix="scanflow-region-") as tmp:
+        base = Path(tmp) / "map"
+        if fmt == "png":
+            return save_png(grid, base.with_suffix(".png")).read_bytes()
+        save_map_server(grid, base.with_suffix(".yaml"))
+        return base.with_suffix(f".{fmt}").read_bytes()

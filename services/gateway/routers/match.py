@@ -1,0 +1,109 @@
+"""POST /match: forwarded to the matcher's queryable (scan-to-scan or scan-to-map)."""
+
+from __future__ import annotations
+
+import time
+
+from fastapi import APIRouter, Depends, Request
+from fastapi.responses import Response
+from scanflow import keys
+from scanflow.matching import DEFAULT_METHOD, available_methods
+from scanflow.scan import LaserScan, ScanError
+from scanflow.wire import MapRef, MatchRequest, MatchResponse, MessageError
+
+from services.gateway.backend import BackendError
+from services.gateway.body import MSGPACK, body_doc, invalid, read_body
+from services.gateway.deps import Backend, Settings, guard_reads, require_key
+from services.gateway.models import MatchIn, MatchOut, MethodsOut, ScanIn
+
+router = APIRouter(tags=["match"])
+ANSWERS = {
+    401: {"description": "API key missing"},
+    403: {"description": "API key wrong"},
+    413: {"description": "body over max_body_bytes"},
+    415: {"description": "body neither JSON nor msgpack"},
+    422: {"description": "invalid request; the message names the field"},
+    503: {"description": "no matcher answers"},
+    504: {"description": "the matcher did not answer in time"},
+}
+
+
+@router.get("/match/methods", response_model=MethodsOut, dependencies=[Depends(guard_reads)],
+            summary="Every matching method the library has")
+def methods() -> MethodsOut:
+    return MethodsOut(methods=available_methods(), default=DEFAULT_METHOD)
+
+
+@router.post(
+    "/match",
+    response_model=MatchOut,
+    responses={**ANSWERS, 200: {"content": {MSGPACK: {}}, "description": "JSON, or a "
+               "MatchResponse message when the request accepts application/x-msgpack"}},
+    dependencies=[Depends(require_key)],
+    openapi_extra=body_doc(MatchIn, MatchRequest, "two scans, or one scan and a robot_id"),
+    summary="Match a scan against another scan or a robot's map",
+)
+async def post_match(
+    request: Request, backend: Backend, settings: Settings
+) -> MatchOut | Response:
+    body = await read_body(request, MatchIn, MatchRequest)
+    wire = body if isinstance(body, MatchRequest) else to_request(body, settings.max_beams)
+    check_request(wire, settings.max_beams)
+    if isinstance(wire.target, MapRef):
+        selector = keys.robot_match(keys.check_robot_id(wire.target.robot_id), backend.prefix)
+        kind = "scan_to_map"
+    else:
+        selector, kind = keys.scan_match(backend.prefix), "scan_to_scan"
+    t0 = time.perf_counter()
+    replies = await backend.aquery(selector, wire.encode())
+    round_trip_s = time.perf_counter() - t0
+    answer = MatchResponse.decode(replies[0].payload)
+    if answer.error:
+        raise BackendError(422, f"the matcher refused the request: {answer.error}")
+    metrics = request.app.state.metrics
+    metrics.observe("scanflow_match_duration_seconds", answer.time_s, method=wire.method, kind=kind)
+    metrics.observe("scanflow_match_round_trip_seconds", round_trip_s, kind=kind)
+    if MSGPACK in request.headers.get("accept", ""):
+        return Response(answer.encode(), media_type=MSGPACK)
+    return MatchOut.from_response(answer, round_trip_s)
+
+
+def to_request(body: MatchIn, max_beams: int) -> MatchRequest:
+    """The wire MatchRequest of a JSON body (scans numbered 0 and 1)."""
+    source = _scan(body.source, "source", "request", 0, max_beams)
+    target = (
+        MapRef(body.robot_id)
+        if body.robot_id is not None
+        else _scan(body.target, "target", "request", 1, max_beams)  # type: ignore[arg-type]
+    )
+    guess = None if body.initial_guess is None else body.initial_guess.to_pose()
+    try:
+        return MatchRequest(body.method, source, target, guess, dict(body.options))
+    except MessageError as exc:
+        raise invalid(("body",), str(exc)) from exc
+
+
+def _scan(scan: ScanIn, field: str, robot_id: str, seq: int, max_beams: int) -> LaserScan:
+    if len(scan.ranges_m) > max_beams:
+        raise invalid(
+            ("body", field, "ranges_m"), f"{len(scan.ranges_m)} beams, over max_beams={max_beams}"
+        )
+    try:
+        return scan.to_scan(robot_id, seq)
+    except ScanError as exc:
+        raise invalid(("body", field), str(exc)) from exc
+
+
+def check_request(request: MatchRequest, max_beams: int) -> None:
+    """Method known, operands within max_beams (also for msgpack bodies)."""
+    methods = available_methods()
+    if request.method not in methods:
+        raise invalid(("body", "method"), f"unknown method {request.method!r}; one of {methods}")
+    for field in ("source", "target"):
+        operand = getattr(request, field)
+        if isinstance(operand, MapRef):
+            continue
+        n = operand.beam_count if isinstance(operand, LaserScan) else len(operand)
+        if n > max_beams:
+            raise invalid(("body", field), f"{n} beams or points, over max_beams={max_beams}")
+

@@ -1,0 +1,112 @@
+"""Latest pose, pose at a time (SE(2) interpolation) and trajectory (JSON or TUM) of a robot.
+
+Poses come from the gateway's bounded cache of the estimates on the bus; times and ranges the
+cache no longer covers are answered from the map server's full trajectory.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Literal
+
+import numpy as np
+from fastapi import APIRouter, Depends, HTTPException, Query
+from fastapi.responses import PlainTextResponse
+from numpy.typing import NDArray
+from scanflow import keys
+from scanflow.wire import TrajectoryMessage
+
+from services.gateway.backend import BackendError, ZenohBackend
+from services.gateway.deps import Backend, Robot, guard_reads
+from services.gateway.models import PoseOut, TimedPose, TrajectoryOut
+from services.gateway.tracks import estimate_arrays, pose_at
+
+router = APIRouter(tags=["poses"], dependencies=[Depends(guard_reads)])
+TimeParam = Annotated[float | None, Query(ge=0.0, le=1e11, description="seconds")]
+NOT_FOUND = {404: {"description": "unknown robot, or a time outside its trajectory"}}
+
+
+def _unknown(robot: str) -> HTTPException:
+    return HTTPException(404, f"robot {robot!r} has published no pose")
+
+
+@router.get(
+    "/robots/{robot}/pose", response_model=PoseOut, responses=NOT_FOUND,
+    summary="Latest pose, or the pose at time t (interpolated between estimates)",
+)
+async def get_pose(robot: Robot, backend: Backend, t: TimeParam = None) -> PoseOut:
+    estimates = backend.tracks.estimates(robot)
+    if not estimates:
+        raise _unknown(robot)
+    if t is None:
+        return PoseOut.from_estimate(estimates[-1])
+    stamps, poses = estimate_arrays(estimates)
+    found = pose_at(stamps, poses, t)
+    if found is not None:
+        return PoseOut.from_estimate(estimates[found[1]], found[0], t)
+    if t > stamps[-1]:
+        raise HTTPException(404, f"t={t} is after the last pose of {robot!r} ({stamps[-1]})")
+    stamps, poses = await _full_trajectory(backend, robot)
+    found = pose_at(stamps, poses, t)
+    if found is None:
+        span = f"{stamps[0]}..{stamps[-1]}" if len(stamps) else "empty"
+        raise HTTPException(404, f"t={t} is outside the trajectory of {robot!r} ({span})")
+    return PoseOut.from_trajectory(robot, found[0], t, found[1])
+
+
+async def _full_trajectory(
+    backend: ZenohBackend, robot: str
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    replies = await backend.aquery(keys.trajectory(robot, backend.prefix))
+    message = TrajectoryMessage.decode(replies[0].payload)
+    return message.stamps_s, message.poses
+
+
+@router.get(
+    "/robots/{robot}/trajectory", responses={
+        **NOT_FOUND, 200: {"content": {"text/plain": {"example": "1.0 0.5 0.2 0 0 0 0.0998 0.995"}},
+                           "description": "JSON, or TUM lines: stamp x y z qx qy qz qw"}},
+    response_model=TrajectoryOut, summary="Trajectory over [start, end] as JSON or TUM text",
+)
+async def get_trajectory(
+    robot: Robot,
+    backend: Backend,
+    start: TimeParam = None,
+    end: TimeParam = None,
+    format: Annotated[Literal["json", "tum"], Query(description="tum: for evo")] = "json",
+) -> TrajectoryOut | PlainTextResponse:
+    source: Literal["mapserver", "cache"] = "mapserver"
+    try:
+        stamps, poses = await _full_trajectory(backend, robot)
+    except BackendError as exc:
+        if exc.status_code not in (404, 503, 504):
+            raise
+        estimates = backend.tracks.estimates(robot)
+        if not estimates:
+            raise _unknown(robot) from exc
+        stamps, poses = estimate_arrays(estimates)
+        source = "cache"
+    keep = (stamps >= (-math.inf if start is None else start)) & (
+        stamps <= (math.inf if end is None else end)
+    )
+    stamps, poses = stamps[keep], poses[keep]
+    if format == "tum":
+        return PlainTextResponse(tum_lines(stamps, poses), headers={"X-Scanflow-Source": source})
+    return TrajectoryOut(
+        robot_id=robot,
+        source=source,
+        poses=[
+            TimedPose(stamp_s=s, x_m=p[0], y_m=p[1], theta_rad=p[2])
+            for s, p in zip(stamps.tolist(), poses.tolist(), strict=True)
+        ],
+    )
+
+
+def tum_lines(stamps_s: NDArray[np.float64], poses: NDArray[np.float64]) -> str:
+    """TUM format: `stamp x y z qx qy qz qw` per line (planar: z = 0, yaw about z)."""
+    half = poses[:, 2] / 2.0
+    table = np.column_stack((
+        stamps_s, poses[:, 0], poses[:, 1], np.zeros(len(stamps_s)),
+        np.zeros(len(stamps_s)), np.zeros(len(stamps_s)), np.sin(half), np.cos(half),
+    ))
+    return "".join(" ".join(f"{v:.9g}" for v in row) + "\n" for row in table.tolist())

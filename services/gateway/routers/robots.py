@@ -1,0 +1,29 @@
+"""GET /robots: every robot seen on the bus, with its last pose and data times."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends
+
+from services.gateway.deps import Backend, guard_reads
+from services.gateway.models import PoseOut, RobotOut, RobotsOut, ServiceOut
+
+router = APIRouter(tags=["robots"], dependencies=[Depends(guard_reads)])
+
+
+@router.get("/robots", response_model=RobotsOut, summary="Robots seen and live services")
+def list_robots(backend: Backend) -> RobotsOut:
+    robots = [
+        RobotOut(
+            robot_id=r.robot_id,
+            last_pose=None if r.latest is None else PoseOut.from_estimate(r.latest),
+            poses_cached=r.poses_cached,
+            last_pose_received_s=r.last_pose_received_s,
+            last_scan_received_s=r.last_scan_received_s,
+            scans_seen=r.scans_seen,
+            map_revision=r.map_revision,
+            restarts=r.restarts,
+        )
+        for r in backend.tracks.robots()
+    ]
+    services = [ServiceOut(service=s, instance=i) for s, i in backend.alive_services()]
+    return RobotsOut(robots=robots, services=services)

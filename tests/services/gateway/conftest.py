@@ -1,0 +1,142 @@
+"""Gateway fixtures: a real Zenoh peer on loopback (the test's side of the bus) and the app.
+
+No mocks: the gateway's backend opens its own peer session connected to the test's peer; the
+test publishes messages and declares tiny queryables that answer with wire messages.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterator
+
+import numpy as np
+import pytest
+import zenoh
+from fastapi.testclient import TestClient
+from scanflow.config import GatewaySettings, ZenohSettings
+from scanflow.geometry import Pose2D
+from scanflow.wire import PoseEstimateMessage
+
+from services.common.launch import free_port
+from services.common.zsession import open_session
+from services.gateway.app import create_app
+from services.gateway.backend import ZenohBackend
+
+API_KEY = "test-key"
+
+
+class Peer:
+    """The test's Zenoh session: publish, answer queries, hold liveliness tokens."""
+
+    def __init__(self, port: int) -> None:
+        self.session = open_session(
+            ZenohSettings(mode="peer", connect=[], listen=[f"tcp/127.0.0.1:{port}"])
+        )
+        self._declared: list = []
+
+    def put(self, key: str, payload: bytes) -> None:
+        self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def answer(self, key: str, reply: Callable[[zenoh.Query], bytes | None]) -> None:
+        """A queryable on `key`: reply(query) bytes are the answer (None: stay silent)."""
+        held: list[zenoh.Query] = []
+
+        def on_query(query: zenoh.Query) -> None:
+            try:
+                payload = reply(query)
+            except Exception as exc:  # forwarded like ServiceShell does
+                query.reply_err(f"{type(exc).__name__}: {exc}")
+                return
+            if payload is None:
+                held.append(query)  # never answered: the gateway must time out
+            else:
+                query.reply(query.key_expr, payload)
+
+        self._declared.append(self.session.declare_queryable(key, on_query))
+
+    def token(self, key: str) -> None:
+        self._declared.append(self.session.liveliness().declare_token(key))
+
+    def subscribe(self, key: str) -> list[bytes]:
+        got: list[bytes] = []
+        self._declared.append(
+            self.session.declare_subscriber(key, lambda s: got.append(s.payload.to_bytes()))
+        )
+        return got
+
+    def close(self) -> None:
+        for entity in self._declared:
+            entity.undeclare()
+        self.session.close()
+
+
+def eventually(check: Callable[[], object], what: str, timeout_s: float = 5.0) -> object:
+    """Poll `check` until truthy; fail naming `what`."""
+    deadline = time.monotonic() + timeout_s
+    while not (value := check()):
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.02)
+    return value
+
+
+def estimate(robot: str, seq: int, stamp_s: float, x: float, y: float, theta: float = 0.0,
+             status: str = "ok") -> PoseEstimateMessage:
+    cov = np.diag([1e-4, 1e-4, 1e-5]) if status == "ok" else np.diag([math.inf] * 3)
+    return PoseEstimateMessage(robot, seq, stamp_s, Pose2D(x, y, theta), cov, status, "gn", 5, 0.9)
+
+
+@pytest.fixture
+def zenoh_port() -> int:
+    return free_port()
+
+
+@pytest.fixture
+def peer(zenoh_port: int) -> Iterator[Peer]:
+    p = Peer(zenoh_port)
+    yield p
+    p.close()
+
+
+@pytest.fixture
+def settings() -> GatewaySettings:
+    return GatewaySettings(api_key=API_KEY, query_timeout_s=1.0, max_beams=1024,
+                           max_body_bytes=64 * 1024, trajectory_cache_len=100)
+
+
+@pytest.fixture
+def backend(peer: Peer, zenoh_port: int, settings: GatewaySettings) -> Iterator[ZenohBackend]:
+    z = ZenohSettings(mode="peer", connect=[f"tcp/127.0.0.1:{zenoh_port}"])
+    b = ZenohBackend.open(settings, z)
+    eventually(lambda: b.session_info()["peers"], "the gateway to join the test peer")
+    yield b
+    b.close()
+
+
+@pytest.fixture
+def client(backend: ZenohBackend, settings: GatewaySettings) -> Iterator[TestClient]:
+    with TestClient(create_app(settings, backend)) as c:
+        yield c
+
+
+@pytest.fixture
+def auth() -> dict[str, str]:
+    return {"X-API-Key": API_KEY}
+
+
+@pytest.fixture
+def publish_poses(peer: Peer, backend: ZenohBackend) -> Callable[..., None]:
+    """publish_poses(robot, [(stamp_s, x, y, theta), ...]): put them, wait until cached."""
+    from scanflow import keys
+
+    def publish(robot: str, poses: list[tuple[float, float, float, float]], seq0: int = 0) -> None:
+        for i, (t, x, y, th) in enumerate(poses):
+            peer.put(keys.pose(robot), estimate(robot, seq0 + i, t, x, y, th).encode())
+        last = seq0 + len(poses) - 1
+        eventually(
+            lambda: (e := backend.tracks.latest(robot)) is not None and e.seq == last,
+            f"pose seq {last} of {robot} to reach the gateway",
+        )
+
+    return publish

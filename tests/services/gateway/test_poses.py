@@ -1,0 +1,82 @@
+"""Pose queries: latest, interpolated at t, trajectory (cache and map server), TUM text."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scanflow import keys
+from scanflow.wire import TrajectoryMessage
+
+
+def test_latest_pose_comes_from_the_bus(client, publish_poses):
+    publish_poses("r1", [(10.0, 0.0, 0.0, 0.0), (11.0, 1.0, 2.0, 0.5)])
+    body = client.get("/api/v1/robots/r1/pose").json()
+    assert (body["seq"], body["x_m"], body["y_m"], body["theta_rad"]) == (1, 1.0, 2.0, 0.5)
+    assert body["covariance"][0][0] == pytest.approx(1e-4)
+    assert body["status"] == "ok" and body["interpolated"] is False
+
+
+def test_unknown_robot_is_404_naming_it(client):
+    r = client.get("/api/v1/robots/nobody/pose")
+    assert r.status_code == 404 and "nobody" in r.json()["detail"]
+
+
+def test_reserved_robot_id_is_refused(client):
+    assert client.get("/api/v1/robots/stats/pose").status_code == 422
+
+
+def test_pose_at_time_interpolates_in_se2(client, publish_poses):
+    publish_poses("r1", [(10.0, 0.0, 0.0, 3.0), (12.0, 2.0, -2.0, -3.0)])
+    body = client.get("/api/v1/robots/r1/pose", params={"t": 11.5}).json()
+    assert body["interpolated"] is True and body["stamp_s"] == 11.5
+    assert (body["x_m"], body["y_m"]) == pytest.approx((1.5, -1.5))
+    # the short way across +-pi: 3.0 -> -3.0 passes through pi, not through 0
+    expected = math.remainder(3.0 + 0.75 * (2 * math.pi - 6.0), 2 * math.pi)
+    assert body["theta_rad"] == pytest.approx(expected)
+
+
+def test_pose_outside_the_trajectory_is_404(client, publish_poses):
+    publish_poses("r1", [(10.0, 0.0, 0.0, 0.0), (12.0, 2.0, 0.0, 0.0)])
+    assert client.get("/api/v1/robots/r1/pose", params={"t": 13.0}).status_code == 404
+    # before the cache, with no map server to ask: 503 says why
+    r = client.get("/api/v1/robots/r1/pose", params={"t": 1.0})
+    assert r.status_code == 503 and "trajectory" in r.json()["detail"]
+
+
+def test_trajectory_falls_back_to_the_cache_and_filters(client, publish_poses):
+    publish_poses("r1", [(float(t), float(t), 0.0, 0.0) for t in range(5)])
+    body = client.get("/api/v1/robots/r1/trajectory", params={"start": 1, "end": 3}).json()
+    assert body["source"] == "cache"
+    assert [p["stamp_s"] for p in body["poses"]] == [1.0, 2.0, 3.0]
+
+
+def test_trajectory_from_the_map_server_in_tum(client, peer):
+    stamps = np.array([1.0, 2.0])
+    poses = np.array([[0.0, 0.0, 0.0], [1.0, 2.0, math.pi / 2]])
+    peer.answer(keys.trajectory("r2"), lambda q: TrajectoryMessage("r2", stamps, poses).encode())
+    r = client.get("/api/v1/robots/r2/trajectory", params={"format": "tum"})
+    assert r.status_code == 200 and r.headers["x-scanflow-source"] == "mapserver"
+    rows = [list(map(float, line.split())) for line in r.text.splitlines()]
+    assert len(rows) == 2 and all(len(row) == 8 for row in rows)
+    s, x, y, z, qx, qy, qz, qw = rows[1]
+    assert (s, x, y, z, qx, qy) == (2.0, 1.0, 2.0, 0.0, 0.0, 0.0)
+    assert (qz, qw) == pytest.approx((math.sin(math.pi / 4), math.cos(math.pi / 4)))
+
+
+def test_pose_before_the_cache_uses_the_map_server(client, peer, publish_poses):
+    publish_poses("r3", [(10.0, 5.0, 0.0, 0.0)])
+    stamps = np.array([0.0, 2.0, 10.0])
+    poses = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [5.0, 0.0, 0.0]])
+    peer.answer(keys.trajectory("r3"), lambda q: TrajectoryMessage("r3", stamps, poses).encode())
+    body = client.get("/api/v1/robots/r3/pose", params={"t": 1.0}).json()
+    assert body["x_m"] == pytest.approx(1.0) and body["status"] == "trajectory"
+
+
+def test_replayed_stream_restarts_the_cache(client, publish_poses):
+    publish_poses("r1", [(10.0, 0.0, 0.0, 0.0), (11.0, 1.0, 0.0, 0.0)])
+    publish_poses("r1", [(10.0, 9.0, 0.0, 0.0)], seq0=0)
+    robots = client.get("/api/v1/robots").json()["robots"]
+    (r1,) = [r for r in robots if r["robot_id"] == "r1"]
+    assert r1["restarts"] == 1 and r1["poses_cached"] == 1 and r1["last_pose"]["x_m"] == 9.0
