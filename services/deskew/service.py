@@ -1,8 +1,9 @@
-"""Deskew service: per robot, buffer odometry, hold each scan until odometry covers its sweep
-(or the latency budget runs out), then deskew with the library and publish the points.
+"""Deskew service: per robot the in-process pipeline's `DeskewStage`; each scan is held until
+odometry covers its sweep (or the latency budget runs out), then deskewed and published.
 
-Scans leave in arrival order per robot. The library decides the fallback (no correction) when
-odometry does not cover a sweep; `source_used` in each message says what was used.
+Scans leave in arrival order per robot. Without covering odometry the stage falls back to the
+constant-velocity prior fed by the matcher's accepted poses, else to no correction;
+`source_used` in each message says which.
 """
 
 from __future__ import annotations
@@ -14,9 +15,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scanflow import keys
 from scanflow.config import DeskewSettings, ZenohSettings
-from scanflow.deskew import OdometryBuffer, deskew
+from scanflow.frontend import ACCEPTED
+from scanflow.pipeline import DeskewStage
 from scanflow.scan import LaserScan
-from scanflow.wire import DeskewedScanMessage, OdometryMessage, ScanMessage
+from scanflow.wire import DeskewedScanMessage, OdometryMessage, PoseEstimateMessage, ScanMessage
 
 from services.common.logs import configure_logging
 from services.common.shell import ServiceShell
@@ -26,7 +28,7 @@ _MIN_POLL_S = 0.002
 
 @dataclass
 class _Robot:
-    odometry: OdometryBuffer = field(default_factory=OdometryBuffer)
+    stage: DeskewStage = field(default_factory=DeskewStage)
     pending: deque[tuple[float, LaserScan]] = field(default_factory=deque)
 
 
@@ -41,12 +43,20 @@ class DeskewService:
         routes = [
             (keys.raw_scan("*", prefix), "scan", ScanMessage.decode),
             (keys.odom("*", prefix), "odom", OdometryMessage.decode),
+            (keys.pose("*", prefix), "pose", PoseEstimateMessage.decode),
         ]
         self.shell.subscribe_routes(keys.robot_streams("*", prefix), routes)
         self.shell.add_stats(lambda: {"robots": len(self.robots), "pending": self._pending()})
 
-    def handle(self, kind: str, message: ScanMessage | OdometryMessage) -> None:
+    def handle(
+        self, kind: str, message: ScanMessage | OdometryMessage | PoseEstimateMessage
+    ) -> None:
         robot_id = message.robot_id
+        if isinstance(message, PoseEstimateMessage):
+            robot = self.robots.get(robot_id)
+            if robot is not None and message.status in ACCEPTED:
+                robot.stage.observe_pose(message.stamp_s, message.pose)
+            return
         stream = f"{robot_id}/{kind}"
         restarted = self.shell.seqs.is_restart(stream, message.seq)
         self.shell.seqs.observe(stream, message.seq)
@@ -54,8 +64,8 @@ class DeskewService:
         if isinstance(message, OdometryMessage):
             if restarted:
                 self._flush(robot_id, robot, force=True)
-                robot.odometry = OdometryBuffer()
-            robot.odometry.add_odometry(message.odom)
+                robot.stage = DeskewStage()
+            robot.stage.add_odometry(message.odom)
         else:
             robot.pending.append((time.monotonic() + self.settings.odom_wait_s, message.scan))
         self.idle()
@@ -69,25 +79,20 @@ class DeskewService:
         now = time.monotonic()
         while robot.pending:
             deadline, scan = robot.pending[0]
-            covered = robot.odometry.coverage_gap(scan.stamp_s, scan.end_stamp_s) is None
+            covered = robot.stage.odometry.coverage_gap(scan.stamp_s, scan.end_stamp_s) is None
             if not (covered or force or now >= deadline or self._never_covered(robot, scan)):
                 return
             robot.pending.popleft()
-            self._publish(robot_id, scan, robot.odometry)
+            self._publish(robot_id, scan, robot.stage)
 
     @staticmethod
     def _never_covered(robot: _Robot, scan: LaserScan) -> bool:
         """Odometry already runs past the sweep, so waiting longer cannot help."""
-        stamps = robot.odometry.stamps_s
+        stamps = robot.stage.odometry.stamps_s
         return stamps.size > 0 and stamps[-1] > scan.end_stamp_s
 
-    def _publish(self, robot_id: str, scan: LaserScan, odometry: OdometryBuffer) -> None:
-        result = deskew(scan, odometry)
-        self.shell.log.debug(
-            "scan %d: %d odometry samples up to %.3f s, source %s",
-            scan.seq, len(odometry), odometry.stamps_s[-1] if len(odometry) else -1.0,
-            result.source_used,
-        )
+    def _publish(self, robot_id: str, scan: LaserScan, stage: DeskewStage) -> None:
+        result = stage.process(scan)
         self.shell.counters.add(f"deskewed.{result.source_used}")
         message = DeskewedScanMessage(
             robot_id=robot_id,

@@ -13,6 +13,7 @@ Layout (``<prefix>`` defaults to ``scanflow``; ``<robot>`` is a robot id):
 | <prefix>/<robot>/map/image            | queryable  | MapImageMessage (png/pgm/yaml) |
 | <prefix>/<robot>/map/region           | queryable  | MapRegionMessage               |
 | <prefix>/<robot>/map/changed          | pub/sub    | MapChangedMessage              |
+| <prefix>/<robot>/map/insert           | pub/sub    | DeskewedScanMessage (**)       |
 | <prefix>/<robot>/trajectory           | queryable  | TrajectoryMessage              |
 | <prefix>/<robot>/**                   | subscriber | all of a robot's streams (*)   |
 | <prefix>/match                        | queryable  | MatchRequest (scan-to-scan)    |
@@ -21,6 +22,9 @@ Layout (``<prefix>`` defaults to ``scanflow``; ``<robot>`` is a robot id):
 
 (*) Zenoh keeps publication order only within one subscriber: a service that needs odometry
 and scans in the order they were published subscribes once to `robot_streams` and dispatches.
+
+(**) the scans the matcher's front end inserted into its map; the map server inserts the same
+points at the pose of the same seq, so its map equals the front end's.
 
 Ids are single chunks (see `check_id`); a prefix may span several chunks ("site1/scanflow").
 Robot ids "health" and "stats" are reserved: their keys would collide with the service keys.

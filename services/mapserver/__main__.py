@@ -1,0 +1,3 @@
+from services.mapserver.service import main
+
+main()

@@ -1,0 +1,66 @@
+"""What the map server's queryables answer: metadata, exported images, regions, trajectory."""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from scanflow.maps.export import save_map_server, save_npz, save_png
+from scanflow.maps.grid import CellBox
+from scanflow.wire import (
+    MapImageMessage,
+    MapMetaMessage,
+    MapRegionMessage,
+    TrajectoryMessage,
+)
+
+from services.mapserver.robot import RobotMap
+
+
+def meta(robot: RobotMap) -> MapMetaMessage:
+    grid = robot.map.grid
+    return MapMetaMessage.from_spec(robot.robot_id, grid.spec, robot.map.revision, time.time())
+
+
+def image(robot: RobotMap, fmt: str) -> MapImageMessage:
+    """The map exported by the library's writers: png, pgm or yaml (map_server), npz (native)."""
+    grid = robot.map.grid
+    with tempfile.TemporaryDirectory(prefix="scanflow-map-") as tmp:
+        base = Path(tmp) / robot.robot_id
+        if fmt == "png":
+            path = save_png(grid, base.with_suffix(".png"))
+        elif fmt in ("pgm", "yaml"):
+            save_map_server(grid, base.with_suffix(".yaml"))
+            path = base.with_suffix(f".{fmt}")
+        elif fmt == "npz":
+            path = save_npz(grid, base.with_suffix(".npz"))
+        else:
+            raise ValueError(f"format must be png, pgm, yaml or npz, got {fmt!r}")
+        data = path.read_bytes()
+    return MapImageMessage(robot.robot_id, robot.map.revision, fmt, data)  # type: ignore[arg-type]
+
+
+def region(robot: RobotMap, bounds_m: tuple[float, float, float, float] | None) -> MapRegionMessage:
+    """Occupancy (-1 unknown, 0..100) of the cells inside world box (x0, y0, x1, y1), or all."""
+    grid = robot.map.grid
+    head = meta(robot)
+    extent = grid.extent
+    if extent is None:
+        return MapRegionMessage(head, 0, 0, np.zeros((0, 0), dtype=np.int8))
+    box = extent
+    if bounds_m is not None:
+        x0, y0, x1, y1 = bounds_m
+        if not (x0 <= x1 and y0 <= y1):
+            raise ValueError(f"region bounds must have x0 <= x1 and y0 <= y1, got {bounds_m}")
+        corners = grid.world_to_cells(np.array([[x0, y0], [x1, y1]]))
+        box = CellBox.around(corners).intersection(extent)
+    window = box.slices_in(extent)
+    return MapRegionMessage(
+        head, box.row0 - extent.row0, box.col0 - extent.col0, grid.to_int8()[window]
+    )
+
+
+def trajectory(robot: RobotMap) -> TrajectoryMessage:
+    return TrajectoryMessage(robot.robot_id, robot.trajectory.stamps_s, robot.trajectory.poses)

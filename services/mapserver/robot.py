@@ -1,0 +1,86 @@
+"""One robot's map as the map server keeps it: grid, trajectory, pairing, dirty region."""
+
+from __future__ import annotations
+
+import numpy as np
+from scanflow.frontend.trajectory import TrajectoryStore
+from scanflow.geometry import Pose2D
+from scanflow.maps.grid import CellBox
+from scanflow.maps.matching_map import MatchingMap
+from scanflow.maps.occupancy import OccupancyGrid
+from scanflow.wire import DeskewedScanMessage, MapChangedMessage, PoseEstimateMessage
+
+from services.mapserver.pairing import Pairing
+from services.mapserver.snapshot import Snapshot
+
+
+class RobotMap:
+    """Inserts paired scans at their published poses with the library's map update."""
+
+    def __init__(self, robot_id: str, pending_limit: int, snap: Snapshot | None = None) -> None:
+        self.robot_id = robot_id
+        self.pairing = Pairing(pending_limit)
+        self.map = MatchingMap(snap.grid if snap else OccupancyGrid())
+        self.trajectory = TrajectoryStore()
+        if snap is not None:
+            for stamp_s, row in zip(snap.stamps_s, snap.poses, strict=True):
+                self.trajectory.append(float(stamp_s), Pose2D.from_array(row))
+        self.last_seq = -1 if snap is None else snap.last_seq
+        self.dirty: CellBox | None = None
+        self.saved = self.state
+
+    @property
+    def state(self) -> tuple[int, int]:
+        """(map revision, last pose seq): what a snapshot must capture."""
+        return (self.map.revision, self.last_seq)
+
+    def reset(self) -> None:
+        """The robot's stream restarted (a replay): start an empty map and trajectory."""
+        self.pairing.clear()
+        self.map = MatchingMap(OccupancyGrid(self.map.grid.params))
+        self.trajectory = TrajectoryStore()
+        self.last_seq = -1
+        self.dirty = None
+
+    def apply(self, pose: PoseEstimateMessage) -> bool:
+        """Record the pose; insert its scan if the matcher inserted it. True if inserted."""
+        scan = self.pairing.match_pose(pose)
+        self.last_seq = pose.seq
+        self.trajectory.append(pose.stamp_s, pose.pose)
+        if scan is None:
+            return False
+        self.insert(scan, pose.pose)
+        return True
+
+    def insert(self, scan: DeskewedScanMessage, pose: Pose2D) -> None:
+        """The front end's insertion: points within the grid's max range, seen from `pose`."""
+        points = scan.points.astype(np.float64)
+        in_range = np.hypot(points[:, 0], points[:, 1]) <= self.map.grid.params.max_range_m
+        result = self.map.update(pose.transform_points(points[in_range]), (pose.x, pose.y))
+        if result.touched is not None:
+            self.dirty = result.touched.union(self.dirty)
+
+    def take_change(self, stamp_s: float) -> MapChangedMessage | None:
+        """The change notice for everything touched since the last one (None if nothing)."""
+        if self.dirty is None:
+            return None
+        spec = self.map.grid.spec_of(self.dirty)
+        self.dirty = None
+        return MapChangedMessage(
+            robot_id=self.robot_id,
+            revision=self.map.revision,
+            stamp_s=stamp_s,
+            min_x_m=spec.origin_x_m,
+            min_y_m=spec.origin_y_m,
+            max_x_m=spec.origin_x_m + spec.cols * spec.resolution_m,
+            max_y_m=spec.origin_y_m + spec.rows * spec.resolution_m,
+        )
+
+    def snapshot(self) -> Snapshot:
+        return Snapshot(
+            self.robot_id,
+            self.map.grid,
+            self.trajectory.stamps_s,
+            self.trajectory.poses,
+            self.last_seq,
+        )

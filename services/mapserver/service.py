@@ -1,0 +1,164 @@
+"""Map server: pairs deskewed scans with the matcher's poses, inserts them in seq order with
+the library's map update, serves the maps on queryables, publishes rate-limited change notices
+and snapshots every robot atomically to the data directory (a restart resumes from there).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import zenoh
+from scanflow import keys
+from scanflow.config import MapServerSettings, ZenohSettings
+from scanflow.wire import DeskewedScanMessage, Message, PoseEstimateMessage
+
+from services.common.logs import configure_logging
+from services.common.shell import ServiceShell
+from services.mapserver import replies
+from services.mapserver.robot import RobotMap
+from services.mapserver.snapshot import load_snapshots, save_snapshot
+
+Builder = Callable[[RobotMap, zenoh.Parameters], Message]
+
+
+class MapServer:
+    """Per-robot maps built from the bus, served on queryables, persisted as snapshots."""
+
+    def __init__(self, settings: MapServerSettings, zenoh_settings: ZenohSettings) -> None:
+        self.settings = settings
+        self.data_dir = Path(settings.data_dir)
+        self.shell = ServiceShell(
+            "mapserver", settings.instance, zenoh_settings, settings.queue_size
+        )
+        self.robots: dict[str, RobotMap] = {}
+        self.lock = threading.Lock()  # the worker inserts while the query thread reads
+        for snap in load_snapshots(self.data_dir):
+            self.robots[snap.robot_id] = RobotMap(snap.robot_id, settings.pending_limit, snap)
+            self.shell.seqs.resume(f"{snap.robot_id}/pose", snap.last_seq)
+            self.shell.log.info("robot %s: resumed at seq %d", snap.robot_id, snap.last_seq)
+        self._last_notice_s = 0.0
+        self._last_snapshot_s = time.monotonic()
+        prefix = self.shell.prefix
+        routes = [
+            (keys.map_key("*", "insert", prefix), "insert", DeskewedScanMessage.decode),
+            (keys.pose("*", prefix), "pose", PoseEstimateMessage.decode),
+        ]
+        self.shell.subscribe_routes(keys.robot_streams("*", prefix), routes)
+        self._serve(lambda r: keys.map_key(r, "meta", prefix), lambda r, _p: replies.meta(r))
+        self._serve(lambda r: keys.map_key(r, "image", prefix), _image)
+        self._serve(lambda r: keys.map_key(r, "region", prefix), _region)
+        self._serve(lambda r: keys.trajectory(r, prefix), lambda r, _p: replies.trajectory(r))
+        self.shell.add_stats(self._gauges)
+
+    # -- bus ------------------------------------------------------------------------------
+    def handle(self, kind: str, message: DeskewedScanMessage | PoseEstimateMessage) -> None:
+        with self.lock:
+            self._apply(message)
+        self.idle()
+
+    def _apply(self, message: DeskewedScanMessage | PoseEstimateMessage) -> None:
+        robot_id = message.robot_id
+        robot = self.robots.get(robot_id)
+        if robot is None:
+            robot = self.robots[robot_id] = RobotMap(robot_id, self.settings.pending_limit)
+        if isinstance(message, DeskewedScanMessage):
+            robot.pairing.add_scan(message)  # inserts are sparse: their seqs have gaps
+            return
+        stream = f"{robot_id}/pose"
+        restarted = self.shell.seqs.is_restart(stream, message.seq)
+        self.shell.seqs.observe(stream, message.seq)
+        if restarted:
+            self.shell.log.info("robot %s: poses restarted at seq %d", robot_id, message.seq)
+            robot.reset()
+        if robot.apply(message):
+            self.shell.counters.add("inserted")
+
+    def idle(self) -> None:
+        """Publish change notices at the configured rate; snapshot at the configured interval."""
+        now = time.monotonic()
+        if now - self._last_notice_s >= 1.0 / self.settings.changed_rate_hz:
+            self._publish_changes()
+            self._last_notice_s = now
+        if now - self._last_snapshot_s >= self.settings.snapshot_interval_s:
+            self.snapshot()
+
+    def _publish_changes(self) -> None:
+        for robot in self.robots.values():
+            notice = robot.take_change(time.time())
+            if notice is not None:
+                key = keys.map_key(robot.robot_id, "changed", self.shell.prefix)
+                self.shell.put(key, notice.encode())
+                self.shell.counters.add("notices")
+
+    def snapshot(self) -> None:
+        """Persist every robot whose map or trajectory moved since its last snapshot."""
+        for robot in self.robots.values():
+            if robot.last_seq >= 0 and robot.saved != robot.state:
+                save_snapshot(self.data_dir, robot.snapshot())
+                robot.saved = robot.state
+                self.shell.counters.add("snapshots")
+        self._last_snapshot_s = time.monotonic()
+
+    # -- queries --------------------------------------------------------------------------
+    def _serve(self, key_of: Callable[[str], str], build: Builder) -> None:
+        """Serve `key_of("*")`: one reply per robot the query names (or every robot)."""
+
+        def handler(query: zenoh.Query) -> None:
+            asked = query.key_expr
+            with self.lock:
+                wanted = [r for r in self.robots.values() if asked.intersects(key_of(r.robot_id))]
+                if not wanted and "*" not in str(asked):
+                    raise LookupError(f"no map for {asked} (robots: {sorted(self.robots)})")
+                replies_ = [(key_of(r.robot_id), build(r, query.parameters)) for r in wanted]
+            for key, message in replies_:
+                query.reply(key, message.encode())
+
+        self.shell.serve(key_of("*"), handler)
+
+    def _gauges(self) -> dict[str, float]:
+        gauges: dict[str, float] = {"robots": len(self.robots)}
+        for robot in self.robots.values():
+            p = robot.pairing
+            r = robot.robot_id
+            gauges.update({
+                f"{r}.revision": robot.map.revision,
+                f"{r}.map_bytes": robot.map.grid.nbytes,
+                f"{r}.pending_scans": len(p.scans),
+                f"{r}.scans_without_pose": p.scans_without_pose,
+                f"{r}.scans_evicted": p.scans_evicted,
+            })
+        return gauges
+
+    def run(self) -> None:
+        self.shell.start()
+        self.shell.run(self.handle, self.idle)
+        self._publish_changes()
+        self.snapshot()
+        self.shell.close()
+
+
+def _image(robot: RobotMap, params: zenoh.Parameters) -> Message:
+    return replies.image(robot, params.get("format", "png") or "png")
+
+
+def _region(robot: RobotMap, params: zenoh.Parameters) -> Message:
+    """The whole map, or the world box given as parameters x0, y0, x1, y1 (metres)."""
+    names = ("x0", "y0", "x1", "y1")
+    given = [params.get(n) for n in names]
+    if all(v is None for v in given):
+        return replies.region(robot, None)
+    if any(v is None for v in given):
+        got = dict(zip(names, given, strict=True))
+        raise ValueError(f"region needs all of x0, y0, x1, y1 or none, got {got}")
+    x0, y0, x1, y1 = (float(v) for v in given)  # type: ignore[arg-type]
+    return replies.region(robot, (x0, y0, x1, y1))
+
+
+def main() -> None:
+    """Run the map server with settings from SCANFLOW_MAPSERVER_* and SCANFLOW_ZENOH_*."""
+    settings = MapServerSettings()
+    configure_logging(settings.log_level)
+    MapServer(settings, ZenohSettings()).run()

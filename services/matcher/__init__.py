@@ -1,0 +1,1 @@
+"""Matcher: the tracking front end per robot, and scan matching on request."""

@@ -1,0 +1,124 @@
+"""The whole pipeline as real processes through a real router, against the in-process front end.
+
+Reference: the pipeline's `DeskewStage` + `Frontend` fed the same events in the same order,
+with the deskewed points rounded to float32 as the wire carries them and the odometry pose at
+a scan's stamp taken as the matcher does (the measured sample at that stamp, else interpolated).
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scanflow import keys
+from scanflow.frontend import Frontend, default_settings
+from scanflow.maps.export import load_npz
+from scanflow.maps.occupancy import OccupancyGrid
+from scanflow.pipeline import DeskewStage
+from scanflow.scan import LaserScan
+from scanflow.wire import MapImageMessage, PoseEstimateMessage
+
+from services.ingest.sources import source_events
+
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
+
+SIM_S = 6.0
+SIM = {"SCANFLOW_INGEST_SIM_DURATION_S": str(SIM_S), "SCANFLOW_INGEST_SIM_SEED": "7"}
+
+
+def in_process(events) -> tuple[list, OccupancyGrid]:
+    """(per-scan front end outputs, final grid) of the in-process stages on `events`."""
+    stage = DeskewStage()
+    frontend = Frontend(default_settings())
+    measured = {}
+    outputs = []
+    for event in events:
+        if not isinstance(event, LaserScan):
+            stage.add_odometry(event)
+            measured[event.stamp_s] = event.pose
+            continue
+        result = stage.process(event)
+        stamp_s = result.reference_stamp_s
+        odom_pose = measured.get(stamp_s) or stage.odometry_pose_at(stamp_s)
+        points = result.points.astype(np.float32).astype(np.float64)
+        out = frontend.process(points, stamp_s, odom_pose, event.seq)
+        if out.accepted:
+            stage.observe_pose(stamp_s, out.pose)
+        outputs.append(out)
+    return outputs, frontend.map.grid
+
+
+def served_grid(bus, robot: str = "robot") -> OccupancyGrid:
+    (image,) = bus.get(f"{keys.map_key(robot, 'image')}?format=npz")
+    assert isinstance(image, MapImageMessage)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "map.npz"
+        path.write_bytes(image.data)
+        return load_npz(path)
+
+
+def assert_same_grid(served: OccupancyGrid, expected: OccupancyGrid) -> None:
+    assert served.extent == expected.extent
+    np.testing.assert_array_equal(served.log_odds, expected.log_odds)
+    np.testing.assert_array_equal(served.observed, expected.observed)
+
+
+def assert_same_poses(poses: list[PoseEstimateMessage], expected: list) -> None:
+    assert [p.seq for p in poses] == [o.seq for o in expected]
+    for got, want in zip(poses, expected, strict=True):
+        assert got.status == str(want.status), f"seq {got.seq}"
+        assert got.pose == want.pose, f"seq {got.seq}: {got.pose} != {want.pose}"
+        np.testing.assert_array_equal(got.covariance, want.covariance)
+
+
+@pytest.fixture
+def pipeline(launcher, bus, start):
+    """Router, deskew, matcher and map server running; yields (launcher, bus)."""
+    for name in ("deskew", "matcher", "mapserver"):
+        start(name)
+    return launcher, bus
+
+
+def run_ingest(launcher, bus, timeout_s: float = 120.0, **settings: str) -> None:
+    proc = launcher.start("ingest", **settings)
+    proc.wait(timeout_s)
+    assert proc.returncode == 0, launcher.log_text("ingest")
+
+
+def test_simulated_run_equals_the_in_process_front_end(pipeline):
+    launcher, bus = pipeline
+    poses = bus.record(keys.pose())
+    run_ingest(launcher, bus, **SIM)
+    expected, grid = in_process(source_events(None, "robot", SIM_S, 7, None))
+    bus.wait_until(lambda: len(poses) >= len(expected), 30.0, "every pose")
+    assert_same_poses(poses, expected)
+    bus.wait_until(
+        lambda: bus.stats("mapserver").counters.get("received.pose", 0) >= len(expected),
+        30.0, "map server caught up",
+    )
+    assert_same_grid(served_grid(bus), grid)
+    deskew, matcher = bus.stats("deskew"), bus.stats("matcher")
+    assert deskew.counters["received.scan"] == len(expected)
+    assert matcher.counters["received.scan"] == len(expected)
+    for stats in (deskew, matcher):
+        assert all(v == 0 for k, v in stats.counters.items() if k.endswith(".missed")), stats
+    (path,) = bus.get(keys.trajectory("robot"))
+    np.testing.assert_array_equal(path.poses, [o.pose.to_array() for o in expected])
+
+
+def test_real_log_slice_equals_the_in_process_front_end(pipeline, data_file):
+    launcher, bus = pipeline
+    log = data_file("aces-corrected.log.gz")
+    poses = bus.record(keys.pose())
+    limit = 60
+    run_ingest(launcher, bus, SCANFLOW_INGEST_LOG=str(log), SCANFLOW_INGEST_LIMIT=str(limit))
+    expected, grid = in_process(source_events(str(log), "robot", 1.0, 0, limit))
+    bus.wait_until(lambda: len(poses) >= limit, 30.0, "every pose")
+    assert_same_poses(poses, expected)
+    bus.wait_until(
+        lambda: bus.stats("mapserver").counters.get("received.pose", 0) >= limit,
+        30.0, "map server caught up",
+    )
+    assert_same_grid(served_grid(bus), grid)
