@@ -10,6 +10,7 @@ from typing import Any
 
 import anyio.to_thread
 from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
@@ -20,9 +21,8 @@ from services.gateway.backend import BackendError, ZenohBackend
 from services.gateway.limits import BodyLimit, RequestTiming
 from services.gateway.metrics import Metrics
 from services.gateway.models import MatchIn, OdometryIn, ScanIn
-from services.gateway.routers import API_ROUTERS, ROOT_ROUTERS
+from services.gateway.routers import ROUTERS
 
-API_PREFIX = "/api/v1"
 STATIC_DIR = Path(__file__).parent / "static"
 BODY_MODELS: tuple[type[BaseModel], ...] = (MatchIn, ScanIn, OdometryIn)
 log = logging.getLogger("scanflow.gateway")
@@ -58,11 +58,10 @@ def create_app(
     app.state.settings = settings
     app.state.backend = backend
     app.state.metrics = Metrics()
-    for router in API_ROUTERS:
-        app.include_router(router, prefix=API_PREFIX)
-    for router in ROOT_ROUTERS:
+    for router in ROUTERS:
         app.include_router(router)
     app.add_exception_handler(BackendError, _backend_error)  # type: ignore[arg-type]
+    app.add_exception_handler(RequestValidationError, _invalid)  # type: ignore[arg-type]
     app.add_middleware(BodyLimit, max_body_bytes=settings.max_body_bytes)
     app.add_middleware(RequestTiming, metrics=app.state.metrics)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
@@ -77,6 +76,15 @@ def create_app(
 
 async def _backend_error(_request: Request, exc: BackendError) -> JSONResponse:
     return JSONResponse({"detail": exc.reason}, status_code=exc.status_code)
+
+
+async def _invalid(_request: Request, exc: RequestValidationError) -> JSONResponse:
+    """422 naming each bad field; inputs are not echoed (they may be huge or not JSON, e.g. NaN)."""
+    detail = [
+        {"loc": list(e.get("loc", ())), "msg": str(e.get("msg", "")), "type": e.get("type", "")}
+        for e in exc.errors()
+    ]
+    return JSONResponse({"detail": detail}, status_code=422)
 
 
 def _openapi(app: FastAPI) -> dict[str, Any]:

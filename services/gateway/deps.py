@@ -12,6 +12,7 @@ from scanflow.config import GatewaySettings
 
 from services.gateway.backend import ZenohBackend
 
+API_PREFIX = "/api/v1"
 api_key_header = APIKeyHeader(
     name="X-API-Key", auto_error=False, description="SCANFLOW_GATEWAY_API_KEY"
 )

@@ -1,4 +1,4 @@
-"""One router per resource; `ROUTERS` is the order they are mounted in."""
+"""One router per resource; `ROUTERS` in mounting order (paths carry their prefix)."""
 
 from services.gateway.routers import (
     health,
@@ -11,6 +11,7 @@ from services.gateway.routers import (
     stream,
 )
 
-API_ROUTERS = (robots.router, poses.router, match.router, maps.router, health.router,
-               ingest.router, stream.router)
-ROOT_ROUTERS = (metrics.router,)
+ROUTERS = (
+    robots.router, poses.router, match.router, maps.router, health.router, ingest.router,
+    stream.router, metrics.router,
+)

@@ -6,10 +6,10 @@ from fastapi import APIRouter, Depends
 from fastapi.responses import JSONResponse
 
 from services.gateway.backend import EXPECTED_SERVICES
-from services.gateway.deps import Backend, guard_reads
+from services.gateway.deps import API_PREFIX, Backend, guard_reads
 from services.gateway.models import HealthOut, ServiceOut, ZenohOut
 
-router = APIRouter(tags=["health"], dependencies=[Depends(guard_reads)])
+router = APIRouter(prefix=API_PREFIX, tags=["health"], dependencies=[Depends(guard_reads)])
 
 
 @router.get(

@@ -10,11 +10,11 @@ from scanflow.scan import LaserScan, Odometry, ScanError
 from scanflow.wire import MessageError, OdometryMessage, ScanMessage
 
 from services.gateway.body import body_doc, invalid, read_body
-from services.gateway.deps import Backend, Robot, Settings, require_key
+from services.gateway.deps import API_PREFIX, Backend, Robot, Settings, require_key
 from services.gateway.models import IngestAck, OdometryIn, ScanIn
 from services.gateway.routers.match import ANSWERS
 
-router = APIRouter(tags=["ingest"], dependencies=[Depends(require_key)])
+router = APIRouter(prefix=API_PREFIX, tags=["ingest"], dependencies=[Depends(require_key)])
 
 
 @router.post(

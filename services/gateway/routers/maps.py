@@ -15,13 +15,13 @@ from fastapi import APIRouter, Depends, HTTPException, Query
 from fastapi.responses import Response
 from scanflow import keys
 from scanflow.maps.export import save_map_server, save_png
-from scanflow.maps.occupancy import OccupancyGrid
+from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
 from scanflow.wire import MapImageMessage, MapMetaMessage, MapRegionMessage
 
-from services.gateway.deps import Backend, Robot, guard_reads
+from services.gateway.deps import API_PREFIX, Backend, Robot, guard_reads
 from services.gateway.models import MapMetaOut
 
-router = APIRouter(tags=["maps"], dependencies=[Depends(guard_reads)])
+router = APIRouter(prefix=API_PREFIX, tags=["maps"], dependencies=[Depends(guard_reads)])
 Bound = Annotated[float | None, Query(ge=-1e6, le=1e6, description="metres")]
 MEDIA = {"png": "image/png", "pgm": "image/x-portable-graymap", "yaml": "application/yaml"}
 ANSWERS = {404: {"description": "no map for this robot"}, 422: {"description": "bad region"},
@@ -73,7 +73,8 @@ async def map_file(
 def export_region(region: MapRegionMessage, fmt: str) -> bytes:
     """The region written by the library's PNG or map_server exporter."""
     spec = region.window_spec
-    grid = OccupancyGrid.from_int8(region.occupancy, spec.origin_x_m, spec.origin_y_m)
+    params = OccupancyParams(resolution_m=spec.resolution_m)
+    grid = OccupancyGrid.from_int8(region.occupancy, spec.origin_x_m, spec.origin_y_m, params)
     with tempfile.TemporaryDirectory(prefix="scanflow-region-") as tmp:
         base = Path(tmp) / "map"
         if fmt == "png":

@@ -13,10 +13,10 @@ from scanflow.wire import MapRef, MatchRequest, MatchResponse, MessageError
 
 from services.gateway.backend import BackendError
 from services.gateway.body import MSGPACK, body_doc, invalid, read_body
-from services.gateway.deps import Backend, Settings, guard_reads, require_key
+from services.gateway.deps import API_PREFIX, Backend, Settings, guard_reads, require_key
 from services.gateway.models import MatchIn, MatchOut, MethodsOut, ScanIn
 
-router = APIRouter(tags=["match"])
+router = APIRouter(prefix=API_PREFIX, tags=["match"])
 ANSWERS = {
     401: {"description": "API key missing"},
     403: {"description": "API key wrong"},

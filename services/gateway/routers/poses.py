@@ -17,11 +17,11 @@ from scanflow import keys
 from scanflow.wire import TrajectoryMessage
 
 from services.gateway.backend import BackendError, ZenohBackend
-from services.gateway.deps import Backend, Robot, guard_reads
+from services.gateway.deps import API_PREFIX, Backend, Robot, guard_reads
 from services.gateway.models import PoseOut, TimedPose, TrajectoryOut
 from services.gateway.tracks import estimate_arrays, pose_at
 
-router = APIRouter(tags=["poses"], dependencies=[Depends(guard_reads)])
+router = APIRouter(prefix=API_PREFIX, tags=["poses"], dependencies=[Depends(guard_reads)])
 TimeParam = Annotated[float | None, Query(ge=0.0, le=1e11, description="seconds")]
 NOT_FOUND = {404: {"description": "unknown robot, or a time outside its trajectory"}}
 

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Depends
 
-from services.gateway.deps import Backend, guard_reads
+from services.gateway.deps import API_PREFIX, Backend, guard_reads
 from services.gateway.models import PoseOut, RobotOut, RobotsOut, ServiceOut
 
-router = APIRouter(tags=["robots"], dependencies=[Depends(guard_reads)])
+router = APIRouter(prefix=API_PREFIX, tags=["robots"], dependencies=[Depends(guard_reads)])
 
 
 @router.get("/robots", response_model=RobotsOut, summary="Robots seen and live services")

@@ -1,0 +1,147 @@
+"""POST /match: JSON and msgpack bodies forwarded to a (test) matcher queryable; safety limits."""
+
+from __future__ import annotations
+
+import math
+
+import msgpack
+import numpy as np
+import pytest
+from scanflow import keys
+from scanflow.geometry import Pose2D
+from scanflow.scan import LaserScan
+from scanflow.wire import MapRef, MatchRequest, MatchResponse
+
+SCAN = {
+    "ranges_m": [2.0, 2.1, None, 2.3, 2.2, 2.0, 1.9, 2.0],
+    "angle_min_rad": -1.57,
+    "angle_increment_rad": 0.39,
+    "range_max_m": 30.0,
+}
+MSGPACK = {"Content-Type": "application/x-msgpack"}
+
+
+def echo_matcher(seen: list[MatchRequest]):
+    """A matcher that answers with the request's initial guess and records the request."""
+
+    def reply(query) -> bytes:
+        request = MatchRequest.decode(query.payload.to_bytes())
+        seen.append(request)
+        guess = request.initial_guess or Pose2D()
+        return MatchResponse(guess, np.eye(3) * 1e-3, 0.8, 7, True, "ok", request.method,
+                             time_s=0.002, inliers=6).encode()
+
+    return reply
+
+
+def test_scan_to_scan_json(client, peer, auth):
+    seen: list[MatchRequest] = []
+    peer.answer(keys.scan_match(), echo_matcher(seen))
+    body = {"method": "icp", "source": SCAN, "target": SCAN,
+            "initial_guess": {"x_m": 0.5, "y_m": 0.25, "theta_rad": 0.1}}
+    r = client.post("/api/v1/match", json=body, headers=auth)
+    assert r.status_code == 200, r.text
+    out = r.json()
+    assert out["pose"] == pytest.approx({"x_m": 0.5, "y_m": 0.25, "theta_rad": 0.1})
+    assert (out["iterations"], out["converged"], out["status"]) == (7, True, "ok")
+    assert out["inliers"] == 6
+    assert out["time_s"] == 0.002 and out["round_trip_s"] > 0
+    (request,) = seen
+    assert isinstance(request.source, LaserScan) and math.isnan(request.source.ranges_m[2])
+    assert request.source.valid_count == 7
+
+
+def test_scan_to_map_goes_to_the_robots_matcher(client, peer, auth):
+    seen: list[MatchRequest] = []
+    peer.answer(keys.robot_match("r1"), echo_matcher(seen))
+    r = client.post("/api/v1/match", json={"method": "gn", "source": SCAN, "robot_id": "r1"},
+                    headers=auth)
+    assert r.status_code == 200, r.text
+    assert isinstance(seen[0].target, MapRef) and seen[0].target.robot_id == "r1"
+
+
+def test_msgpack_body_and_answer(client, peer, auth):
+    peer.answer(keys.scan_match(), echo_matcher([]))
+    points = np.random.default_rng(0).normal(size=(20, 2))
+    request = MatchRequest("svd", points, points + 0.1, Pose2D(0.1, 0.0, 0.0))
+    r = client.post("/api/v1/match", content=request.encode(),
+                    headers={**auth, **MSGPACK, "Accept": "application/x-msgpack"})
+    assert r.status_code == 200 and r.headers["content-type"] == "application/x-msgpack"
+    assert MatchResponse.decode(r.content).pose.x == pytest.approx(0.1)
+
+
+def test_every_library_method_is_offered(client):
+    from scanflow.matching import available_methods
+
+    assert client.get("/api/v1/match/methods").json()["methods"] == available_methods()
+
+
+@pytest.mark.parametrize(("headers", "status"), [({}, 401), ({"X-API-Key": "wrong"}, 403)])
+def test_match_needs_the_api_key(client, headers, status):
+    body = {"source": SCAN, "target": SCAN}
+    assert client.post("/api/v1/match", json=body, headers=headers).status_code == status
+
+
+@pytest.mark.parametrize(
+    ("body", "field"),
+    [
+        ({"method": "nope", "source": SCAN, "target": SCAN}, "method"),
+        ({"source": SCAN}, "target"),
+        ({"source": {**SCAN, "ranges_m": [1.0] * 1025}, "target": SCAN}, "ranges_m"),
+        ({"source": {**SCAN, "angle_increment_rad": 5.0}, "target": SCAN}, "angle_increment_rad"),
+        ({"source": SCAN, "target": SCAN, "initial_guess": {"x_m": 1e9}}, "x_m"),
+        ({"source": {**SCAN, "range_max_m": 0.05, "range_min_m": 0.1}, "target": SCAN},
+         "range_max_m"),
+    ],
+)
+def test_bad_bodies_get_422_naming_the_field(client, auth, body, field):
+    r = client.post("/api/v1/match", json=body, headers=auth)
+    assert r.status_code == 422
+    assert field in r.text
+
+
+def test_nan_in_json_is_refused(client, auth):
+    text = '{"source": {"ranges_m": [NaN], "angle_min_rad": 0, "angle_increment_rad": 0.1}}'
+    headers = {**auth, "Content-Type": "application/json"}
+    r = client.post("/api/v1/match", content=text, headers=headers)
+    assert r.status_code == 422
+
+
+def test_bad_msgpack_gets_422(client, auth):
+    r = client.post("/api/v1/match", content=msgpack.packb({"type": "match_request", "v": 1}),
+                    headers={**auth, **MSGPACK})
+    assert r.status_code == 422 and "method" in r.json()["detail"]
+
+
+def test_body_over_the_limit_is_413_before_parsing(client, auth):
+    r = client.post("/api/v1/match", content=b"{" + b" " * 70_000 + b"}", headers=auth)
+    assert r.status_code == 413 and "max_body_bytes" in r.json()["detail"]
+
+
+def test_streamed_body_over_the_limit_is_413(client, auth):
+    chunks = (b" " * 16_384 for _ in range(8))  # no Content-Length: chunked upload
+    r = client.post("/api/v1/match", content=chunks, headers=auth)
+    assert r.status_code == 413
+
+
+def test_other_content_types_are_415(client, auth):
+    r = client.post("/api/v1/match", content=b"x", headers={**auth, "Content-Type": "text/plain"})
+    assert r.status_code == 415
+
+
+def test_no_matcher_is_503(client, auth):
+    r = client.post("/api/v1/match", json={"source": SCAN, "target": SCAN}, headers=auth)
+    assert r.status_code == 503 and "match" in r.json()["detail"]
+
+
+def test_silent_matcher_is_504_not_a_hang(client, peer, auth):
+    peer.answer(keys.scan_match(), lambda q: None)
+    r = client.post("/api/v1/match", json={"source": SCAN, "target": SCAN}, headers=auth)
+    assert r.status_code == 504 and "within" in r.json()["detail"]
+
+
+def test_matcher_error_is_forwarded(client, peer, auth):
+    peer.answer(keys.robot_match("r1"),
+                lambda q: MatchResponse.from_error("no map for robot 'r1'", "gn").encode())
+    r = client.post("/api/v1/match", json={"source": SCAN, "robot_id": "r1"}, headers=auth)
+    assert r.status_code == 422 and "no map" in r.json()["detail"]

@@ -1,0 +1,140 @@
+"""Maps, ingest, health, metrics and the live stream, against a real Zenoh peer."""
+
+from __future__ import annotations
+
+import io
+import threading
+
+import numpy as np
+import pytest
+from PIL import Image
+from scanflow import keys
+from scanflow.maps.grid import GridSpec
+from scanflow.scan import LaserScan
+from scanflow.wire import (
+    MapImageMessage,
+    MapMetaMessage,
+    MapRegionMessage,
+    OdometryMessage,
+    ScanMessage,
+    ServiceStatsMessage,
+)
+
+from .conftest import estimate, eventually
+
+META = MapMetaMessage.from_spec("r1", GridSpec(-1.0, -2.0, 0.5, 4, 6), revision=3, stamp_s=5.0)
+
+
+def test_map_meta_and_png(client, peer):
+    png = io.BytesIO()
+    Image.new("L", (6, 4), 254).save(png, format="PNG")
+    peer.answer(keys.map_key("r1", "meta"), lambda q: META.encode())
+    peer.answer(keys.map_key("r1", "image"), lambda q: MapImageMessage(
+        "r1", 3, q.parameters.get("format"), png.getvalue()).encode())
+    meta = client.get("/api/v1/robots/r1/map").json()
+    assert (meta["rows"], meta["cols"], meta["width_m"], meta["revision"]) == (4, 6, 3.0, 3)
+    r = client.get("/api/v1/robots/r1/map.png")
+    assert r.headers["content-type"] == "image/png" and r.content == png.getvalue()
+    assert r.headers["x-map-revision"] == "3"
+
+
+def test_map_region_is_exported_by_the_library(client, peer):
+    occupancy = np.full((2, 3), -1, np.int8)
+    occupancy[0, 0] = 100
+    occupancy[1, :] = 0
+    seen = []
+
+    def region(query):
+        seen.append(dict(query.parameters))
+        return MapRegionMessage(META, 1, 2, occupancy).encode()
+
+    peer.answer(keys.map_key("r1", "region"), region)
+    r = client.get("/api/v1/robots/r1/map.pgm", params={"x0": 0, "y0": -1.5, "x1": 1, "y1": -1})
+    assert r.status_code == 200 and r.content.startswith(b"P5")
+    assert seen[0] == {"x0": "0.0", "y0": "-1.5", "x1": "1.0", "y1": "-1.0"}
+    yaml = client.get("/api/v1/robots/r1/map.yaml", params={"x0": 0, "y0": -1.5, "x1": 1, "y1": -1})
+    assert "origin: [0.0, -1.5, 0.0]" in yaml.text and "resolution: 0.5" in yaml.text
+    png = client.get("/api/v1/robots/r1/map.png", params={"x0": 0, "y0": -1.5, "x1": 1, "y1": -1})
+    pixels = np.asarray(Image.open(io.BytesIO(png.content)))
+    assert pixels.shape == (2, 3) and pixels[1, 0] == 0 and pixels[0, 2] == 254  # y up
+
+
+def test_partial_region_and_missing_map(client, peer):
+    r = client.get("/api/v1/robots/r1/map.png", params={"x0": 0})
+    assert r.status_code == 422 and "x0, y0, x1, y1" in r.json()["detail"]
+    peer.answer(keys.map_key("r9", "meta"), lambda q: (_ for _ in ()).throw(
+        LookupError("no map for robot 'r9'")))
+    r = client.get("/api/v1/robots/r9/map")
+    assert r.status_code == 404 and "r9" in r.json()["detail"]
+
+
+def test_ingest_scan_and_odometry_publish_with_seqs(client, peer, auth):
+    scans = peer.subscribe(keys.raw_scan("r1"))
+    odoms = peer.subscribe(keys.odom("r1"))
+    scan = {"ranges_m": [1.0, None, 2.0], "angle_min_rad": 0.0, "angle_increment_rad": 0.1}
+    acks = [client.post("/api/v1/robots/r1/scans", json=scan, headers=auth) for _ in range(2)]
+    assert [a.status_code for a in acks] == [202, 202]
+    assert [a.json()["seq"] for a in acks] == [0, 1]
+    odom = {"stamp_s": 3.0, "pose": {"x_m": 1.0}, "velocity": {"vx_mps": 0.5}, "seq": 7}
+    assert client.post("/api/v1/robots/r1/odometry", json=odom, headers=auth).json()["seq"] == 7
+    eventually(lambda: len(scans) == 2 and len(odoms) == 1, "ingested messages on the bus")
+    got = [ScanMessage.decode(b).scan for b in scans]
+    assert [(s.robot_id, s.seq, s.valid_count) for s in got] == [("r1", 0, 2), ("r1", 1, 2)]
+    sample = OdometryMessage.decode(odoms[0]).odom
+    assert (sample.seq, sample.pose.x, sample.velocity) == (7, 1.0, (0.5, 0.0, 0.0))
+
+
+def test_ingest_msgpack_is_retagged_to_the_url_robot(client, peer, auth):
+    scans = peer.subscribe(keys.raw_scan("r2"))
+    message = ScanMessage(LaserScan(np.ones(5, np.float32), 0.0, 0.1, robot_id="other", seq=4))
+    r = client.post("/api/v1/robots/r2/scans", content=message.encode(),
+                    headers={**auth, "Content-Type": "application/x-msgpack"})
+    assert r.status_code == 202 and r.json()["seq"] == 4
+    eventually(lambda: scans, "the scan on the bus")
+    assert ScanMessage.decode(scans[0]).scan.robot_id == "r2"
+
+
+def test_ingest_needs_the_key(client):
+    assert client.post("/api/v1/robots/r1/odometry", json={}).status_code == 401
+
+
+def test_health_lists_liveliness_tokens(client, peer):
+    body = client.get("/api/v1/health").json()
+    assert body["status"] == "degraded" and "matcher" in body["missing"]
+    assert body["zenoh"]["open"] and body["zenoh"]["peers"]
+    for service in ("router", "deskew", "matcher", "mapserver"):
+        peer.token(keys.health(service, "0"))
+    eventually(lambda: client.get("/api/v1/health").json()["status"] == "ok", "all services up")
+
+
+def test_metrics_aggregate_service_stats(client, peer, auth):
+    stats = ServiceStatsMessage("deskew", "0", 1.0, {
+        "received.scan": 12, "seq.r1/scan.missed": 2, "malformed.scan": 1, "queries.busy": 3,
+    }, {"inbox_depth": 0.0, "limit": float("inf")})
+    peer.answer(keys.stats("deskew", "0"), lambda q: stats.encode())
+    client.get("/api/v1/robots")
+    text = client.get("/metrics").text
+    assert 'scanflow_scans_processed_total{instance="0",service="deskew"} 12' in text
+    assert 'scanflow_seq_gaps_total{instance="0",service="deskew",stream="r1/scan"} 2' in text
+    assert 'scanflow_malformed_total{instance="0",kind="scan",service="deskew"} 1' in text
+    assert 'name="limit",service="deskew"} +Inf' in text
+    assert 'scanflow_http_request_duration_seconds_count{method="GET",route="/api/v1/robots"' \
+           in text
+    assert text.count("# TYPE scanflow_service_gauge gauge") == 1
+
+
+@pytest.mark.parametrize("path", ["/api/v1/robots/r1/poses/stream", "/api/v1/poses/stream"])
+def test_stream_sends_live_poses(client, peer, backend, path):
+    def publish_when_subscribed() -> None:
+        eventually(lambda: backend.events.clients > 0, "the stream client")
+        for seq in range(3):
+            peer.put(keys.pose("r1"), estimate("r1", seq, 1.0 + seq, float(seq), 0.0).encode())
+
+    thread = threading.Thread(target=publish_when_subscribed)
+    thread.start()
+    r = client.get(path, params={"limit": 3}, timeout=10)
+    thread.join()
+    assert r.headers["content-type"].startswith("text/event-stream")
+    events = [line for line in r.text.splitlines() if line.startswith("event:")]
+    assert events == ["event: pose"] * 3
+    assert '"x_m": 2.0' in r.text and '"robot_id": "r1"' in r.text
