@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import anyio.to_thread
-from fastapi import FastAPI, Request
+from fastapi import Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import FileResponse, JSONResponse
@@ -18,6 +18,7 @@ from pydantic import BaseModel
 from scanflow.config import GatewaySettings, ZenohSettings
 
 from services.gateway.backend import BackendError, ZenohBackend
+from services.gateway.deps import require_key
 from services.gateway.limits import BodyLimit, RequestTiming
 from services.gateway.metrics import Metrics
 from services.gateway.models import MatchIn, OdometryIn, ScanIn
@@ -58,8 +59,9 @@ def create_app(
     app.state.settings = settings
     app.state.backend = backend
     app.state.metrics = Metrics()
+    reads = [Depends(require_key)] if settings.guard_reads else []  # documented only if on
     for router in ROUTERS:
-        app.include_router(router)
+        app.include_router(router, dependencies=reads)
     app.add_exception_handler(BackendError, _backend_error)  # type: ignore[arg-type]
     app.add_exception_handler(RequestValidationError, _invalid)  # type: ignore[arg-type]
     app.add_middleware(BodyLimit, max_body_bytes=settings.max_body_bytes)

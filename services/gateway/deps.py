@@ -26,7 +26,12 @@ def get_backend(request: Request) -> ZenohBackend:
     return request.app.state.backend
 
 
-def _check_key(settings: GatewaySettings, given: str | None) -> None:
+def require_key(
+    settings: Annotated[GatewaySettings, Depends(get_settings)],
+    given: Annotated[str | None, Security(api_key_header)],
+) -> None:
+    """Writes and compute (ingest, match) need the API key when one is configured; reads
+    too with SCANFLOW_GATEWAY_GUARD_READS=true (create_app adds it to every router then)."""
     expected = settings.api_key
     if expected is None:
         return
@@ -34,23 +39,6 @@ def _check_key(settings: GatewaySettings, given: str | None) -> None:
         raise HTTPException(401, "missing X-API-Key header", {"WWW-Authenticate": "X-API-Key"})
     if not secrets.compare_digest(given.encode(), expected.get_secret_value().encode()):
         raise HTTPException(403, "X-API-Key is not valid")
-
-
-def require_key(
-    settings: Annotated[GatewaySettings, Depends(get_settings)],
-    given: Annotated[str | None, Security(api_key_header)],
-) -> None:
-    """Writes and compute (ingest, match) need the API key when one is configured."""
-    _check_key(settings, given)
-
-
-def guard_reads(
-    settings: Annotated[GatewaySettings, Depends(get_settings)],
-    given: Annotated[str | None, Security(api_key_header)],
-) -> None:
-    """Reads need the key only with SCANFLOW_GATEWAY_GUARD_READS=true."""
-    if settings.guard_reads:
-        _check_key(settings, given)
 
 
 def robot_id(

@@ -154,7 +154,7 @@ class MatchIn(BaseModel):
         {"method": "icp", "source": _EXAMPLE_SCAN, "target": _EXAMPLE_SCAN,
          "initial_guess": {"x_m": 0.0, "y_m": 0.0, "theta_rad": 0.0}},
         {"method": "gn", "source": _EXAMPLE_SCAN, "robot_id": "robot"},
-    ]})
+    ], "oneOf": [{"required": ["target"]}, {"required": ["robot_id"]}]})
 
     method: Annotated[str, Field(max_length=32, description="see GET /api/v1/match/methods")] = (
         "icp"

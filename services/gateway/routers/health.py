@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends
+from fastapi import APIRouter
 from fastapi.responses import JSONResponse
 
 from services.gateway.backend import EXPECTED_SERVICES
-from services.gateway.deps import API_PREFIX, Backend, guard_reads
+from services.gateway.deps import API_PREFIX, Backend
 from services.gateway.models import HealthOut, ServiceOut, ZenohOut
 
-router = APIRouter(prefix=API_PREFIX, tags=["health"], dependencies=[Depends(guard_reads)])
+router = APIRouter(prefix=API_PREFIX, tags=["health"])
 
 
 @router.get(

@@ -13,7 +13,7 @@ from scanflow.wire import MapRef, MatchRequest, MatchResponse, MessageError
 
 from services.gateway.backend import BackendError
 from services.gateway.body import MSGPACK, body_doc, invalid, read_body
-from services.gateway.deps import API_PREFIX, Backend, Settings, guard_reads, require_key
+from services.gateway.deps import API_PREFIX, Backend, Settings, require_key
 from services.gateway.models import MatchIn, MatchOut, MethodsOut, ScanIn
 
 router = APIRouter(prefix=API_PREFIX, tags=["match"])
@@ -28,7 +28,7 @@ ANSWERS = {
 }
 
 
-@router.get("/match/methods", response_model=MethodsOut, dependencies=[Depends(guard_reads)],
+@router.get("/match/methods", response_model=MethodsOut,
             summary="Every matching method the library has")
 def methods() -> MethodsOut:
     return MethodsOut(methods=available_methods(), default=DEFAULT_METHOD)

@@ -10,18 +10,18 @@ import math
 from typing import Annotated, Literal
 
 import numpy as np
-from fastapi import APIRouter, Depends, HTTPException, Query
+from fastapi import APIRouter, HTTPException, Query
 from fastapi.responses import PlainTextResponse
 from numpy.typing import NDArray
 from scanflow import keys
 from scanflow.wire import TrajectoryMessage
 
 from services.gateway.backend import BackendError, ZenohBackend
-from services.gateway.deps import API_PREFIX, Backend, Robot, guard_reads
+from services.gateway.deps import API_PREFIX, Backend, Robot
 from services.gateway.models import PoseOut, TimedPose, TrajectoryOut
 from services.gateway.tracks import estimate_arrays, pose_at
 
-router = APIRouter(prefix=API_PREFIX, tags=["poses"], dependencies=[Depends(guard_reads)])
+router = APIRouter(prefix=API_PREFIX, tags=["poses"])
 TimeParam = Annotated[float | None, Query(ge=0.0, le=1e11, description="seconds")]
 NOT_FOUND = {404: {"description": "unknown robot, or a time outside its trajectory"}}
 

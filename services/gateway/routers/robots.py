@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends
+from fastapi import APIRouter
 
-from services.gateway.deps import API_PREFIX, Backend, guard_reads
+from services.gateway.deps import API_PREFIX, Backend
 from services.gateway.models import PoseOut, RobotOut, RobotsOut, ServiceOut
 
-router = APIRouter(prefix=API_PREFIX, tags=["robots"], dependencies=[Depends(guard_reads)])
+router = APIRouter(prefix=API_PREFIX, tags=["robots"])
 
 
 @router.get("/robots", response_model=RobotsOut, summary="Robots seen and live services")

@@ -1,0 +1,84 @@
+"""The web page in a real headless browser (Debian chromium via Playwright): the map is drawn.
+
+Needs `apt-get install chromium` and `pip install playwright` (dev extra); skipped loudly
+without them.
+"""
+
+from __future__ import annotations
+
+import io
+import shutil
+import threading
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+import uvicorn
+from PIL import Image
+from scanflow import keys
+from scanflow.maps.grid import GridSpec
+from scanflow.wire import MapImageMessage, MapMetaMessage
+
+from services.common.launch import free_port, wait_for_port
+from services.gateway.app import create_app
+
+from .conftest import estimate
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
+pytestmark = pytest.mark.skipif(
+    shutil.which("chromium") is None,
+    reason="BROWSER TEST SKIPPED: Debian's chromium is absent (apt-get install -y chromium)",
+)
+BACKGROUND = (0x20, 0x24, 0x2A)
+
+
+@pytest.fixture
+def served(backend, settings) -> Iterator[str]:
+    """The gateway app on a real uvicorn server in a thread; yields its base URL."""
+    port = free_port()
+    config = uvicorn.Config(create_app(settings, backend), host="127.0.0.1", port=port,
+                            log_level="warning")
+    server = uvicorn.Server(config)
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    wait_for_port(port)
+    yield f"http://127.0.0.1:{port}"
+    server.should_exit = True
+    thread.join(10)
+
+
+def test_page_draws_the_map_and_trajectory(served, peer, backend):
+    image = np.full((40, 60), 254, np.uint8)
+    image[:, :3] = 0
+    image[:3, :] = 0
+    png = io.BytesIO()
+    Image.fromarray(image, mode="L").save(png, format="PNG")
+    meta = MapMetaMessage.from_spec("r1", GridSpec(-1.0, -1.0, 0.1, 40, 60), 1, 0.0)
+    peer.answer(keys.map_key("r1", "meta"), lambda q: meta.encode())
+    peer.answer(keys.map_key("r1", "image"),
+                lambda q: MapImageMessage("r1", 1, "png", png.getvalue()).encode())
+    for seq in range(5):
+        peer.put(keys.pose("r1"), estimate("r1", seq, float(seq), seq * 0.8, seq * 0.5).encode())
+
+    with sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
+        try:
+            page = browser.new_page()
+            page.goto(served)
+            canvas = page.locator("#robot-r1 canvas")
+            canvas.wait_for(timeout=15_000)
+            page.wait_for_function(  # the map image loaded and every pose arrived
+                "() => { const v = views.get('r1'); return v && v.image && v.path.length >= 5; }",
+                timeout=15_000,
+            )
+            shot = Image.open(io.BytesIO(canvas.screenshot())).convert("RGB")
+        finally:
+            browser.close()
+    pixels = np.asarray(shot).reshape(-1, 3).astype(int)
+    drawn = np.abs(pixels - BACKGROUND).sum(axis=1) > 30
+    white = (pixels > 240).all(axis=1)
+    red = (pixels[:, 0] > 180) & (pixels[:, 1] < 120)
+    assert drawn.mean() > 0.3, f"only {drawn.mean():.1%} of the canvas differs from background"
+    assert white.sum() > 1000, "the free (white) map cells are not drawn"
+    assert red.sum() > 10, "the trajectory (red) is not drawn"
