@@ -73,7 +73,9 @@ class MapTarget(Protocol):
 Target = NDArray[np.float64] | MapTarget
 MethodFn = Callable[..., MatchResult]
 _METHODS: dict[str, MethodFn] = {}
-DEFAULT_METHOD = "icp"
+# Point-to-line ICP: the most accurate local method measured here and well under 1.5 ms
+# per match (BENCHMARKS.md, "Scan matching").
+DEFAULT_METHOD = "plicp"
 
 
 def register_method(name: str) -> Callable[[MethodFn], MethodFn]:
@@ -117,7 +119,11 @@ def as_pose(guess: Pose2D | ArrayLike | None) -> Pose2D:
         return Pose2D()
     if isinstance(guess, Pose2D):
         return guess
-    v = np.asarray(guess, dtype=np.float64).reshape(-1)
+    try:
+        v = np.asarray(guess, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        msg = f"initial_guess must be 3 numbers (x, y, theta), got {guess!r}"
+        raise MatchInputError(msg) from exc
     if v.shape != (3,) or not np.all(np.isfinite(v)):
         raise MatchInputError(f"initial_guess must be 3 finite values (x, y, theta), got {v}")
     return Pose2D(*v)
@@ -139,6 +145,37 @@ def failed(
     )
 
 
+def target_points(target: Any) -> NDArray[np.float64]:
+    """The target as (M, 2) points: the array itself, or a map's `occupied_points()`."""
+    if isinstance(target, np.ndarray):
+        return target
+    occupied = getattr(target, "occupied_points", None)
+    if occupied is None:
+        raise MatchInputError(
+            f"target {type(target).__name__} is neither points nor a map with occupied_points()"
+        )
+    points = as_points(occupied(), "target.occupied_points()")
+    return points if len(points) else np.zeros((0, 2))
+
+
+def check_point_inputs(
+    method: str,
+    source: NDArray[np.float64],
+    target: NDArray[np.float64],
+    guess: Pose2D,
+    min_points: int,
+) -> MatchResult | None:
+    """A failed result when either point set is too small to match (an empty map included)."""
+    if len(target) == 0:
+        return failed(method, MatchStatus.EMPTY_MAP, guess, "the target has no points")
+    if len(source) < min_points or len(target) < min_points:
+        return failed(
+            method, MatchStatus.TOO_FEW_POINTS, guess,
+            f"need >= {min_points} source and target points, got {len(source)} and {len(target)}",
+        )
+    return None
+
+
 def match(
     source: LaserScan | ArrayLike,
     target: LaserScan | Target,
@@ -150,7 +187,8 @@ def match(
     _load_methods()
     fn = _METHODS.get(method)
     if fn is None:
-        raise MatchInputError(f"unknown method {method!r}; available: {', '.join(sorted(_METHODS))}")
+        known = ", ".join(sorted(_METHODS))
+        raise MatchInputError(f"unknown method {method!r}; available: {known}")
     guess = as_pose(initial_guess)
     src = as_points(source, "source")
     tgt: Any = target

@@ -1,0 +1,211 @@
+"""Scan matching on real logs: every scanflow method next to the peers, on the same pairs.
+
+`python -m bench.matching --data PATH [--gap K] [--methods ...] [--peers ...] [--limit N]
+[--stride S] [--robust-pairs N] [--json]`
+
+Pairs (i, i+K) of the log's keyframes, i stepping by K (K=1: each scan against the next; K=3:
+every third scan), optionally every S-th pair and at most N pairs. Source = scan i+K, target =
+scan i, so a match estimates T_i_(i+K). Ground truth: true_pose_i^-1 * true_pose_j; initial
+guess: the wheel odometry odom_pose_i^-1 * odom_pose_j. Error: translation norm and |rotation|
+of gt^-1 * estimate. Robustness: on a seeded subset of pairs, the guess is the ground truth
+composed with an error of 0.1/0.3/1.0 m (random direction) and 5/15/30 deg (random sign).
+Each matcher is called once untimed before its timed run (numba JIT and library warm-up).
+Times: wall clock per match (median, mean) and the median process CPU time, which a shared
+machine inflates less than wall time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+from scanflow.geometry import Pose2D
+from scanflow.io.carmen import load_keyframes
+from scanflow.matching import DEFAULT_METHOD, available_methods, match
+from tqdm import tqdm
+
+from bench.peers import available_peers
+
+THRESHOLDS = ((0.05, 0.5), (0.10, 1.0))  # (metres, degrees)
+ROBUST_LEVELS = ((0.1, 5.0), (0.3, 15.0), (1.0, 30.0))
+DEFAULT_METHODS = ("odometry", "icp", "plicp", "csm+plicp")
+Matcher = Callable[[NDArray[np.float64], NDArray[np.float64], Pose2D], Pose2D]
+
+
+@dataclass(frozen=True)
+class Pair:
+    source: NDArray[np.float64]
+    target: NDArray[np.float64]
+    truth: Pose2D
+    guess: Pose2D
+
+
+def load_pairs(path: Path, gap: int, stride: int, limit: int | None) -> list[Pair]:
+    """Keyframe pairs (i, i+gap), i stepping by gap, every stride-th, at most limit."""
+    frames = load_keyframes(path)
+    pairs = [
+        Pair(
+            frames[i + gap].scan.points(),
+            frames[i].scan.points(),
+            frames[i + gap].true_pose.relative_to(frames[i].true_pose),
+            frames[i + gap].odom_pose.relative_to(frames[i].odom_pose),
+        )
+        for i in range(0, len(frames) - gap, gap)
+    ][::stride]
+    return pairs[:limit] if limit else pairs
+
+
+def scanflow_matcher(method: str) -> Matcher:
+    def run(src: NDArray[np.float64], tgt: NDArray[np.float64], guess: Pose2D) -> Pose2D:
+        return match(src, tgt, guess, method=method).pose
+
+    return run
+
+
+def odometry_matcher(src: NDArray[np.float64], tgt: NDArray[np.float64], guess: Pose2D) -> Pose2D:
+    """The initial guess itself: what the matchers start from."""
+    return guess
+
+
+def errors(truth: Pose2D, estimate: Pose2D) -> tuple[float, float]:
+    """(translation m, |rotation| deg) of truth^-1 * estimate."""
+    e = estimate.relative_to(truth)
+    return e.translation_norm(), abs(math.degrees(e.theta))
+
+
+def run_matcher(name: str, fn: Matcher, pairs: list[Pair], guesses: list[Pose2D]) -> dict:
+    """Errors and timing of one matcher over the pairs (with the given guesses)."""
+    fn(pairs[0].source, pairs[0].target, guesses[0])  # warm-up, untimed
+    trans, rot, times, cpu = [], [], [], []
+    for pair, guess in tqdm(list(zip(pairs, guesses, strict=True)), desc=name, file=sys.stderr,
+                            leave=False):
+        t0, c0 = time.perf_counter(), time.process_time()
+        est = fn(pair.source, pair.target, guess)
+        times.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+        et, er = errors(pair.truth, est)
+        trans.append(et)
+        rot.append(er)
+    return summarise(np.array(trans), np.array(rot), np.array(times), np.array(cpu))
+
+
+def summarise(trans_m: NDArray, rot_deg: NDArray, times_s: NDArray, cpu_s: NDArray) -> dict:
+    out = {
+        f"ok_{int(t * 100)}cm_{d:g}deg": float(np.mean((trans_m <= t) & (rot_deg <= d)))
+        for t, d in THRESHOLDS
+    }
+    out.update(
+        trans_p50_m=float(np.median(trans_m)),
+        trans_p95_m=float(np.percentile(trans_m, 95)),
+        rot_p50_deg=float(np.median(rot_deg)),
+        rot_p95_deg=float(np.percentile(rot_deg, 95)),
+        time_p50_ms=float(np.median(times_s) * 1e3),
+        time_mean_ms=float(np.mean(times_s) * 1e3),
+        cpu_p50_ms=float(np.median(cpu_s) * 1e3),
+        pairs=len(trans_m),
+    )
+    return out
+
+
+def perturbed_guesses(pairs: list[Pair], metres: float, degrees: float, seed: int) -> list[Pose2D]:
+    """Ground truth composed with an error of `metres` (random direction) and +-`degrees`."""
+    rng = np.random.default_rng(seed)
+    heading = rng.uniform(-math.pi, math.pi, len(pairs))
+    sign = rng.choice((-1.0, 1.0), len(pairs))
+    return [
+        p.truth * Pose2D(metres * math.cos(h), metres * math.sin(h), s * math.radians(degrees))
+        for p, h, s in zip(pairs, heading, sign, strict=True)
+    ]
+
+
+def matchers(methods: list[str], peers: list[str]) -> dict[str, Matcher]:
+    found = available_peers()
+    missing = [p for p in peers if p not in found]
+    if missing:
+        print(f"peers not installed (pip install -e .[bench]): {missing}", file=sys.stderr)
+    out: dict[str, Matcher] = {}
+    for m in methods:
+        out[m] = odometry_matcher if m == "odometry" else scanflow_matcher(m)
+    out.update({p: found[p] for p in peers if p in found})
+    return out
+
+
+def format_table(results: dict[str, dict]) -> str:
+    head = (
+        f"{'matcher':<18} {'5cm/0.5d':>8} {'10cm/1d':>8} {'t50 m':>7} {'t95 m':>7} "
+        f"{'r50 deg':>7} {'r95 deg':>7} {'med ms':>7} {'mean ms':>7} {'cpu ms':>7}"
+    )
+    lines = [head]
+    for name, r in results.items():
+        lines.append(
+            f"{name:<18} {r['ok_5cm_0.5deg']:>8.1%} {r['ok_10cm_1deg']:>8.1%} "
+            f"{r['trans_p50_m']:>7.3f} {r['trans_p95_m']:>7.3f} {r['rot_p50_deg']:>7.2f} "
+            f"{r['rot_p95_deg']:>7.2f} {r['time_p50_ms']:>7.2f} {r['time_mean_ms']:>7.2f} "
+            f"{r['cpu_p50_ms']:>7.2f}"
+        )
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--data", type=Path, required=True, help="CARMEN log (.log or .log.gz)")
+    parser.add_argument("--gap", type=int, default=1, help="pair scan i with scan i+gap")
+    parser.add_argument("--methods", nargs="*", default=list(DEFAULT_METHODS),
+                        help=f"scanflow methods ({', '.join(available_methods())}) or odometry")
+    parser.add_argument("--peers", nargs="*", default=None, help="peer names (default: all)")
+    parser.add_argument("--limit", type=int, default=None, help="at most N pairs")
+    parser.add_argument("--stride", type=int, default=1, help="use every S-th pair")
+    parser.add_argument("--robust-pairs", type=int, default=100,
+                        help="pairs for the robustness sweep (0: skip it)")
+    parser.add_argument("--seed", type=int, default=4)
+    parser.add_argument("--json", action="store_true", help="print JSON instead of tables")
+    args = parser.parse_args(argv)
+    if args.gap < 1 or args.stride < 1:
+        parser.error(f"--gap and --stride must be >= 1, got {args.gap} and {args.stride}")
+    peers = list(available_peers()) if args.peers is None else args.peers
+    pairs = load_pairs(args.data, args.gap, args.stride, args.limit)
+    if not pairs:
+        parser.error(f"{args.data} gives no pairs at gap {args.gap}")
+    runners = matchers(args.methods, peers)
+    odom = [p.guess for p in pairs]
+    results = {name: run_matcher(name, fn, pairs, odom) for name, fn in runners.items()}
+    robust: dict[str, dict[str, float]] = {}
+    if args.robust_pairs > 0:
+        rng = np.random.default_rng(args.seed)
+        pick = sorted(rng.choice(len(pairs), min(args.robust_pairs, len(pairs)), replace=False))
+        subset = [pairs[i] for i in pick]
+        for metres, degrees in ROBUST_LEVELS:
+            key = f"{metres:g}m_{degrees:g}deg"
+            guesses = perturbed_guesses(subset, metres, degrees, args.seed)
+            for name, fn in runners.items():
+                if name != "odometry":
+                    r = run_matcher(f"{name} {key}", fn, subset, guesses)
+                    robust.setdefault(name, {})[key] = r["ok_10cm_1deg"]
+    report = {
+        "data": str(args.data), "gap": args.gap, "stride": args.stride, "pairs": len(pairs),
+        "default_method": DEFAULT_METHOD, "results": results, "robustness_ok_10cm_1deg": robust,
+    }
+    if args.json:
+        print(json.dumps(report, indent=2))
+        return
+    print(f"{args.data.name}: {len(pairs)} pairs, gap {args.gap}, stride {args.stride}, "
+          f"default method {DEFAULT_METHOD}")
+    print(format_table(results))
+    if robust:
+        levels = [f"{m:g}m/{d:g}deg" for m, d in ROBUST_LEVELS]
+        print(f"\nrobustness (success at 10cm/1deg from truth + error), {args.robust_pairs} pairs")
+        print(f"{'matcher':<18} " + " ".join(f"{lv:>11}" for lv in levels))
+        for name, row in robust.items():
+            print(f"{name:<18} " + " ".join(f"{v:>11.1%}" for v in row.values()))
+
+
+if __name__ == "__main__":
+    main()

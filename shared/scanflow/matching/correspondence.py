@@ -1,0 +1,233 @@
+"""Nearest-neighbour association for ICP-family matchers, and the outlier rules they share.
+
+Two indexes over the target points:
+- `KDTreeIndex` (scipy cKDTree): the textbook choice, used by point-to-point `icp`.
+- `GridIndex`: a uniform bucket grid (points sorted by cell); a lookup scans the ring of cells
+  that covers the search radius. Its lookups are numba functions callable from compiled solver
+  loops: at 180-361 points a cKDTree query costs 0.1-0.3 ms per iteration from Python
+  (profiled), the compiled grid lookup ~20 us.
+Outlier rejection: a distance gate that adapts to the robust spread of the current association
+(KISS-ICP's idea of a data-driven threshold), and trimming to a fixed inlier fraction.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+# Robust sigma from the median absolute deviation of a Gaussian.
+MAD_TO_SIGMA = 1.4826
+# Grid cells grow beyond the requested size when the target would need more cells than this.
+MAX_GRID_CELLS = 1 << 16
+
+
+@njit(cache=True)
+def adaptive_gate_m(distances_m: NDArray[np.float64], floor_m: float, ceiling_m: float) -> float:
+    """Next association gate: 3 robust sigmas of the current distances, within [floor, ceiling]."""
+    if len(distances_m) == 0:
+        return ceiling_m
+    gate = 3.0 * MAD_TO_SIGMA * np.median(distances_m)
+    return min(max(gate, floor_m), ceiling_m)
+
+
+def trimmed_mask(distances_m: NDArray[np.float64], keep_fraction: float) -> NDArray[np.bool_]:
+    """Keep the `keep_fraction` closest pairs (trimmed ICP, Chetverikov 2002)."""
+    if not 0.0 < keep_fraction <= 1.0:
+        raise ValueError(f"keep_fraction must be in (0, 1], got {keep_fraction}")
+    keep = max(1, math.ceil(keep_fraction * len(distances_m)))
+    if keep >= len(distances_m):
+        return np.isfinite(distances_m)
+    cut = np.partition(distances_m, keep - 1)[keep - 1]
+    return distances_m <= cut
+
+
+@dataclass(frozen=True, eq=False)
+class KDTreeIndex:
+    """scipy cKDTree over the target with a gated nearest-neighbour query."""
+
+    points: NDArray[np.float64]
+    tree: cKDTree
+
+    @staticmethod
+    def build(points: NDArray[np.float64]) -> KDTreeIndex:
+        return KDTreeIndex(points, cKDTree(points, balanced_tree=False, compact_nodes=False))
+
+    def nearest(
+        self, queries: NDArray[np.float64], max_distance_m: float
+    ) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
+        """(distance, index) of each query's nearest target point; inf / len(points) if none."""
+        return self.tree.query(queries, k=1, distance_upper_bound=max_distance_m, workers=1)
+
+
+@dataclass(frozen=True, eq=False)
+class GridIndex:
+    """Bucket grid over the target points (sorted by cell) for compiled lookups."""
+
+    points: NDArray[np.float64]
+    order: NDArray[np.int64]
+    starts: NDArray[np.int64]
+    origin_x_m: float
+    origin_y_m: float
+    cell_m: float
+    cols: int
+    rows: int
+
+    @staticmethod
+    def build(points: NDArray[np.float64], cell_m: float = 0.25) -> GridIndex:
+        """Bucket the points into cells of `cell_m` (larger if the grid would be too big)."""
+        if not cell_m > 0.0:
+            raise ValueError(f"cell_m must be > 0, got {cell_m}")
+        lo = points.min(axis=0)
+        size = points.max(axis=0) - lo
+        cell = max(cell_m, math.sqrt(float((size[0] + 2 * cell_m) * (size[1] + 2 * cell_m))
+                                     / MAX_GRID_CELLS))
+        order, starts, cols, rows = _bucket(points, lo[0] - cell, lo[1] - cell, cell)
+        return GridIndex(points, order, starts, lo[0] - cell, lo[1] - cell, cell, cols, rows)
+
+
+@njit(cache=True)
+def _bucket(
+    points: NDArray[np.float64], ox: float, oy: float, cell: float
+) -> tuple[NDArray[np.int64], NDArray[np.int64], int, int]:
+    n = len(points)
+    cols = int((points[:, 0].max() - ox) / cell) + 2
+    rows = int((points[:, 1].max() - oy) / cell) + 2
+    keys = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        keys[i] = int((points[i, 1] - oy) / cell) * cols + int((points[i, 0] - ox) / cell)
+    order = np.argsort(keys, kind="mergesort").astype(np.int64)
+    starts = np.zeros(rows * cols + 1, dtype=np.int64)
+    for i in range(n):
+        starts[keys[i] + 1] += 1
+    for c in range(rows * cols):
+        starts[c + 1] += starts[c]
+    return order, starts, cols, rows
+
+
+@njit(cache=True)
+def grid_nearest(
+    points: NDArray[np.float64],
+    order: NDArray[np.int64],
+    starts: NDArray[np.int64],
+    ox: float,
+    oy: float,
+    cell: float,
+    cols: int,
+    rows: int,
+    qx: float,
+    qy: float,
+    max_distance_m: float,
+) -> tuple[int, float]:
+    """Index and squared distance of the nearest target point within max_distance_m, or -1."""
+    cx = math.floor((qx - ox) / cell)
+    cy = math.floor((qy - oy) / cell)
+    ring = math.ceil(max_distance_m / cell)
+    best = -1
+    best_d2 = max_distance_m * max_distance_m
+    for yy in range(max(cy - ring, 0), min(cy + ring + 1, rows)):
+        for xx in range(max(cx - ring, 0), min(cx + ring + 1, cols)):
+            c = yy * cols + xx
+            for k in range(starts[c], starts[c + 1]):
+                j = order[k]
+                dx = points[j, 0] - qx
+                dy = points[j, 1] - qy
+                d2 = dx * dx + dy * dy
+                if d2 < best_d2:
+                    best_d2 = d2
+                    best = j
+    return best, best_d2
+
+
+@njit(cache=True)
+def _normals(
+    points: NDArray[np.float64],
+    order: NDArray[np.int64],
+    starts: NDArray[np.int64],
+    ox: float,
+    oy: float,
+    cell: float,
+    cols: int,
+    rows: int,
+    k: int,
+    radius_m: float,
+    max_flatness: float,
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    n = len(points)
+    normals = np.zeros((n, 2))
+    ok = np.zeros(n, dtype=np.bool_)
+    best_d2 = np.empty(k)
+    best_j = np.empty(k, dtype=np.int64)
+    r2 = radius_m * radius_m
+    ring = math.ceil(radius_m / cell)
+    for i in range(n):
+        qx, qy = points[i, 0], points[i, 1]
+        best_d2[:] = np.inf
+        best_j[:] = -1
+        cx = math.floor((qx - ox) / cell)
+        cy = math.floor((qy - oy) / cell)
+        for yy in range(max(cy - ring, 0), min(cy + ring + 1, rows)):
+            for xx in range(max(cx - ring, 0), min(cx + ring + 1, cols)):
+                c = yy * cols + xx
+                for s in range(starts[c], starts[c + 1]):
+                    j = order[s]
+                    dx = points[j, 0] - qx
+                    dy = points[j, 1] - qy
+                    d2 = dx * dx + dy * dy
+                    if d2 <= r2 and d2 < best_d2[k - 1]:
+                        m = k - 1
+                        while m > 0 and best_d2[m - 1] > d2:
+                            best_d2[m] = best_d2[m - 1]
+                            best_j[m] = best_j[m - 1]
+                            m -= 1
+                        best_d2[m] = d2
+                        best_j[m] = j
+        if best_j[k - 1] < 0:
+            continue
+        mx = 0.0
+        my = 0.0
+        for m in range(k):
+            mx += points[best_j[m], 0]
+            my += points[best_j[m], 1]
+        mx /= k
+        my /= k
+        sxx = 0.0
+        syy = 0.0
+        sxy = 0.0
+        for m in range(k):
+            dx = points[best_j[m], 0] - mx
+            dy = points[best_j[m], 1] - my
+            sxx += dx * dx
+            syy += dy * dy
+            sxy += dx * dy
+        # Closed-form eigen-decomposition of the 2x2 scatter: major axis angle and eigenvalues.
+        half_tr = 0.5 * (sxx + syy)
+        disc = math.sqrt(max(0.25 * (sxx - syy) ** 2 + sxy * sxy, 0.0))
+        lam_max = half_tr + disc
+        lam_min = half_tr - disc
+        if lam_max <= 0.0 or lam_min > max_flatness * lam_max:
+            continue
+        phi = 0.5 * math.atan2(2.0 * sxy, sxx - syy)
+        normals[i, 0] = -math.sin(phi)
+        normals[i, 1] = math.cos(phi)
+        ok[i] = True
+    return normals, ok
+
+
+def target_normals(
+    grid: GridIndex, k: int = 5, radius_m: float = 0.5, max_flatness: float = 0.05
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Unit normal of each target point from its k nearest neighbours (itself included) within
+    `radius_m`; `ok` is False where fewer than k are near or the patch is not
+    line-like (minor/major scatter > max_flatness, e.g. corners and clutter)."""
+    if not k >= 2:
+        raise ValueError(f"k must be >= 2, got {k}")
+    return _normals(
+        grid.points, grid.order, grid.starts, grid.origin_x_m, grid.origin_y_m, grid.cell_m,
+        grid.cols, grid.rows, k, radius_m, max_flatness,
+    )
+

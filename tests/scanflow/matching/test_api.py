@@ -1,0 +1,91 @@
+"""The matching entry point: registration, input validation, statuses for bad input."""
+
+import math
+
+import numpy as np
+import pytest
+from scanflow.geometry import Pose2D
+from scanflow.matching import DEFAULT_METHOD, MatchInputError, MatchStatus, available_methods, match
+from scanflow.matching.api import target_points
+from scanflow.matching.checks import analyse_hessian, line_hessian
+from scanflow.matching.covariance import least_squares_covariance
+
+
+def _square(n: int = 200) -> np.ndarray:
+    t = np.linspace(0, 4, n // 4, endpoint=False)
+    z = np.zeros_like(t)
+    return np.vstack([np.c_[t, z], np.c_[z + 4, t], np.c_[4 - t, z + 4], np.c_[z, 4 - t]])
+
+
+def test_default_and_own_methods_are_registered() -> None:
+    assert DEFAULT_METHOD in available_methods()
+    assert {"svd", "icp", "plicp", "csm+plicp"} <= set(available_methods())
+
+
+def test_unknown_method_names_the_choices() -> None:
+    with pytest.raises(MatchInputError, match=r"unknown method 'nope'.*plicp"):
+        match(_square(), _square(), method="nope")
+
+
+@pytest.mark.parametrize("guess", [(math.nan, 0.0, 0.0), (0.0, 0.0), "x"])
+def test_bad_initial_guess_is_a_clear_error(guess: object) -> None:
+    with pytest.raises(MatchInputError, match="initial_guess"):
+        match(_square(), _square(), guess)
+
+
+def test_wrong_shape_is_a_clear_error() -> None:
+    with pytest.raises(MatchInputError, match=r"source must have shape \(N, 2\)"):
+        match(np.zeros((5, 3)), _square())
+
+
+@pytest.mark.parametrize("method", ["icp", "plicp", "csm+plicp"])
+def test_empty_and_tiny_inputs_give_a_status(method: str) -> None:
+    assert match(np.zeros((0, 2)), _square(), method=method).status is not MatchStatus.OK
+    assert match(_square(), [], method=method).status is MatchStatus.EMPTY_MAP
+    tiny = match(_square()[:2], _square(), method=method)
+    assert tiny.status is MatchStatus.TOO_FEW_POINTS and np.all(np.isinf(np.diag(tiny.covariance)))
+
+
+def test_nan_rows_are_dropped_not_propagated() -> None:
+    src = _square()
+    src[::7] = np.nan
+    r = match(src, _square(), Pose2D(0.05, 0.0, 0.01))
+    assert r.ok and r.pose.translation_norm() < 0.01
+
+
+class _Map:
+    def __init__(self, points: np.ndarray) -> None:
+        self._points = points
+
+    def likelihood_field(self, level: int = 0) -> object:
+        raise AssertionError("point methods must use occupied_points()")
+
+    def occupied_points(self) -> np.ndarray:
+        return self._points
+
+
+def test_map_target_uses_occupied_points() -> None:
+    r = match(_square(), _Map(_square()), Pose2D(0.05, -0.05, 0.02), method="plicp")
+    assert r.ok and r.pose.translation_norm() < 0.01
+    assert match(_square(), _Map(np.zeros((0, 2))), method="icp").status is MatchStatus.EMPTY_MAP
+
+
+def test_target_without_points_is_a_clear_error() -> None:
+    with pytest.raises(MatchInputError, match="occupied_points"):
+        target_points(object())
+
+
+def test_covariance_unknown_when_not_estimable() -> None:
+    assert np.all(np.isinf(np.diag(least_squares_covariance(np.eye(3), 1.0, 3))))
+    assert np.all(np.isinf(np.diag(least_squares_covariance(np.zeros((3, 3)), 1.0, 100))))
+    cov = least_squares_covariance(np.diag([4.0, 4.0, 1.0]), 9.7, 100)
+    assert np.allclose(cov, np.diag([0.025, 0.025, 0.1]))
+
+
+def test_corridor_hessian_weak_direction_is_along_the_walls() -> None:
+    x = np.linspace(-5, 5, 50)
+    pts = np.r_[np.c_[x, np.ones(50)], np.c_[x, -np.ones(50)]]
+    normals = np.tile([0.0, 1.0], (100, 1))
+    cond = analyse_hessian(line_hessian(pts, normals), 3.0)
+    assert cond.degenerate
+    assert np.allclose(cond.weak_direction, (1.0, 0.0, 0.0), atol=1e-6)
