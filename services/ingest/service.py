@@ -83,7 +83,10 @@ class Ingest:
                 break
             total += self.replay_once()
             self.drain()
-            self.shell.log.info("replay %d done: %d scans published", replay + 1, total)
+            self.shell.log.info(
+                "replay %d done: %d scans published, %d credit stalls",
+                replay + 1, total, self.credit.stalls,
+            )
         self.shell.close()
 
 

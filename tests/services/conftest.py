@@ -63,10 +63,10 @@ class Bus:
         )
         return bucket
 
-    def get(self, selector: str, timeout_s: float = 5.0) -> list:
-        """Decoded OK replies to a query; error replies raise."""
+    def get(self, selector: str, timeout_s: float = 5.0, payload: bytes | None = None) -> list:
+        """Decoded OK replies to a query; error replies raise AssertionError with the text."""
         out = []
-        for reply in self.session.get(selector, timeout=timeout_s):
+        for reply in self.session.get(selector, timeout=timeout_s, payload=payload):
             if reply.ok is None:
                 raise AssertionError(f"{selector}: {reply.err.payload.to_string()}")
             out.append(decode_any(reply.ok.payload.to_bytes()))

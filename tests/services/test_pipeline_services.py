@@ -112,7 +112,7 @@ def test_real_log_slice_equals_the_in_process_front_end(pipeline, data_file):
     launcher, bus = pipeline
     log = data_file("aces-corrected.log.gz")
     poses = bus.record(keys.pose())
-    limit = 60
+    limit = 25
     run_ingest(launcher, bus, SCANFLOW_INGEST_LOG=str(log), SCANFLOW_INGEST_LIMIT=str(limit))
     expected, grid = in_process(source_events(str(log), "robot", 1.0, 0, limit))
     bus.wait_until(lambda: len(poses) >= limit, 30.0, "every pose")

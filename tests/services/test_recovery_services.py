@@ -1,0 +1,123 @@
+"""Crash and restart the matcher or the map server mid-run; junk on every subscribed key;
+match requests. Real processes, a real router."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scanflow import keys
+from scanflow.frontend import ACCEPTED
+from scanflow.scan import LaserScan
+from scanflow.wire import MapRef, MatchRequest, MatchResponse
+
+from services.ingest.sources import source_events
+
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
+
+SCANS = 80
+SIM = {
+    "SCANFLOW_INGEST_SIM_DURATION_S": str(SCANS / 10),
+    "SCANFLOW_INGEST_SIM_SEED": "3",
+    "SCANFLOW_INGEST_WINDOW": "4",
+    "SCANFLOW_INGEST_STALL_TIMEOUT_S": "2",
+}
+
+
+@pytest.fixture
+def pipeline(launcher, bus, start):
+    for name in ("deskew", "matcher", "mapserver"):
+        start(name, SCANFLOW_MAPSERVER_SNAPSHOT_INTERVAL_S="0.5")
+    return launcher, bus, start
+
+
+def max_step_m(poses: np.ndarray) -> float:
+    return float(np.max(np.hypot(*np.diff(poses[:, :2], axis=0).T)))
+
+
+def test_matcher_crash_resumes_from_the_map_server_and_gaps_are_reported(pipeline):
+    launcher, bus, start = pipeline
+    poses = bus.record(keys.pose())
+    ingest = launcher.start("ingest", **SIM)
+    bus.wait_until(lambda: len(poses) >= 20, 60.0, "20 poses before the crash")
+    launcher.kill("matcher")
+    start("matcher")
+    ingest.wait(120.0)
+    assert ingest.returncode == 0
+    log = launcher.log_text("ingest")
+    assert f"{SCANS} scans published" in log
+    seqs = [p.seq for p in poses]
+    assert seqs[-1] == SCANS - 1  # the pipeline carried on to the end
+    missed = SCANS - len(set(seqs))
+    assert missed > 0  # scans in flight when the matcher died are gone...
+    mapserver = bus.stats("mapserver")
+    assert mapserver.counters["seq.robot/pose.missed"] == missed  # ...and reported
+    matcher = bus.stats("matcher")
+    assert matcher.counters["resumed_robots"] == 1
+    after = [p for p in poses if p.seq > 20]
+    accepted = sum(p.status in ACCEPTED for p in after)
+    assert accepted >= 0.7 * len(after), [p.status for p in after]
+    (path,) = bus.get(keys.trajectory("robot"))
+    assert max_step_m(path.poses) < 1.0  # resumed where it was, no jump back to the origin
+
+
+def test_map_server_crash_resumes_from_its_snapshot(pipeline, tmp_path):
+    launcher, bus, start = pipeline
+    poses = bus.record(keys.pose())
+    ingest = launcher.start("ingest", **{**SIM, "SCANFLOW_INGEST_RATE": "1"})  # 8 s
+    bus.wait_until(lambda: len(poses) >= 20, 60.0, "20 poses before the crash")
+    bus.wait_until(lambda: (tmp_path / "data" / "robot.map.npz").exists(), 10.0, "a snapshot")
+    launcher.kill("mapserver")
+    start("mapserver", SCANFLOW_MAPSERVER_SNAPSHOT_INTERVAL_S="0.5")
+    resumed_at = int(launcher.log_text("mapserver").split("resumed at seq ")[1].split()[0])
+    assert resumed_at >= 0
+    ingest.wait(120.0)
+    assert ingest.returncode == 0
+    bus.wait_until(
+        lambda: bus.stats("mapserver").gauges["seq.robot/pose.last"] == SCANS - 1, 30.0, "last pose"
+    )
+    stats = bus.stats("mapserver")
+    missed = stats.counters["seq.robot/pose.missed"]
+    received = stats.counters["seq.robot/pose.received"]
+    assert missed > 0
+    assert resumed_at + 1 + missed + received == SCANS
+    (path,) = bus.get(keys.trajectory("robot"))
+    assert len(path.poses) == resumed_at + 1 + received
+    (meta,) = bus.get(keys.map_key("robot", "meta"))
+    assert meta.rows > 0 and meta.cols > 0
+
+
+def test_junk_on_every_key_is_counted_and_match_requests_are_answered(pipeline):
+    launcher, bus, start = pipeline
+    start("ingest", SCANFLOW_INGEST_RATE="0.5", SCANFLOW_INGEST_SIM_DURATION_S="4")
+    junk = b"\x93not a message"
+    for key in (
+        keys.raw_scan("robot"),
+        keys.odom("robot"),
+        keys.deskewed_scan("robot"),
+        keys.pose("robot"),
+        keys.map_key("robot", "insert"),
+    ):
+        bus.put(key, junk)
+    poses = bus.record(keys.pose())
+    bus.wait_until(lambda: len(poses) >= 5, 60.0, "poses despite the junk")
+    expected = {
+        "deskew": ("scan", "odom", "pose"),
+        "matcher": ("scan", "odom"),
+        "mapserver": ("insert", "pose"),
+        "ingest": ("pose",),
+    }
+    for service, kinds in expected.items():
+        stats = bus.stats(service)
+        for kind in kinds:
+            assert stats.counters.get(f"malformed.{kind}") == 1, (service, kind, stats.counters)
+    with pytest.raises(AssertionError, match=r"msgpack|payload"):
+        bus.get(keys.scan_match(), payload=junk)
+    scans = [e for e in source_events(None, "robot", 1.0, 0, 3) if isinstance(e, LaserScan)]
+    request = MatchRequest(method="icp", source=scans[1], target=scans[0])
+    (answer,) = bus.get(keys.scan_match(), payload=request.encode())
+    assert isinstance(answer, MatchResponse) and answer.ok, answer
+    assert np.hypot(answer.pose.x, answer.pose.y) < 0.5
+    to_map = MatchRequest(method="gn", source=scans[0], target=MapRef("robot"))
+    (answer,) = bus.get(keys.robot_match("robot"), payload=to_map.encode())
+    assert answer.error == "", answer
+    assert launcher.exited() == {} or set(launcher.exited()) == {"ingest"}
