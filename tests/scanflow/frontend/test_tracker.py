@@ -1,0 +1,189 @@
+"""Frontend: tracking with and without odometry, and bad input that must not touch the map."""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+from scanflow.config import FrontendSettings
+from scanflow.frontend import Frontend, FrontendOutput, FrontendStatus, PredictionSource
+from scanflow.geometry import Pose2D
+
+START = Pose2D(2.5, 2.0, 0.0)
+# The map frame is turned against the world so walls do not lie on grid cell boundaries.
+MAP_FROM_WORLD = Pose2D(0.013, -0.021, 0.3)
+START_IN_MAP = MAP_FROM_WORLD * START
+Scanner = Callable[[Pose2D], NDArray[np.float64]]
+
+
+def straight_path(start: Pose2D, step_m: float, count: int) -> list[Pose2D]:
+    """Poses `step_m` apart along the start heading."""
+    return [start * Pose2D(i * step_m, 0.0, 0.0) for i in range(count)]
+
+
+def odometry_with_drift(poses: list[Pose2D], scale: float = 1.03) -> list[Pose2D]:
+    """Odometry that over-reads distance by `scale` and starts in its own frame."""
+    odom = [Pose2D(-7.0, 4.0, 1.0)]
+    for a, b in itertools.pairwise(poses):
+        step = b.relative_to(a)
+        odom.append(odom[-1] * Pose2D(step.x * scale, step.y * scale, step.theta))
+    return odom
+
+
+def error(estimate: Pose2D, world_pose: Pose2D) -> tuple[float, float]:
+    """Translation and |rotation| error of a map-frame estimate against a world pose."""
+    e = estimate.relative_to(MAP_FROM_WORLD * world_pose)
+    return e.translation_norm(), abs(e.theta)
+
+
+def run(
+    frontend: Frontend,
+    scan_points: Scanner,
+    poses: list[Pose2D],
+    odom: list[Pose2D] | None,
+    t0: int = 0,
+) -> list[FrontendOutput]:
+    """Feed the scans taken at world `poses` (10 Hz stamps) with optional odometry poses."""
+    outs = []
+    for i, pose in enumerate(poses):
+        odom_pose = None if odom is None else odom[i]
+        outs.append(frontend.process(scan_points(pose), 0.1 * (t0 + i), odom_pose, t0 + i))
+    return outs
+
+
+def test_tracks_drifting_odometry(
+    settings: FrontendSettings, scan_at: Scanner
+) -> None:
+    truth = straight_path(START, 0.1, 40)
+    frontend = Frontend(settings, initial_pose=START_IN_MAP)
+    outs = run(frontend, scan_at, truth, odometry_with_drift(truth))
+    assert outs[0].status is FrontendStatus.INITIALISED and outs[0].inserted
+    assert all(o.status is FrontendStatus.TRACKED for o in outs[1:])
+    assert all(o.prediction_source == PredictionSource.ODOMETRY for o in outs[1:])
+    # Odometry over-reads 3 %: 12 cm after 3.9 m. The map holds the estimate to a few cm
+    # (what is left is the matcher's own drift on a grid map, not the front end's).
+    trans, rot = error(outs[-1].pose, truth[-1])
+    assert trans < 0.06 and rot < math.radians(1.0)
+    assert np.all(np.isfinite(outs[-1].covariance))
+    # Motion filter at 0.2 m: every second scan of a 0.1 m step path is inserted.
+    inserted = [o.inserted for o in outs]
+    assert 15 <= sum(inserted) <= 25
+    assert len(frontend.trajectory) == 40
+
+
+def test_tracks_without_odometry_by_constant_velocity(
+    settings: FrontendSettings, scan_at: Scanner
+) -> None:
+    truth = [START * Pose2D(0.08 * i, 0.0, math.radians(1.0) * i) for i in range(25)]
+    frontend = Frontend(settings, initial_pose=START_IN_MAP)
+    outs = run(frontend, scan_at, truth, None)
+    assert outs[1].prediction_source == PredictionSource.HOLD
+    assert outs[5].prediction_source == PredictionSource.CONSTANT_VELOCITY
+    assert all(o.accepted for o in outs)
+    trans, rot = error(outs[-1].pose, truth[-1])
+    assert trans < 0.06 and rot < math.radians(1.0)
+
+
+def test_too_few_points_keeps_map_and_reports(
+    settings: FrontendSettings, scan_at: Scanner
+) -> None:
+    truth = straight_path(START, 0.1, 6)
+    odom = odometry_with_drift(truth, 1.0)
+    frontend = Frontend(settings, initial_pose=START_IN_MAP)
+    run(frontend, scan_at, truth[:3], odom[:3])
+    revision = frontend.map.revision
+    before = frontend.process(scan_at(truth[3])[:5], 0.3, odom[3], 3)
+    assert before.status is FrontendStatus.TOO_FEW_POINTS
+    assert "min_points" in before.message and not before.inserted
+    assert frontend.map.revision == revision
+    assert error(before.pose, truth[3])[0] < 0.02  # the odometry prediction
+    # Carries on: the next scan tracks again.
+    after = frontend.process(scan_at(truth[4]), 0.4, odom[4], 4)
+    assert after.status is FrontendStatus.TRACKED
+
+
+def test_rejected_prediction_covariance_grows(
+    settings: FrontendSettings, scan_at: Scanner
+) -> None:
+    truth = straight_path(START, 0.1, 6)
+    odom = odometry_with_drift(truth, 1.0)
+    frontend = Frontend(settings, initial_pose=START_IN_MAP)
+    good = run(frontend, scan_at, truth[:2], odom[:2])[-1]
+    bad = [frontend.process(np.zeros((0, 2)), 0.1 * i, odom[i], i) for i in (2, 3, 4)]
+    variances = [float(o.covariance[0, 0]) for o in [good, *bad]]
+    assert variances == sorted(variances) and variances[-1] > variances[0]
+
+
+def test_garbage_scan_is_rejected_and_map_untouched(
+    settings: FrontendSettings, scan_at: Scanner
+) -> None:
+    truth = straight_path(START, 0.1, 5)
+    odom = odometry_with_drift(truth, 1.0)
+    frontend = Frontend(settings, initial_pose=START_IN_MAP)
+    run(frontend, scan_at, truth[:4], odom[:4])
+    revision = frontend.map.revision
+    rng = np.random.default_rng(3)
+    noise = rng.uniform(-8.0, 8.0, size=(300, 2))
+    out = frontend.process(noise, 0.4, odom[4], 4)
+    assert out.status is FrontendStatus.REJECTED, out.message
+    assert not out.inserted and out.message
+    assert frontend.map.revision == revision
+    assert error(out.pose, truth[4])[0] < 0.02
+
+
+def test_odometry_jump_is_ignored(
+    settings: FrontendSettings, scan_at: Scanner
+) -> None:
+    truth = straight_path(START, 0.1, 12)
+    odom = odometry_with_drift(truth, 1.0)
+    jump = Pose2D(40.0, -25.0, 2.0)
+    odom = odom[:6] + [jump * p for p in odom[6:]]
+    frontend = Frontend(settings, initial_pose=START_IN_MAP)
+    outs = run(frontend, scan_at, truth, odom)
+    assert "odometry jumped" in outs[6].message
+    assert outs[6].prediction_source != PredictionSource.ODOMETRY
+    assert all(o.accepted for o in outs)
+    assert outs[7].prediction_source == PredictionSource.ODOMETRY  # re-anchored after the jump
+    assert error(outs[-1].pose, truth[-1])[0] < 0.03
+
+
+def test_fallback_recovers_from_a_bad_prediction(scan_at: Scanner) -> None:
+    truth = straight_path(START, 0.1, 8)
+    odom = odometry_with_drift(truth, 1.0)
+    # One odometry step 0.6 m / 12 deg off, within the jump limits: a wrong prior.
+    odom[5] = odom[5] * Pose2D(0.4, -0.45, math.radians(12.0))
+    with_fallback = Frontend(FrontendSettings.model_construct(), initial_pose=START_IN_MAP)
+    out = run(with_fallback, scan_at, truth[:6], odom[:6])[-1]
+    assert out.accepted, out.message
+    assert error(out.pose, truth[5])[0] < 0.03
+    no_fallback = FrontendSettings.model_construct(fallback_method="")
+    without = Frontend(no_fallback, initial_pose=START_IN_MAP)
+    out_without = run(without, scan_at, truth[:6], odom[:6])[-1]
+    if out.status is FrontendStatus.RECOVERED:
+        assert "recovered by csm" in out.message
+        assert out_without.status is FrontendStatus.REJECTED
+
+
+@pytest.mark.parametrize("method", ["gn", "lm"])
+def test_method_is_configurable(method: str, scan_at: Scanner) -> None:
+    truth = straight_path(START, 0.1, 4)
+    frontend = Frontend(FrontendSettings.model_construct(method=method), initial_pose=START_IN_MAP)
+    outs = run(frontend, scan_at, truth, odometry_with_drift(truth))
+    assert outs[-1].method == method and outs[-1].accepted
+
+
+def test_memory_does_not_grow_when_revisiting(
+    settings: FrontendSettings, scan_at: Scanner
+) -> None:
+    forth = straight_path(START, 0.2, 15)
+    back = list(reversed(forth))
+    frontend = Frontend(settings, initial_pose=START_IN_MAP)
+    run(frontend, scan_at, forth + back, odometry_with_drift(forth + back, 1.0))
+    mapped_bytes = frontend.map.nbytes
+    run(frontend, scan_at, forth + back, None, t0=30)
+    assert frontend.map.nbytes == mapped_bytes
+    assert len(frontend.trajectory) == 60

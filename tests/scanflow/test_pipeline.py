@@ -1,0 +1,74 @@
+"""The in-process pipeline: deskew stage + front end on the simulator and on keyframe scans."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scanflow.frontend import PredictionSource
+from scanflow.geometry import Pose2D
+from scanflow.pipeline import DeskewStage, Pipeline
+from scanflow.scan import LaserScan, Odometry
+from scanflow.sim import SimConfig, cast_rays, get_world, simulate
+
+FAST = SimConfig(duration_s=3.0, seed=4, max_speed_mps=1.5, max_yaw_rate_dps=180.0)
+# The map frame is turned against the world so walls do not lie on grid cell boundaries.
+MAP_FROM_WORLD = Pose2D(0.013, -0.021, 0.3)
+
+
+def track_errors_m(deskew_enabled: bool) -> tuple[list[float], list[str]]:
+    frames = list(simulate(FAST))
+    pipeline = Pipeline(
+        deskew_enabled=deskew_enabled, initial_pose=MAP_FROM_WORLD * frames[0].true_pose
+    )
+    errors, sources = [], []
+    for frame in frames:
+        for sample in frame.odometry:
+            pipeline.add_odometry(sample)
+        out = pipeline.process(frame.scan)
+        assert out.estimate.stamp_s == frame.scan.stamp_s  # reference "start"
+        truth = MAP_FROM_WORLD * frame.true_pose
+        errors.append(out.estimate.pose.relative_to(truth).translation_norm())
+        sources.append(out.deskew.source_used)
+    return errors, sources
+
+
+@pytest.mark.slow
+def test_deskewing_helps_tracking_at_speed() -> None:
+    with_deskew, sources = track_errors_m(True)
+    without, raw = track_errors_m(False)
+    assert set(sources[1:]) == {"odometry"} and set(raw) == {"none"}
+    assert max(with_deskew) < 0.15
+    assert np.sqrt(np.mean(np.square(with_deskew))) < np.sqrt(np.mean(np.square(without)))
+
+
+def keyframe(ranges_m: np.ndarray, stamp_s: float, seq: int) -> LaserScan:
+    """A CARMEN-like scan: no per-beam times, zero duration."""
+    return LaserScan(ranges_m, -math.pi / 2, math.pi / 180, range_max_m=50.0, stamp_s=stamp_s,
+                     seq=seq)
+
+
+def test_keyframes_use_the_given_odometry_and_skip_deskewing() -> None:
+    angles = -math.pi / 2 + np.arange(181) * math.pi / 180
+    origin = np.tile([7.32, 2.07], (181, 1))
+    ranges = cast_rays(origin, angles + 0.3, get_world("rooms").segments, 20.0)
+    pipeline = Pipeline()
+    first = pipeline.process(keyframe(ranges, 10.0, 0), Pose2D(5.0, 5.0, 0.0))
+    second = pipeline.process(keyframe(ranges, 11.0, 1), Pose2D(5.0, 5.0, 0.0))
+    assert first.deskew.source_used == "none" and "zero duration" in first.deskew.message
+    assert first.estimate.status == "initialised" and first.estimate.seq == 0
+    assert second.estimate.accepted and second.estimate.seq == 1
+    assert second.estimate.prediction_source == PredictionSource.ODOMETRY
+    assert second.estimate.pose.translation_norm() < 0.02
+
+
+def test_deskew_stage_odometry_pose_at() -> None:
+    stage = DeskewStage()
+    assert stage.odometry_pose_at(1.0) is None
+    stage.add_odometry(Odometry(1.0, Pose2D(0.0, 0.0, 0.0)))
+    stage.add_odometry(Odometry(1.1, Pose2D(0.2, 0.0, 0.2)))
+    pose = stage.odometry_pose_at(1.05)
+    assert pose is not None
+    assert math.isclose(pose.x, 0.1) and math.isclose(pose.theta, 0.1)
+    assert stage.odometry_pose_at(2.0) is None
