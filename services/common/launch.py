@@ -66,17 +66,21 @@ class Launcher:
     def zenoh_port(self) -> int:
         return int(self.env["SCANFLOW_ZENOH_CONNECT"].rsplit(":", 1)[1])
 
-    def start(self, name: str, **settings: str) -> subprocess.Popen[bytes]:
-        """Start `python -m services.<name>` with the shared env plus `settings`."""
-        if name in self.processes and self.processes[name].poll() is None:
-            raise RuntimeError(f"service {name!r} is already running")
+    def start(
+        self, name: str, label: str | None = None, **settings: str
+    ) -> subprocess.Popen[bytes]:
+        """Start `python -m services.<name>` with the shared env plus `settings`; `label`
+        (default: the name) tells two instances of one service apart."""
+        label = label or name
+        if label in self.processes and self.processes[label].poll() is None:
+            raise RuntimeError(f"service {label!r} is already running")
         env = {**self.env, **settings}
-        log = (self.log_dir / f"{name}.log").open("ab")
+        log = (self.log_dir / f"{label}.log").open("ab")
         proc = subprocess.Popen(
             [sys.executable, "-m", f"services.{name}"], env=env, stdout=log, stderr=log
         )
         log.close()
-        self.processes[name] = proc
+        self.processes[label] = proc
         if name == "router":
             wait_for_port(self.zenoh_port)
         return proc

@@ -119,10 +119,10 @@ def bus(launcher: Launcher) -> Iterator[Bus]:
 
 @pytest.fixture
 def start(launcher: Launcher, bus: Bus) -> Callable[..., None]:
-    """start(name, **settings): start a service and wait until its health token shows."""
+    """start(name, label=None, **settings): start a service, wait for its health token."""
 
-    def start_service(name: str, **settings: str) -> None:
-        launcher.start(name, **settings)
+    def start_service(name: str, label: str | None = None, **settings: str) -> None:
+        launcher.start(name, label, **settings)
         instance = settings.get(f"SCANFLOW_{name.upper()}_INSTANCE", "0")
         wait_until(lambda: f"{name}/{instance}" in bus.alive(), 30.0, f"{name} health token")
 

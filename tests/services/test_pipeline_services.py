@@ -122,3 +122,19 @@ def test_real_log_slice_equals_the_in_process_front_end(pipeline, data_file):
         30.0, "map server caught up",
     )
     assert_same_grid(served_grid(bus), grid)
+
+
+def test_two_matchers_split_the_robots_by_shard(launcher, bus, start):
+    start("deskew")
+    for index in ("0", "1"):
+        shard = {"SCANFLOW_MATCHER_INSTANCE": index, "SCANFLOW_MATCHER_SHARD": f"{index}/2"}
+        start("matcher", f"matcher-{index}", **shard)
+    poses = bus.record(keys.pose())
+    sim = {"SCANFLOW_INGEST_SIM_DURATION_S": "2"}
+    for robot in ("alpha", "beta"):  # CRC-32 puts alpha on shard 0, beta on shard 1
+        run_ingest(launcher, bus, SCANFLOW_INGEST_ROBOT_ID=robot, **sim)
+    for robot in ("alpha", "beta"):
+        assert [p.seq for p in poses if p.robot_id == robot] == list(range(20))
+    first, second = bus.stats("matcher", "0"), bus.stats("matcher", "1")
+    assert first.gauges["robots"] == 1 and second.gauges["robots"] == 1
+    assert first.counters["other_shard.scan"] == 20 == second.counters["other_shard.scan"]
