@@ -18,6 +18,7 @@ from scanflow.maps.export import save_map_server, save_png
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
 from scanflow.wire import MapImageMessage, MapMetaMessage, MapRegionMessage
 
+from services.gateway.backend import BackendError
 from services.gateway.deps import API_PREFIX, Backend, Robot
 from services.gateway.models import MapMetaOut
 
@@ -55,7 +56,13 @@ async def map_file(
     headers = {"Cache-Control": "no-cache"}
     if all(b is None for b in bounds):
         selector = f"{keys.map_key(robot, 'image', backend.prefix)}?format={fmt}"
-        image = MapImageMessage.decode((await backend.aquery(selector))[0].payload)
+        try:
+            replies = await backend.aquery(selector)
+        except BackendError as exc:
+            if exc.status_code == 422 and "empty" in exc.reason:
+                raise HTTPException(404, f"the map of {robot!r} is still empty") from exc
+            raise
+        image = MapImageMessage.decode(replies[0].payload)
         headers["X-Map-Revision"] = str(image.revision)
         return Response(image.data, media_type=MEDIA[fmt], headers=headers)
     if any(b is None for b in bounds):

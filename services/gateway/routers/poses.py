@@ -35,11 +35,14 @@ def _unknown(robot: str) -> HTTPException:
     summary="Latest pose, or the pose at time t (interpolated between estimates)",
 )
 async def get_pose(robot: Robot, backend: Backend, t: TimeParam = None) -> PoseOut:
+    if t is None:
+        latest = backend.tracks.latest(robot)
+        if latest is None:
+            raise _unknown(robot)
+        return PoseOut.from_estimate(latest)
     estimates = backend.tracks.estimates(robot)
     if not estimates:
         raise _unknown(robot)
-    if t is None:
-        return PoseOut.from_estimate(estimates[-1])
     stamps, poses = estimate_arrays(estimates)
     found = pose_at(stamps, poses, t)
     if found is not None:
