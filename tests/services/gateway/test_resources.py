@@ -138,3 +138,16 @@ def test_stream_sends_live_poses(client, peer, backend, path):
     events = [line for line in r.text.splitlines() if line.startswith("event:")]
     assert events == ["event: pose"] * 3
     assert '"x_m": 2.0' in r.text and '"robot_id": "r1"' in r.text
+
+
+def test_guard_reads_puts_the_key_on_every_endpoint(backend, settings, auth):
+    from fastapi.testclient import TestClient
+
+    from services.gateway.app import create_app
+
+    guarded = settings.model_copy(update={"guard_reads": True})
+    with TestClient(create_app(guarded, backend)) as c:
+        assert c.get("/api/v1/robots").status_code == 401
+        assert c.get("/metrics").status_code == 401
+        assert c.get("/api/v1/robots", headers=auth).status_code == 200
+        assert "X-API-Key" in str(c.get("/openapi.json").json()["paths"]["/api/v1/robots"])
