@@ -150,4 +150,5 @@ def test_guard_reads_puts_the_key_on_every_endpoint(backend, settings, auth):
         assert c.get("/api/v1/robots").status_code == 401
         assert c.get("/metrics").status_code == 401
         assert c.get("/api/v1/robots", headers=auth).status_code == 200
-        assert "X-API-Key" in str(c.get("/openapi.json").json()["paths"]["/api/v1/robots"])
+        operation = c.get("/openapi.json").json()["paths"]["/api/v1/robots"]["get"]
+        assert operation["security"] == [{"APIKeyHeader": []}]
