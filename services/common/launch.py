@@ -76,8 +76,11 @@ class Launcher:
             raise RuntimeError(f"service {label!r} is already running")
         env = {**self.env, **settings}
         log = (self.log_dir / f"{label}.log").open("ab")
+        # A session of its own: a terminal's Ctrl-C reaches only the launcher, which then
+        # stops the services in order (last started first) instead of all at once.
         proc = subprocess.Popen(
-            [sys.executable, "-m", f"services.{name}"], env=env, stdout=log, stderr=log
+            [sys.executable, "-m", f"services.{name}"],
+            env=env, stdout=log, stderr=log, start_new_session=True,
         )
         log.close()
         self.processes[label] = proc

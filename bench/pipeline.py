@@ -1,0 +1,262 @@
+"""The distributed pipeline's numbers: Zenoh transport alone, end-to-end throughput against the
+in-process pipeline, ingest-to-pose latency at real-time rate, and resident memory per service.
+
+    python -m bench.pipeline [--json] [--limit N] [--only transport,throughput,latency,memory]
+
+Every service runs as its own process through a router on a free loopback port, exactly as
+`scanflow up` starts them. Latencies are measured by one observer process that sees both the
+raw scan and its pose on the bus (one clock).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+from scanflow import keys
+from scanflow.config import ZenohSettings
+from scanflow.pipeline import Pipeline
+from scanflow.scan import LaserScan
+from scanflow.wire import ScanMessage, ServiceStatsMessage, decode_any
+
+from services.common.launch import Launcher, free_port
+from services.common.zsession import open_session
+from services.ingest.sources import source_events
+
+_DEFAULT_DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+DATA_DIR = Path(os.environ.get("SCANFLOW_DATA_DIR", _DEFAULT_DATA))
+FREIBURG = DATA_DIR / "freiburg-079-corrected.log.gz"
+SERVICES = ("deskew", "matcher", "mapserver")
+
+
+@contextmanager
+def running(services: tuple[str, ...], **settings: str) -> Iterator[tuple[Launcher, Any]]:
+    """A router, `services` and an observer session; everything stopped on exit."""
+    with tempfile.TemporaryDirectory(prefix="scanflow-bench-") as tmp:
+        launcher = Launcher.local(
+            Path(tmp) / "logs", free_port(), SCANFLOW_MAPSERVER_DATA_DIR=str(Path(tmp) / "data"),
+            **settings,
+        )
+        launcher.start("router")
+        session = open_session(ZenohSettings(connect=[f"tcp/127.0.0.1:{launcher.zenoh_port}"]))
+        try:
+            for name in services:
+                launcher.start(name)
+            _wait_alive(session, services)
+            yield launcher, session
+        finally:
+            session.close()
+            launcher.stop_all()
+
+
+def _wait_alive(session: Any, services: tuple[str, ...], timeout_s: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        alive = {
+            str(r.ok.key_expr).split("/")[-2]
+            for r in session.liveliness().get(keys.health(), timeout=2.0)
+            if r.ok is not None
+        }
+        if set(services) <= alive:
+            return
+        time.sleep(0.2)
+    raise TimeoutError(f"services {services} did not come up in {timeout_s} s")
+
+
+class Observer:
+    """Arrival times (one clock) of raw scans and poses by (robot, seq), and the pose count."""
+
+    def __init__(self, session: Any) -> None:
+        self.raw_s: dict[int, float] = {}
+        self.pose_s: dict[int, float] = {}
+        self.done = threading.Condition()
+        self._subs = [
+            session.declare_subscriber(keys.raw_scan(), self._on(self.raw_s)),
+            session.declare_subscriber(keys.pose(), self._on(self.pose_s)),
+        ]
+
+    def _on(self, table: dict[int, float]) -> Callable[[Any], None]:
+        def record(sample: Any) -> None:
+            now = time.perf_counter()
+            table[decode_any(sample.payload.to_bytes()).seq] = now
+            with self.done:
+                self.done.notify_all()
+
+        return record
+
+    def wait_poses(self, count: int, timeout_s: float) -> None:
+        with self.done:
+            if not self.done.wait_for(lambda: len(self.pose_s) >= count, timeout_s):
+                raise TimeoutError(f"{len(self.pose_s)} of {count} poses after {timeout_s} s")
+
+
+def stats(session: Any, service: str) -> ServiceStatsMessage:
+    for reply in session.get(keys.stats(service, "0"), timeout=5.0):
+        if reply.ok is not None:
+            return decode_any(reply.ok.payload.to_bytes())  # type: ignore[return-value]
+    raise RuntimeError(f"no stats from {service}")
+
+
+def transport(count: int = 3000, latency_count: int = 500) -> dict[str, Any]:
+    """A 1081-beam ScanMessage through the router alone: burst msgs/s, paced latency."""
+    scan = LaserScan(
+        ranges_m=np.random.default_rng(0).uniform(0.5, 20.0, 1081).astype(np.float32),
+        angle_min_rad=-2.356, angle_increment_rad=0.004363, range_max_m=30.0,
+    )
+    payload = ScanMessage(scan).encode()
+    with running(()) as (launcher, session):
+        receiver = open_session(ZenohSettings(connect=[f"tcp/127.0.0.1:{launcher.zenoh_port}"]))
+        arrivals: list[float] = []
+        done = threading.Event()
+
+        def on_sample(sample: Any) -> None:
+            arrivals.append(time.perf_counter())
+            if len(arrivals) == count + latency_count:
+                done.set()
+
+        sub = receiver.declare_subscriber("bench/scan", on_sample)
+        pub = session.declare_publisher(
+            "bench/scan",
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            reliability=zenoh.Reliability.RELIABLE,
+        )
+        time.sleep(1.0)
+        t0 = time.perf_counter()
+        for _ in range(count):
+            pub.put(payload)
+        while len(arrivals) < count:
+            time.sleep(0.001)
+        burst_s = arrivals[count - 1] - t0
+        sent: list[float] = []
+        for _ in range(latency_count):
+            sent.append(time.perf_counter())
+            pub.put(payload)
+            time.sleep(0.002)
+        done.wait(30.0)
+        latency_ms = 1e3 * (np.array(arrivals[count:]) - np.array(sent[: len(arrivals) - count]))
+        sub.undeclare()
+        receiver.close()
+    return {
+        "payload_bytes": len(payload),
+        "burst_messages": count,
+        "msgs_per_s": count / burst_s,
+        "mbytes_per_s": count * len(payload) / burst_s / 1e6,
+        "latency_ms_p50": float(np.percentile(latency_ms, 50)),
+        "latency_ms_p99": float(np.percentile(latency_ms, 99)),
+    }
+
+
+def throughput(log: Path, limit: int | None) -> dict[str, Any]:
+    """Scans/s through ingest -> deskew -> matcher (-> map server) as fast as backpressure
+    allows, against the in-process pipeline on the same events."""
+    events = list(source_events(str(log), "robot", 1.0, 0, limit))
+    scans = sum(isinstance(e, LaserScan) for e in events)
+    pipeline = Pipeline()
+    t0 = time.perf_counter()
+    for event in events:
+        if isinstance(event, LaserScan):
+            pipeline.process(event)
+        else:
+            pipeline.add_odometry(event)
+    in_process_s = time.perf_counter() - t0
+    settings = {"SCANFLOW_INGEST_LOG": str(log), "SCANFLOW_INGEST_RATE": "0"}
+    if limit is not None:
+        settings["SCANFLOW_INGEST_LIMIT"] = str(limit)
+    with running(SERVICES) as (launcher, session):
+        observer = Observer(session)
+        launcher.start("ingest", **settings)
+        observer.wait_poses(scans, timeout_s=20 * in_process_s + 120)
+        services_s = max(observer.pose_s.values()) - min(observer.raw_s.values())
+    return {
+        "log": log.name,
+        "scans": scans,
+        "in_process_scans_per_s": scans / in_process_s,
+        "services_scans_per_s": scans / services_s,
+        "services_vs_in_process": in_process_s / services_s,
+    }
+
+
+def latency(duration_s: float) -> dict[str, Any]:
+    """Ingest publish -> pose publish on the simulator at real-time rate (10 Hz)."""
+    settings = {"SCANFLOW_INGEST_RATE": "1", "SCANFLOW_INGEST_SIM_DURATION_S": str(duration_s)}
+    with running(SERVICES) as (launcher, session):
+        observer = Observer(session)
+        launcher.start("ingest", **settings)
+        observer.wait_poses(int(duration_s * 10), timeout_s=duration_s + 60)
+        ms = [1e3 * (observer.pose_s[s] - observer.raw_s[s]) for s in observer.pose_s]
+    return {
+        "source": f"simulator, {duration_s:.0f} s at 10 Hz, 360 beams",
+        "scans": len(ms),
+        "latency_ms_p50": float(np.percentile(ms, 50)),
+        "latency_ms_p99": float(np.percentile(ms, 99)),
+        "latency_ms_max": float(np.max(ms)),
+    }
+
+
+def memory(log: Path, limit: int | None, replays: int = 3) -> dict[str, Any]:
+    """RSS of every service after one replay of the log and after `replays` in a row."""
+    settings = {
+        "SCANFLOW_INGEST_LOG": str(log),
+        "SCANFLOW_INGEST_RATE": "0",
+        "SCANFLOW_INGEST_REPLAYS": str(replays),
+    }
+    if limit is not None:
+        settings["SCANFLOW_INGEST_LIMIT"] = str(limit)
+    scans = sum(isinstance(e, LaserScan) for e in source_events(str(log), "robot", 1.0, 0, limit))
+    with running(SERVICES) as (launcher, session):
+        observer = Observer(session)
+        proc = launcher.start("ingest", **settings)
+        observer.wait_poses(scans, timeout_s=3600)
+        after_one = {name: stats(session, name) for name in (*SERVICES, "ingest")}
+        proc.wait(3600 * replays)
+        after_all = {name: stats(session, name) for name in SERVICES}
+    mib = 1 / 2**20
+    return {
+        "log": log.name,
+        "scans_per_replay": scans,
+        "replays": replays,
+        "rss_mib_after_1": {n: s.gauges["rss_bytes"] * mib for n, s in after_one.items()},
+        f"rss_mib_after_{replays}": {n: s.gauges["rss_bytes"] * mib for n, s in after_all.items()},
+        "map_mib": after_all["mapserver"].gauges.get("robot.map_bytes", 0.0) * mib,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument("--limit", type=int, default=None, help="scans of freiburg-079 to use")
+    parser.add_argument("--latency-s", type=float, default=30.0, help="simulated seconds")
+    parser.add_argument("--only", default="transport,throughput,latency,memory")
+    args = parser.parse_args()
+    wanted = set(args.only.split(","))
+    needs_log = wanted & {"throughput", "memory"}
+    if needs_log and not FREIBURG.exists():
+        raise SystemExit(f"{FREIBURG} not found (set SCANFLOW_DATA_DIR)")
+    results: dict[str, Any] = {"date": time.strftime("%Y-%m-%d"), "cpus": os.cpu_count()}
+    if "transport" in wanted:
+        results["transport"] = transport()
+    if "throughput" in wanted:
+        results["throughput"] = throughput(FREIBURG, args.limit)
+    if "latency" in wanted:
+        results["latency"] = latency(args.latency_s)
+    if "memory" in wanted:
+        results["memory"] = memory(FREIBURG, args.limit)
+    if args.json:
+        print(json.dumps(results, indent=2))
+        return
+    for section, figures in results.items():
+        print(f"{section}: {figures}")
+
+
+if __name__ == "__main__":
+    main()
