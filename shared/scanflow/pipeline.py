@@ -26,6 +26,7 @@ from scanflow.deskew import (
 )
 from scanflow.frontend import Frontend, FrontendOutput
 from scanflow.geometry import Pose2D
+from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.scan import LaserScan, Odometry
 
 
@@ -84,9 +85,11 @@ class Pipeline:
         deskew_enabled: bool = True,
         reference: Reference = DEFAULT_REFERENCE,
         initial_pose: Pose2D | None = None,
+        grid: OccupancyGrid | None = None,
     ) -> None:
+        """`grid`: a prior map to track against (and extend), else a new empty one."""
         self.deskew_stage = DeskewStage(reference, enabled=deskew_enabled)
-        self.frontend = Frontend(settings, initial_pose)
+        self.frontend = Frontend(settings, initial_pose, grid)
 
     def add_odometry(self, sample: Odometry) -> None:
         self.deskew_stage.add_odometry(sample)

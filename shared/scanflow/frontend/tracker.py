@@ -10,7 +10,8 @@ Per scan:
    (a jump beyond the limits is ignored), else constant velocity, else the last pose;
 2. match the points against the map from the prediction with `settings.method`; if the checks of
    `acceptance` fail and a fallback is set, a correlative search (`settings.fallback_method`)
-   over +-fallback_linear_m / +-fallback_angular_deg seeds the method again;
+   over +-fallback_linear_m / +-fallback_angular_deg seeds the method again (and its own
+   optimum is used, at grid resolution, if that refinement fails the checks too);
 3. accepted: the pose is the match, the map gets the scan when the motion filter allows it;
    rejected (or too few points): the pose is the prediction with its covariance grown by the
    motion since the last accepted match, the map is untouched, the status and message say why.
@@ -177,10 +178,15 @@ class Frontend:
         if not coarse.ok:
             return result, FrontendStatus.REJECTED, f"{reason}; fallback: {coarse.message}"
         refined = match(points, self.map, coarse.pose, method=s.method)
-        fallback_reason = rejection_reason(refined, guess, self._limits)
-        if fallback_reason:
-            return refined, FrontendStatus.REJECTED, f"{reason}; after fallback: {fallback_reason}"
-        return refined, FrontendStatus.RECOVERED, f"recovered by {s.fallback_method}: {reason}"
+        if not rejection_reason(refined, guess, self._limits):
+            return refined, FrontendStatus.RECOVERED, f"recovered by {s.fallback_method}: {reason}"
+        # The search's own optimum (grid resolution) when refining it fails too.
+        coarse_reason = rejection_reason(coarse, guess, self._limits)
+        if coarse_reason:
+            return coarse, FrontendStatus.REJECTED, f"{reason}; after fallback: {coarse_reason}"
+        return coarse, FrontendStatus.RECOVERED, (
+            f"recovered by {s.fallback_method} alone ({s.method} refinement failed): {reason}"
+        )
 
     def _finish(
         self, step: _Step, status: FrontendStatus, result: MatchResult | None, note: str

@@ -1,0 +1,232 @@
+"""The scan-to-map front end on a real log, or on the simulator at fast motion.
+
+`python -m bench.frontend --data PATH [--limit N] [--method M] [--replays 2] [--json]`
+`python -m bench.frontend --sim [--duration S] [--json]`
+
+Log mode: the keyframes of a CARMEN log (`load_keyframes`) through the in-process pipeline
+(deskew stage + front end) with the wheel odometry of each record. Against the corrected poses:
+ATE = RMSE of positions after the closed-form SE(2) alignment (Umeyama, no scale), RPE per metre
+= mean over i of |relative-motion error from i to the first j >= 1 m further along the true
+path| / that path length (translation m/m, rotation deg/m). Baselines on the same scans: wheel
+odometry alone, and scan-to-scan ICP chained from consecutive keyframes (guess = odometry
+increment). Throughput = scans / wall time of the pipeline loop, with the share of deskew,
+match and map insertion. Peak RSS of the process (includes the loaded log). `--replays 2` runs
+the log again on the finished map (a new Frontend on the same grid, from the first pose) and
+reports the map's bytes after each pass: equal bytes = no growth with scan count once mapped.
+
+Sim mode: the built-in simulator at 1.5 m/s and 180 deg/s, ATE with and without deskewing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import math
+import resource
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+from scanflow.config import FrontendSettings
+from scanflow.frontend import default_settings
+from scanflow.geometry import Pose2D, normalize_angles
+from scanflow.io.carmen import Keyframe, load_keyframes
+from scanflow.maps.export import save_png
+from scanflow.matching import match
+from scanflow.pipeline import Pipeline
+from scanflow.sim import SimConfig, simulate
+from tqdm import tqdm
+
+OUT_DIR = Path(__file__).resolve().parent / "out"
+RPE_DELTA_M = 1.0
+# The simulated worlds have walls at whole multiples of the 5 cm cell: turn the map frame so
+# they do not lie exactly on cell boundaries, as no real wall does.
+SIM_MAP_FROM_WORLD = Pose2D(0.013, -0.021, 0.3)
+
+
+def poses_array(poses: list[Pose2D]) -> NDArray[np.float64]:
+    return np.array([p.to_array() for p in poses]).reshape(-1, 3)
+
+
+def align_se2(estimate_xy: NDArray[np.float64], truth_xy: NDArray[np.float64]) -> NDArray:
+    """Estimate positions moved by the rotation + translation that best fit the truth."""
+    mu_e, mu_t = estimate_xy.mean(axis=0), truth_xy.mean(axis=0)
+    cov = (truth_xy - mu_t).T @ (estimate_xy - mu_e)
+    u, _, vt = np.linalg.svd(cov)
+    d = np.diag([1.0, np.sign(np.linalg.det(u @ vt))])
+    rotation = u @ d @ vt
+    return (estimate_xy - mu_e) @ rotation.T + mu_t
+
+
+def ate_rmse_m(estimate: NDArray[np.float64], truth: NDArray[np.float64]) -> float:
+    """Position RMSE after SE(2) alignment of (N, 3) estimate to (N, 3) truth."""
+    aligned = align_se2(estimate[:, :2], truth[:, :2])
+    return float(np.sqrt(np.mean(np.sum((aligned - truth[:, :2]) ** 2, axis=1))))
+
+
+def rpe_per_m(estimate: NDArray[np.float64], truth: NDArray[np.float64]) -> dict[str, float]:
+    """Mean relative-motion error per metre over true-path segments of >= RPE_DELTA_M."""
+    step = np.hypot(*np.diff(truth[:, :2], axis=0).T)
+    path = np.concatenate(([0.0], np.cumsum(step)))
+    j = np.searchsorted(path, path + RPE_DELTA_M)
+    i = np.flatnonzero(j < len(path))
+    trans, rot = [], []
+    for a, b in zip(i, j[i], strict=True):
+        rel_t = Pose2D.from_array(truth[b]).relative_to(Pose2D.from_array(truth[a]))
+        rel_e = Pose2D.from_array(estimate[b]).relative_to(Pose2D.from_array(estimate[a]))
+        err = rel_e.relative_to(rel_t)
+        length = path[b] - path[a]
+        trans.append(err.translation_norm() / length)
+        rot.append(abs(math.degrees(err.theta)) / length)
+    if not trans:
+        return {"trans_m_per_m": math.nan, "rot_deg_per_m": math.nan}
+    return {"trans_m_per_m": float(np.mean(trans)), "rot_deg_per_m": float(np.mean(rot))}
+
+
+def accuracy(estimate: NDArray[np.float64], truth: NDArray[np.float64]) -> dict[str, float]:
+    return {"ate_rmse_m": ate_rmse_m(estimate, truth), **rpe_per_m(estimate, truth)}
+
+
+def chained_icp(frames: list[Keyframe]) -> NDArray[np.float64]:
+    """Scan-to-scan ICP between consecutive keyframes, chained; odometry where ICP fails."""
+    poses = [frames[0].odom_pose]
+    for prev, cur in tqdm(itertools.pairwise(frames), total=len(frames) - 1, desc="icp chain",
+                          file=sys.stderr, leave=False):
+        guess = cur.odom_pose.relative_to(prev.odom_pose)
+        result = match(cur.scan.points(), prev.scan.points(), guess, method="icp")
+        poses.append(poses[-1] * (result.pose if result.ok else guess))
+    return poses_array(poses)
+
+
+@dataclass
+class Pass:
+    poses: NDArray[np.float64]
+    wall_s: float
+    stage_s: dict[str, float]
+    statuses: dict[str, int]
+    inserted: int
+
+
+def run_pass(pipeline: Pipeline, frames: list[Keyframe], desc: str) -> Pass:
+    poses, statuses = [], {}
+    stage = {"deskew": 0.0, "match": 0.0, "insert": 0.0}
+    inserted = 0
+    t0 = time.perf_counter()
+    for kf in tqdm(frames, desc=desc, file=sys.stderr, leave=False):
+        out = pipeline.process(kf.scan, kf.odom_pose)
+        est = out.estimate
+        poses.append(est.pose)
+        statuses[str(est.status)] = statuses.get(str(est.status), 0) + 1
+        stage["deskew"] += out.deskew_time_s
+        stage["match"] += est.match_time_s
+        stage["insert"] += est.insert_time_s
+        inserted += est.inserted
+    return Pass(poses_array(poses), time.perf_counter() - t0, stage, statuses, inserted)
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def run_log(path: Path, settings: FrontendSettings, limit: int | None, replays: int) -> dict:
+    frames = load_keyframes(path)[:limit] if limit else load_keyframes(path)
+    truth = poses_array([kf.true_pose for kf in frames])
+    odometry = poses_array([kf.odom_pose for kf in frames])
+    pipeline = Pipeline(settings)
+    first = run_pass(pipeline, frames, path.name)
+    grid = pipeline.frontend.map.grid
+    name = path.name.split(".")[0]
+    OUT_DIR.mkdir(exist_ok=True)
+    png = save_png(grid, OUT_DIR / f"frontend_{name}.png")
+    shares = {k: round(v / first.wall_s, 3) for k, v in first.stage_s.items()}
+    shares["other"] = round(1.0 - sum(shares.values()), 3)
+    report = {
+        "log": path.name,
+        "scans": len(frames),
+        "beams": frames[0].scan.beam_count if frames else 0,
+        "method": settings.method,
+        "fallback": settings.fallback_method,
+        "frontend": accuracy(first.poses, truth),
+        "odometry": accuracy(odometry, truth),
+        "statuses": first.statuses,
+        "inserted_scans": first.inserted,
+        "scans_per_s": len(frames) / first.wall_s,
+        "stage_shares": shares,
+        "map_bytes": pipeline.frontend.map.nbytes,
+        "map_extent_m2": round(float(grid.occupied_mask().size) * grid.resolution_m**2, 1),
+        "map_png": str(png),
+    }
+    for k in range(1, replays):
+        replay = Pipeline(settings, initial_pose=Pose2D.from_array(first.poses[0]), grid=grid)
+        again = run_pass(replay, frames, f"replay {k}")
+        report[f"replay_{k}"] = {
+            "frontend": accuracy(again.poses, truth),
+            "statuses": again.statuses,
+            "map_bytes": replay.frontend.map.nbytes,
+        }
+    report["icp_chain"] = accuracy(chained_icp(frames), truth)
+    report["peak_rss_mb"] = peak_rss_mb()
+    return report
+
+
+def run_sim(settings: FrontendSettings, duration_s: float, seed: int) -> dict:
+    """ATE on the simulator at 1.5 m/s and 180 deg/s, with and without deskewing."""
+    config = SimConfig(duration_s=duration_s, seed=seed, max_speed_mps=1.5,
+                       max_yaw_rate_dps=180.0)
+    frames = list(simulate(config))
+    truth = poses_array([SIM_MAP_FROM_WORLD * f.true_pose for f in frames])
+    report: dict = {"scans": len(frames), "speed_mps": 1.5, "yaw_rate_dps": 180.0,
+                    "method": settings.method}
+    for enabled in (True, False):
+        pipeline = Pipeline(settings, deskew_enabled=enabled,
+                            initial_pose=Pose2D.from_array(truth[0]))
+        poses, statuses = [], {}
+        for frame in frames:
+            for sample in frame.odometry:
+                pipeline.add_odometry(sample)
+            est = pipeline.process(frame.scan).estimate
+            poses.append(est.pose)
+            statuses[str(est.status)] = statuses.get(str(est.status), 0) + 1
+        estimate = poses_array(poses)
+        heading = normalize_angles(estimate[:, 2] - truth[:, 2])
+        report["deskewed" if enabled else "raw"] = {
+            **accuracy(estimate, truth),
+            "max_position_error_m": float(np.max(np.hypot(*(estimate - truth)[:, :2].T))),
+            "max_heading_error_deg": float(np.degrees(np.max(np.abs(heading)))),
+            "statuses": statuses,
+        }
+    return report
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, help="CARMEN log (.log or .log.gz)")
+    parser.add_argument("--sim", action="store_true", help="simulator at fast motion instead")
+    parser.add_argument("--limit", type=int, default=None, help="first N keyframes only")
+    parser.add_argument("--replays", type=int, default=1, help="passes over the log (>= 1)")
+    parser.add_argument("--method", default=None, help="scan-to-map method (default: settings)")
+    parser.add_argument("--duration", type=float, default=30.0, help="sim seconds")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--json", action="store_true")
+    args = parser.parse_args(argv)
+    settings = default_settings()
+    if args.method:
+        settings = settings.model_copy(update={"method": args.method})
+    if args.sim:
+        report = run_sim(settings, args.duration, args.seed)
+    elif args.data is not None:
+        report = run_log(args.data, settings, args.limit, max(1, args.replays))
+    else:
+        parser.error("give --data PATH or --sim")
+    if args.json:
+        print(json.dumps(report, default=float))
+        return
+    print(json.dumps(report, indent=2, default=float))
+
+
+if __name__ == "__main__":
+    main()
