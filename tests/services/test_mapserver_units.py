@@ -1,0 +1,78 @@
+"""Map server pieces without a network: pairing by seq, insertion, snapshots, shards."""
+
+from __future__ import annotations
+
+import numpy as np
+from scanflow.frontend import Frontend, default_settings
+from scanflow.geometry import Pose2D
+from scanflow.wire import DeskewedScanMessage, PoseEstimateMessage
+
+from services.mapserver.pairing import Pairing
+from services.mapserver.robot import RobotMap
+from services.mapserver.snapshot import load_snapshots, save_snapshot
+from services.matcher.shard import owns
+
+
+def scan(seq: int, points: np.ndarray | None = None) -> DeskewedScanMessage:
+    pts = np.array([[2.0, 0.0], [2.0, 1.0], [1.5, -1.0]]) if points is None else points
+    pts = pts.astype(np.float32)
+    return DeskewedScanMessage("r", seq, 0.1 * seq, pts, "none", True, len(pts), 0)
+
+
+def pose(seq: int, at: Pose2D | None = None) -> PoseEstimateMessage:
+    at = at or Pose2D()
+    return PoseEstimateMessage("r", seq, 0.1 * seq, at, np.eye(3), "tracked", "gn", 1, 1.0)
+
+
+def test_pairing_returns_the_inserted_scan_and_counts_the_orphans():
+    pairing = Pairing(limit=10)
+    for seq in (1, 2, 4):
+        pairing.add_scan(scan(seq))
+    assert pairing.match_pose(pose(0)) is None  # not inserted: a pose alone is normal
+    assert pairing.match_pose(pose(2)).seq == 2
+    assert pairing.scans_without_pose == 1  # scan 1 was overtaken by pose 2
+    assert pairing.match_pose(pose(4)).seq == 4
+    assert not pairing.scans
+
+
+def test_pairing_is_bounded():
+    pairing = Pairing(limit=3)
+    for seq in range(5):
+        pairing.add_scan(scan(seq))
+    assert list(pairing.scans) == [2, 3, 4] and pairing.scans_evicted == 2
+
+
+def test_robot_map_inserts_like_the_front_end():
+    rng = np.random.default_rng(1)
+    points = rng.uniform(-5, 5, (200, 2))
+    at = Pose2D(0.3, -0.2, 0.4)
+    frontend = Frontend(default_settings())
+    frontend._insert(points.astype(np.float32).astype(np.float64), at)
+    robot = RobotMap("r", pending_limit=10)
+    robot.pairing.add_scan(scan(3, points))
+    assert robot.apply(pose(3, at))
+    np.testing.assert_array_equal(robot.map.grid.log_odds, frontend.map.grid.log_odds)
+    notice = robot.take_change(1.0)
+    assert notice.min_x_m < at.x < notice.max_x_m and robot.take_change(2.0) is None
+
+
+def test_snapshot_round_trip(tmp_path):
+    robot = RobotMap("r", pending_limit=10)
+    for seq in range(3):
+        robot.pairing.add_scan(scan(seq))
+        robot.apply(pose(seq, Pose2D(0.1 * seq, 0.0, 0.0)))
+    save_snapshot(tmp_path, robot.snapshot())
+    (snap,) = load_snapshots(tmp_path)
+    again = RobotMap("r", 10, snap)
+    assert again.last_seq == 2 and again.state == robot.state
+    np.testing.assert_array_equal(again.map.grid.log_odds, robot.map.grid.log_odds)
+    np.testing.assert_array_equal(again.trajectory.poses, robot.trajectory.poses)
+    assert not list(tmp_path.glob(".*"))  # no temporary files left behind
+
+
+def test_shards_split_robots_and_a_robot_list_wins():
+    robots = [f"robot{i}" for i in range(40)]
+    first = {r for r in robots if owns(r, "0/2", [])}
+    second = {r for r in robots if owns(r, "1/2", [])}
+    assert first | second == set(robots) and not first & second and first and second
+    assert owns("x", "1/2", ["x"]) and not owns("y", "0/1", ["x"])
