@@ -1,20 +1,30 @@
 """A smooth likelihood field over a grid, sampled bilinearly with its gradient (Hector-style).
 
 Each cell holds M = exp(-d^2 / (2 sigma^2)), d the distance from the cell centre to the nearest
-occupied cell centre: 1 on obstacles, falling smoothly to 0. Scan-to-map Gauss-Newton and LM
-minimise sum_i (1 - M(T p_i))^2, so the field must be continuous with a usable gradient; a raw
-binary occupancy grid is not.
+obstacle: 1 on obstacles, falling smoothly to 0. Scan-to-map Gauss-Newton and LM minimise
+sum_i (1 - M(T p_i))^2, so the field must be continuous with a usable gradient; a raw binary
+occupancy grid is not. Obstacles are either occupied cell centres (`field_values`) or each
+occupied cell's mean hit point (`field_from_means`), which keeps walls at sub-cell accuracy.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 from scipy import ndimage
 
 from scanflow.maps.grid import GridSpec
+
+
+def _check_sigma_cutoff(sigma_m: float, cutoff_m: float | None) -> None:
+    if not (np.isfinite(sigma_m) and sigma_m > 0):
+        raise ValueError(f"sigma_m must be positive and finite, got {sigma_m}")
+    if cutoff_m is not None and not cutoff_m >= 0:
+        raise ValueError(f"cutoff_m must be >= 0, got {cutoff_m}")
 
 
 def field_values(
@@ -28,16 +38,67 @@ def field_values(
     With `cutoff_m`, cells farther than the cut-off get exactly 0: a cell's value then depends
     only on obstacles within the cut-off, which is what lets maps refresh the field locally.
     """
-    if not (np.isfinite(sigma_m) and sigma_m > 0):
-        raise ValueError(f"sigma_m must be positive and finite, got {sigma_m}")
-    if cutoff_m is not None and not cutoff_m >= 0:
-        raise ValueError(f"cutoff_m must be >= 0, got {cutoff_m}")
+    _check_sigma_cutoff(sigma_m, cutoff_m)
     if not occupied.any():
         return np.zeros(occupied.shape)
     d = ndimage.distance_transform_edt(~occupied) * resolution_m
     values = np.exp(-0.5 * (d / sigma_m) ** 2)
     if cutoff_m is not None:
         values[d > cutoff_m] = 0.0
+    return values
+
+
+@njit(cache=True)
+def _splat_means(values, mean_rc, resolution_m, sigma_m, cutoff_m):  # type: ignore[no-untyped-def]
+    """values[r, c] = max over means within the cut-off of exp(-d^2 / 2 sigma^2), in place.
+
+    The Gaussian factorises into a row and a column term: 2 (2 reach + 1) exponentials per
+    mean instead of one per cell of its neighbourhood.
+    """
+    rows, cols = values.shape
+    reach = math.ceil(cutoff_m / resolution_m) + 1
+    k_cells = -0.5 * (resolution_m / sigma_m) ** 2
+    limit2 = (cutoff_m / resolution_m) ** 2
+    row_term = np.empty(2 * reach + 1)
+    col_term = np.empty(2 * reach + 1)
+    for k in range(mean_rc.shape[0]):
+        mr, mc = mean_rc[k, 0], mean_rc[k, 1]
+        r0, c0 = math.floor(mr + 0.5) - reach, math.floor(mc + 0.5) - reach
+        for j in range(2 * reach + 1):
+            row_term[j] = math.exp(k_cells * (r0 + j - mr) ** 2)
+            col_term[j] = math.exp(k_cells * (c0 + j - mc) ** 2)
+        for r in range(max(r0, 0), min(r0 + 2 * reach + 1, rows)):
+            dr = r - mr
+            # The columns inside the cut-off circle on this row.
+            if dr * dr > limit2:
+                continue
+            half = math.sqrt(limit2 - dr * dr)
+            row = values[r]
+            for c in range(max(math.ceil(mc - half), 0), min(math.floor(mc + half), cols - 1) + 1):
+                v = row_term[r - r0] * col_term[c - c0]
+                if v > row[c]:
+                    row[c] = v
+
+
+def field_from_means(
+    shape: tuple[int, int],
+    mean_rc: NDArray[np.float64],
+    resolution_m: float,
+    sigma_m: float,
+    cutoff_m: float,
+) -> NDArray[np.float64]:
+    """exp(-d^2 / (2 sigma^2)) per cell, d the distance to the nearest of the `mean_rc` points.
+
+    `mean_rc` (K, 2) are fractional (row, col) with cell centres at integers (one per occupied
+    cell: its mean hit point, or its centre). Only cells within `cutoff_m` of a point are
+    written, so the cost is K * (cut-off in cells)^2, whatever the grid's size; with integer
+    `mean_rc` the result equals `field_values` of those cells (to rounding).
+    """
+    _check_sigma_cutoff(sigma_m, cutoff_m)
+    values = np.zeros(shape)
+    means = np.ascontiguousarray(mean_rc, dtype=np.float64).reshape(-1, 2)
+    if means.shape[0] and values.size:
+        _splat_means(values, means, float(resolution_m), float(sigma_m), float(cutoff_m))
     return values
 
 

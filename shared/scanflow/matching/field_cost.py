@@ -13,11 +13,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
-from scipy import ndimage
 
 from scanflow.geometry import Pose2D
-from scanflow.maps.field import LikelihoodField
+from scanflow.maps.field import LikelihoodField, field_from_means
 from scanflow.maps.grid import GridSpec
 from scanflow.matching.api import MatchResult, MatchStatus, failed
 from scanflow.matching.checks import DEGENERATE_RATIO, analyse_hessian, characteristic_length_m
@@ -29,6 +29,9 @@ GAP_PER_RANGE = 0.06  # about 3.5 degrees of arc: wider gaps are occlusion edges
 # The coarse levels may lead into a worse basin: a final fine-level cost this many times the
 # initial one means the match ran away from the guess.
 DIVERGENCE_RATIO = 1.5
+# Point fields end where exp(-d^2 / 2 sigma^2) ~ 3e-4, as maps' fields do.
+CUTOFF_SIGMAS = 4.0
+COARSE_TOLERANCE_FACTOR = 10.0
 
 
 @dataclass(frozen=True)
@@ -65,26 +68,86 @@ def moved_points(points: NDArray[np.float64], pose: NDArray[np.float64]) -> NDAr
     return out
 
 
+@njit(cache=True)
+def _accumulate(values, origin, resolution_m, points, pose, with_jacobian):  # type: ignore[no-untyped-def]
+    """One pass over the points: cost, hits and (optionally) J^T J and J^T r.
+
+    Bilinear value and gradient as in LikelihoodField.sample (points whose interpolation square
+    leaves the grid have value 0 and no gradient), without per-call numpy temporaries: at a few
+    hundred points numpy's dispatch overhead, not arithmetic, dominated the cost.
+    """
+    rows, cols = values.shape
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    inv_res = 1.0 / resolution_m
+    cost, hits = 0.0, 0
+    hessian = np.zeros((3, 3))
+    gradient = np.zeros(3)
+    for i in range(points.shape[0]):
+        px, py = points[i, 0], points[i, 1]
+        fc = (c * px - s * py + pose[0] - origin[0]) * inv_res - 0.5
+        fr = (s * px + c * py + pose[1] - origin[1]) * inv_res - 0.5
+        r0, c0 = math.floor(fr), math.floor(fc)
+        value = gx = gy = 0.0
+        if 0 <= r0 < rows - 1 and 0 <= c0 < cols - 1:
+            fr -= r0
+            fc -= c0
+            v00, v01 = values[r0, c0], values[r0, c0 + 1]
+            v10, v11 = values[r0 + 1, c0], values[r0 + 1, c0 + 1]
+            value = (1 - fr) * ((1 - fc) * v00 + fc * v01) + fr * ((1 - fc) * v10 + fc * v11)
+            gx = ((1 - fr) * (v01 - v00) + fr * (v11 - v10)) * inv_res
+            gy = ((1 - fc) * (v10 - v00) + fc * (v11 - v01)) * inv_res
+        r = 1.0 - value
+        cost += r * r
+        if value != 0.0:
+            hits += 1
+        if with_jacobian:
+            j = (-gx, -gy, -(gx * (-s * px - c * py) + gy * (c * px - s * py)))
+            for a in range(3):
+                gradient[a] += j[a] * r
+                for b in range(3):
+                    hessian[a, b] += j[a] * j[b]
+    return cost, hits, hessian, gradient
+
+
+def _run_kernel(
+    field: LikelihoodField,
+    points: NDArray[np.float64],
+    pose: NDArray[np.float64],
+    with_jacobian: bool,
+) -> tuple[float, int, NDArray[np.float64], NDArray[np.float64]]:
+    spec = field.spec
+    if spec.rows < 2 or spec.cols < 2:  # no interpolation square fits: nothing is inside
+        return float(len(points)), 0, np.zeros((3, 3)), np.zeros(3)
+    return _accumulate(
+        field.values,
+        np.array([spec.origin_x_m, spec.origin_y_m]),
+        spec.resolution_m,
+        points,
+        np.asarray(pose, dtype=np.float64),
+        with_jacobian,
+    )
+
+
 def field_cost(
     field: LikelihoodField, points: NDArray[np.float64], pose: NDArray[np.float64]
 ) -> float:
     """sum_i (1 - M(T p_i))^2: what gn and lm minimise."""
-    value, _ = field.sample(moved_points(points, pose))
-    r = 1.0 - value
-    return float(r @ r)
+    return float(_run_kernel(field, points, pose, False)[0])
+
+
+def field_hits(
+    field: LikelihoodField, points: NDArray[np.float64], pose: NDArray[np.float64]
+) -> int:
+    """How many moved points land where the field is non-zero."""
+    return int(_run_kernel(field, points, pose, False)[1])
 
 
 def linearise(
     field: LikelihoodField, points: NDArray[np.float64], pose: NDArray[np.float64]
 ) -> FieldLinearisation:
     """Cost, H = J^T J and g = J^T r at `pose` (step: H dx = -g)."""
-    value, grad = field.sample(moved_points(points, pose))
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    dtheta_x = -s * points[:, 0] - c * points[:, 1]
-    dtheta_y = c * points[:, 0] - s * points[:, 1]
-    jac = -np.column_stack((grad[:, 0], grad[:, 1], grad[:, 0] * dtheta_x + grad[:, 1] * dtheta_y))
-    r = 1.0 - value
-    return FieldLinearisation(float(r @ r), jac.T @ jac, jac.T @ r, int(np.count_nonzero(value)))
+    cost, hits, hessian, gradient = _run_kernel(field, points, pose, True)
+    return FieldLinearisation(float(cost), hessian, gradient, int(hits))
 
 
 def field_pyramid(
@@ -100,8 +163,11 @@ def field_pyramid(
     if hasattr(target, "likelihood_pyramid"):
         fields = list(target.likelihood_pyramid(levels))
     else:
-        pts = np.asarray(target, dtype=np.float64)
-        fields = [points_field(pts, resolution_m * 2**k, sigma_m * 2**k) for k in range(levels)]
+        # Densified once at the finest step: dense enough for every coarser level too.
+        dense = densify_scan(np.asarray(target, dtype=np.float64), resolution_m)
+        fields = [
+            dense_points_field(dense, resolution_m * 2**k, sigma_m * 2**k) for k in range(levels)
+        ]
     return sorted(fields, key=lambda f: -f.spec.resolution_m)
 
 
@@ -133,25 +199,32 @@ def points_field(
     Snapping walls to cell centres biases the optimum by up to half a cell; keeping each
     cell's mean point makes the field's ridge follow the points to sub-cell accuracy.
     """
-    points = densify_scan(points, resolution_m)
-    spec = GridSpec.covering(points, resolution_m, 4.0 * sigma_m + 2.0 * resolution_m)
-    n_cells = spec.rows * spec.cols
+    return dense_points_field(densify_scan(points, resolution_m), resolution_m, sigma_m)
+
+
+def dense_points_field(
+    points: NDArray[np.float64], resolution_m: float, sigma_m: float
+) -> LikelihoodField:
+    """`points_field` of points already densified at `resolution_m` or finer.
+
+    The field is cut off at CUTOFF_SIGMAS (as maps' fields are), so only a band around the
+    points is computed, whatever their bounding box.
+    """
+    cutoff_m = CUTOFF_SIGMAS * sigma_m
+    spec = GridSpec.covering(points, resolution_m, cutoff_m + 2.0 * resolution_m)
     cells = spec.world_to_cell(points)
-    flat = cells[:, 0] * spec.cols + cells[:, 1]
-    count = np.bincount(flat, minlength=n_cells)
-    occupied = count > 0
-    safe = np.maximum(count, 1)
-    mean_x = np.bincount(flat, points[:, 0], n_cells) / safe
-    mean_y = np.bincount(flat, points[:, 1], n_cells) / safe
-    nearest = ndimage.distance_transform_edt(
-        ~occupied.reshape(spec.shape), return_distances=False, return_indices=True
+    _, cell_of_point = np.unique(cells[:, 0] * spec.cols + cells[:, 1], return_inverse=True)
+    count = np.bincount(cell_of_point)
+    means = np.column_stack(
+        (
+            np.bincount(cell_of_point, points[:, 0]) / count,
+            np.bincount(cell_of_point, points[:, 1]) / count,
+        )
     )
-    nearest_flat = nearest[0] * spec.cols + nearest[1]
-    centre_x = spec.origin_x_m + (np.arange(spec.cols) + 0.5) * resolution_m
-    centre_y = spec.origin_y_m + (np.arange(spec.rows) + 0.5) * resolution_m
-    dx = centre_x[None, :] - mean_x[nearest_flat]
-    dy = centre_y[:, None] - mean_y[nearest_flat]
-    return LikelihoodField(spec, np.exp((dx * dx + dy * dy) * (-0.5 / sigma_m**2)), sigma_m)
+    values = field_from_means(
+        spec.shape, spec.world_to_continuous(means), resolution_m, sigma_m, cutoff_m
+    )
+    return LikelihoodField(spec, values, sigma_m)
 
 
 def is_empty_target(target: object) -> bool:
@@ -168,6 +241,41 @@ def converged_step(
     return math.hypot(step[0], step[1]) < translation_tol_m and abs(step[2]) < rotation_tol_rad
 
 
+def level_tolerances(
+    finest: bool, translation_tol_m: float, rotation_tol_rad: float
+) -> tuple[float, float]:
+    """Convergence tolerances of a pyramid level: coarse levels only have to land in the
+    finer level's basin (sigma-wide), so they stop COARSE_TOLERANCE_FACTOR times earlier."""
+    factor = 1.0 if finest else COARSE_TOLERANCE_FACTOR
+    return factor * translation_tol_m, factor * rotation_tol_rad
+
+
+@njit(cache=True)
+def _solve_kernel(hessian, rhs, length_m, ratio):  # type: ignore[no-untyped-def]
+    """(ok, step): see solve_well_determined (compiled: called once or twice per iteration)."""
+    step = np.zeros(3)
+    if not np.all(np.isfinite(hessian)):
+        return False, step
+    scale = np.array([1.0, 1.0, 1.0 / length_m])
+    hs = np.empty((3, 3))
+    for a in range(3):
+        for b in range(3):
+            hs[a, b] = 0.5 * (hessian[a, b] + hessian[b, a]) * scale[a] * scale[b]
+    vals, vecs = np.linalg.eigh(hs)
+    if vals[2] <= 0.0:
+        return False, step
+    kept = 0
+    for k in range(3):
+        if vals[k] > ratio * vals[2]:
+            kept += 1
+            coef = 0.0
+            for a in range(3):
+                coef += vecs[a, k] * scale[a] * rhs[a]
+            for a in range(3):
+                step[a] += vecs[a, k] * coef / vals[k]
+    return kept >= 2, step * scale
+
+
 def solve_well_determined(
     hessian: NDArray[np.float64], rhs: NDArray[np.float64], length_m: float
 ) -> NDArray[np.float64] | None:
@@ -176,16 +284,13 @@ def solve_well_determined(
     A corridor leaves one direction unconstrained: the step is zero along it instead of
     arbitrary. Returns None when fewer than two directions are constrained (ill-conditioned).
     """
-    scale = np.array([1.0, 1.0, 1.0 / length_m])
-    hs = hessian * np.outer(scale, scale)
-    vals, vecs = np.linalg.eigh(0.5 * (hs + hs.T))
-    if not np.all(np.isfinite(vals)) or vals[-1] <= 0.0:
-        return None
-    keep = vals > DEGENERATE_RATIO * vals[-1]
-    if np.count_nonzero(keep) < 2:
-        return None
-    v = vecs[:, keep]
-    return scale * (v @ ((v.T @ (scale * rhs)) / vals[keep]))
+    ok, step = _solve_kernel(
+        np.asarray(hessian, dtype=np.float64),
+        np.asarray(rhs, dtype=np.float64),
+        float(length_m),
+        DEGENERATE_RATIO,
+    )
+    return step if ok else None
 
 
 def check_inputs(
@@ -223,7 +328,7 @@ def run_coarse_to_fine(
     start_cost = field_cost(pyramid[-1], source, pose)
     total = 0
     for index, field in enumerate(pyramid):
-        if np.count_nonzero(field.sample(moved_points(source, pose))[0]) < MIN_POINTS:
+        if field_hits(field, source, pose) < MIN_POINTS:
             return failed(
                 method,
                 MatchStatus.NO_OVERLAP,

@@ -20,7 +20,7 @@ from scanflow.matching.checks import characteristic_length_m
 from scanflow.matching.field_cost import (
     LevelOutcome,
     converged_step,
-    field_cost,
+    level_tolerances,
     linearise,
     run_coarse_to_fine,
     solve_well_determined,
@@ -48,8 +48,9 @@ def match_gn(
     def solve_level(
         field: LikelihoodField, points: NDArray[np.float64], pose: NDArray[np.float64], finest: bool
     ) -> LevelOutcome:
+        t_tol, r_tol = level_tolerances(finest, translation_tol_m, rotation_tol_rad)
+        lin = linearise(field, points, pose)
         for it in range(1, max_iterations + 1):
-            lin = linearise(field, points, pose)
             step = solve_well_determined(lin.hessian, -lin.gradient, length_m)
             if step is None and it > 1:
                 # Landed where the bilinear field is flat around the points: a stationary point.
@@ -66,16 +67,15 @@ def match_gn(
                     f"step {np.round(step, 4).tolist()} exceeds the limits "
                     f"({max_step_m} m, {max_step_rad} rad)",
                 )
-            trial_cost = field_cost(field, points, pose + step)
+            # Linearised at the trial pose: an accepted step needs no second pass.
+            trial = linearise(field, points, pose + step)
             # Bilinear fields have kinks at the cell centres: halve a step that overshoots one.
-            while trial_cost > lin.cost and not converged_step(
-                step, translation_tol_m, rotation_tol_rad
-            ):
+            while trial.cost > lin.cost and not converged_step(step, t_tol, r_tol):
                 step = 0.5 * step
-                trial_cost = field_cost(field, points, pose + step)
-            if trial_cost <= lin.cost:
-                pose = pose + step
-            if converged_step(step, translation_tol_m, rotation_tol_rad):
+                trial = linearise(field, points, pose + step)
+            if trial.cost <= lin.cost:
+                pose, lin = pose + step, trial
+            if converged_step(step, t_tol, r_tol):
                 return LevelOutcome(pose, it, None)
         if finest:
             return LevelOutcome(

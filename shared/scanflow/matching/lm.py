@@ -20,6 +20,7 @@ from scanflow.matching.field_cost import (
     LevelOutcome,
     converged_step,
     field_cost,
+    level_tolerances,
     linearise,
     run_coarse_to_fine,
     solve_well_determined,
@@ -48,6 +49,7 @@ def match_lm(
     def solve_level(
         field: LikelihoodField, points: NDArray[np.float64], pose: NDArray[np.float64], finest: bool
     ) -> LevelOutcome:
+        t_tol, r_tol = level_tolerances(finest, translation_tol_m, rotation_tol_rad)
         lin = linearise(field, points, pose)
         if solve_well_determined(lin.hessian, lin.gradient, length_m) is None:
             return LevelOutcome(
@@ -60,7 +62,7 @@ def match_lm(
             step = solve_well_determined(
                 lin.hessian + mu * np.diag(damping), -lin.gradient, length_m
             )
-            small = step is None or converged_step(step, translation_tol_m, rotation_tol_rad)
+            small = step is None or converged_step(step, t_tol, r_tol)
             # A small step ends the level when LM is close to Gauss-Newton or cannot improve;
             # under heavy damping it only means mu is still large.
             if small and (mu <= GN_LIKE_MU or rejected):

@@ -13,10 +13,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from scanflow.geometry import Pose2D
-from scanflow.maps.ndt_cells import NDTCells, overlapping_cells
+from scanflow.maps.ndt_cells import OverlappingCells
 from scanflow.matching.api import MatchResult, MatchStatus, failed, register_method, target_points
 from scanflow.matching.checks import analyse_hessian, characteristic_length_m, line_hessian
 from scanflow.matching.covariance import unknown_covariance
@@ -29,6 +30,7 @@ from scanflow.matching.field_cost import (
 )
 
 ARMIJO_C = 1e-4
+GRIDS = 4  # the paper's overlapping grids
 PD_FLOOR_RATIO = 1e-3
 
 
@@ -43,69 +45,101 @@ class NDTEvaluation:
     hits: int
 
 
+@njit(cache=True)
+def _ndt_accumulate(index, origin, half, means, inv_covs, points, pose, with_derivatives):  # type: ignore[no-untyped-def]
+    """-score, gradient, Hessian, information (summed over the 4 grids) and hits in one pass.
+
+    A point's cells in the four grids are the 2 x 2 blocks starting at its half-cell minus
+    (0 or 1, 0 or 1): see OverlappingCells.
+    """
+    rows, cols = index.shape
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    cost, hits = 0.0, 0
+    grad = np.zeros(3)
+    hess = np.zeros((3, 3))
+    info = np.zeros((3, 3))
+    jsj = np.empty((3, 3))
+    for i in range(points.shape[0]):
+        px, py = points[i, 0], points[i, 1]
+        mx, my = c * px - s * py + pose[0], s * px + c * py + pose[1]
+        jx, jy = -s * px - c * py, c * px - s * py  # d(moved)/dtheta
+        hc = math.floor((mx - origin[0]) / half)
+        hr = math.floor((my - origin[1]) / half)
+        for g in range(4):
+            row, col = hr - g // 2, hc - g % 2
+            if row < 0 or col < 0 or row >= rows or col >= cols:
+                continue
+            k = index[row, col]
+            if k < 0:
+                continue
+            hits += 1
+            qx, qy = mx - means[k, 0], my - means[k, 1]
+            a00, a01, a11 = inv_covs[k, 0, 0], inv_covs[k, 0, 1], inv_covs[k, 1, 1]
+            ax, ay = a00 * qx + a01 * qy, a01 * qx + a11 * qy  # S^-1 q
+            e = math.exp(-0.5 * (qx * ax + qy * ay))
+            cost -= e
+            if not with_derivatives:
+                continue
+            aj = (ax, ay, ax * jx + ay * jy)  # a^T dq/dp
+            sjx, sjy = a00 * jx + a01 * jy, a01 * jx + a11 * jy  # S^-1 dq/dtheta
+            jsj[0, 0], jsj[0, 1], jsj[1, 1] = a00, a01, a11
+            jsj[1, 0] = a01
+            jsj[0, 2] = jsj[2, 0] = sjx
+            jsj[1, 2] = jsj[2, 1] = sjy
+            jsj[2, 2] = jx * sjx + jy * sjy
+            for a in range(3):
+                grad[a] += e * aj[a]
+                for b in range(3):
+                    hess[a, b] += e * (jsj[a, b] - aj[a] * aj[b])
+                    info[a, b] += e * jsj[a, b]
+            # d2q/dtheta2 = -(R x): its term a^T d2q only touches (theta, theta).
+            hess[2, 2] -= e * (ax * (mx - pose[0]) + ay * (my - pose[1]))
+    return cost, grad, hess, info, hits
+
+
+def _run(
+    cells: OverlappingCells,
+    points: NDArray[np.float64],
+    pose: NDArray[np.float64],
+    derivatives: bool,
+) -> tuple[float, NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], int]:
+    return _ndt_accumulate(
+        cells.index,
+        np.array([cells.origin_x_m, cells.origin_y_m]),
+        cells.half_size_m,
+        cells.means,
+        cells.inv_covs,
+        points,
+        np.asarray(pose, dtype=np.float64),
+        derivatives,
+    )
+
+
 def ndt_cost(
-    grids: tuple[NDTCells, ...], points: NDArray[np.float64], pose: NDArray[np.float64]
+    cells: OverlappingCells, points: NDArray[np.float64], pose: NDArray[np.float64]
 ) -> float:
     """-score only (for the line search)."""
-    moved = moved_points(points, pose)
-    total = 0.0
-    for g in grids:
-        k = g.lookup(moved)
-        hit = k >= 0
-        q = moved[hit] - g.means[k[hit]]
-        a = np.einsum("nij,nj->ni", g.inv_covs[k[hit]], q)
-        total -= float(np.exp(-0.5 * np.einsum("ni,ni->n", q, a)).sum())
-    return total
+    return float(_run(cells, points, pose, False)[0])
 
 
 def ndt_evaluate(
-    grids: tuple[NDTCells, ...], points: NDArray[np.float64], pose: NDArray[np.float64]
+    cells: OverlappingCells, points: NDArray[np.float64], pose: NDArray[np.float64]
 ) -> NDTEvaluation:
     """-score, analytic gradient and Hessian in (x, y, theta) at `pose`."""
-    moved = moved_points(points, pose)
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    jt_all = np.column_stack(
-        (-s * points[:, 0] - c * points[:, 1], c * points[:, 0] - s * points[:, 1])
-    )
-    cost, grad, hess, info, hits = 0.0, np.zeros(3), np.zeros((3, 3)), np.zeros((3, 3)), 0
-    for g in grids:
-        k = g.lookup(moved)
-        hit = k >= 0
-        hits += int(np.count_nonzero(hit))
-        inv = g.inv_covs[k[hit]]
-        q = moved[hit] - g.means[k[hit]]
-        jt = jt_all[hit]
-        a = np.einsum("nij,nj->ni", inv, q)  # S^-1 q
-        e = np.exp(-0.5 * np.einsum("ni,ni->n", q, a))
-        # Columns of dq/dp: e_x, e_y, jt. a^T J:
-        aj = np.column_stack((a[:, 0], a[:, 1], np.einsum("ni,ni->n", a, jt)))
-        # J^T S^-1 J per point.
-        sj = np.einsum("nij,nj->ni", inv, jt)
-        jsj = np.empty((len(q), 3, 3))
-        jsj[:, :2, :2] = inv
-        jsj[:, :2, 2] = sj
-        jsj[:, 2, :2] = sj
-        jsj[:, 2, 2] = np.einsum("ni,ni->n", jt, sj)
-        # d2q/dtheta2 = -(R x): its term a^T d2q only touches (theta, theta).
-        second = np.zeros((len(q), 3, 3))
-        second[:, 2, 2] = -np.einsum("ni,ni->n", a, moved[hit] - pose[:2])
-        cost -= float(e.sum())
-        grad += aj.T @ e
-        hess += np.einsum("n,nij->ij", e, jsj - aj[:, :, None] * aj[:, None, :] + second)
-        info += np.einsum("n,nij->ij", e, jsj)
-    return NDTEvaluation(cost, grad, hess, info / len(grids), hits)
+    cost, grad, hess, info, hits = _run(cells, points, pose, True)
+    return NDTEvaluation(float(cost), grad, hess, info / GRIDS, int(hits))
 
 
 def surface_hessian(
-    cells: NDTCells, points: NDArray[np.float64], pose: NDArray[np.float64]
+    cells: OverlappingCells, points: NDArray[np.float64], pose: NDArray[np.float64]
 ) -> NDArray[np.float64]:
-    """Point-to-line Hessian with each hit cell's normal (its tightest axis).
+    """Point-to-line Hessian with each hit cell's normal (its tightest axis), unshifted grid.
 
     NDT's own information matrix constrains motion along a wall through the cells' finite
     extent, which hides a corridor; the surface normals show what the geometry observes.
     """
     moved = moved_points(points, pose)
-    k = cells.lookup(moved)
+    k = cells.lookup(moved)[:, 0]
     hit = k >= 0
     _, vecs = np.linalg.eigh(cells.inv_covs[k[hit]])
     return line_hessian(moved[hit] - pose[:2], vecs[:, :, 1])
@@ -122,7 +156,7 @@ def positive_definite(hessian: NDArray[np.float64]) -> NDArray[np.float64] | Non
 
 
 def newton_level(
-    grids: tuple[NDTCells, ...],
+    cells: OverlappingCells,
     points: NDArray[np.float64],
     pose: NDArray[np.float64],
     max_iterations: int,
@@ -130,7 +164,7 @@ def newton_level(
     rotation_tol_rad: float,
 ) -> LevelOutcome:
     """Newton iterations on one cell size until a step is small in translation and |rotation|."""
-    ev = ndt_evaluate(grids, points, pose)
+    ev = ndt_evaluate(cells, points, pose)
     if ev.hits < MIN_POINTS:
         return LevelOutcome(pose, 0, MatchStatus.NO_OVERLAP, f"only {ev.hits} point-cell hits")
     for it in range(1, max_iterations + 1):
@@ -140,14 +174,14 @@ def newton_level(
         step = -np.linalg.solve(h, ev.gradient)
         slope = float(ev.gradient @ step)
         alpha = 1.0
-        while ndt_cost(grids, points, pose + alpha * step) > ev.cost + ARMIJO_C * alpha * slope:
+        while ndt_cost(cells, points, pose + alpha * step) > ev.cost + ARMIJO_C * alpha * slope:
             alpha *= 0.5
             if converged_step(alpha * step, translation_tol_m, rotation_tol_rad):
                 break
         pose = pose + alpha * step
         if converged_step(alpha * step, translation_tol_m, rotation_tol_rad):
             return LevelOutcome(pose, it, None)
-        ev = ndt_evaluate(grids, points, pose)
+        ev = ndt_evaluate(cells, points, pose)
     return LevelOutcome(
         pose,
         max_iterations,
@@ -175,8 +209,8 @@ def match_ndt(
         return bad
     pose, total = guess.to_array(), 0
     for level in reversed(range(levels)):
-        grids = overlapping_cells(tgt, cell_size_m * 2**level)
-        if sum(len(g) for g in grids) == 0:
+        cells = OverlappingCells.from_points(tgt, cell_size_m * 2**level)
+        if len(cells) == 0:
             return failed(
                 "ndt",
                 MatchStatus.EMPTY_MAP,
@@ -184,14 +218,14 @@ def match_ndt(
                 f"no {cell_size_m * 2**level} m cell holds enough target points",
             )
         outcome = newton_level(
-            grids, source, pose, max_iterations, translation_tol_m, rotation_tol_rad
+            cells, source, pose, max_iterations, translation_tol_m, rotation_tol_rad
         )
         total += outcome.iterations
         if outcome.status is not None:
             return failed("ndt", outcome.status, guess, outcome.message, total)
         pose = outcome.pose
-    ev = ndt_evaluate(grids, source, pose)
-    cond = analyse_hessian(surface_hessian(grids[0], source, pose), characteristic_length_m(source))
+    ev = ndt_evaluate(cells, source, pose)
+    cond = analyse_hessian(surface_hessian(cells, source, pose), characteristic_length_m(source))
     status, weak = (
         (MatchStatus.DEGENERATE, cond.weak_direction) if cond.degenerate else (MatchStatus.OK, None)
     )
@@ -202,7 +236,7 @@ def match_ndt(
     return MatchResult(
         pose=Pose2D.from_array(pose),
         covariance=cov,
-        score=-ev.cost / (len(source) * len(grids)),
+        score=-ev.cost / (len(source) * GRIDS),
         iterations=total,
         converged=True,
         status=status,

@@ -7,7 +7,7 @@ from scanflow.maps.ndt_cells import (
     EIGEN_FLOOR_RATIO,
     MIN_CELL_POINTS,
     NDTCells,
-    overlapping_cells,
+    OverlappingCells,
 )
 
 
@@ -45,11 +45,29 @@ def test_empty_point_set_gives_no_cells() -> None:
     assert (cells.lookup(np.array([[0.0, 0.0]])) == -1).all()
 
 
-def test_four_grids_are_shifted_by_half_a_cell() -> None:
+@pytest.mark.parametrize("anchor", [(0.0, 0.0), (0.3, -0.2)])
+def test_overlapping_cells_are_the_four_half_shifted_grids(anchor) -> None:
     rng = np.random.default_rng(0)
-    grids = overlapping_cells(rng.uniform(-3, 3, (2000, 2)), 1.0)
-    frac = [(g.spec.origin_x_m % 1.0, g.spec.origin_y_m % 1.0) for g in grids]
-    np.testing.assert_allclose(frac, [(0, 0), (0.5, 0), (0, 0.5), (0.5, 0.5)], atol=1e-9)
+    pts = rng.uniform(-3, 3, (2000, 2)) + np.array([10.3, -7.1])
+    both = OverlappingCells.from_points(pts, 1.0, anchor)
+    shifts = ((0.0, 0.0), (0.5, 0.0), (0.0, 0.5), (0.5, 0.5))
+    grids = [NDTCells.from_points(pts, 1.0, (anchor[0] + dx, anchor[1] + dy)) for dx, dy in shifts]
+    queries = rng.uniform(-4, 4, (500, 2)) + np.array([10.3, -7.1])
+    found = both.lookup(queries)
+    assert len(both) == sum(len(g) for g in grids)
+    for g, grid in enumerate(grids):
+        k = grid.lookup(queries)
+        hit = k >= 0
+        np.testing.assert_array_equal(found[:, g] >= 0, hit)
+        np.testing.assert_allclose(both.means[found[hit, g]], grid.means[k[hit]], atol=1e-12)
+        np.testing.assert_allclose(both.inv_covs[found[hit, g]], grid.inv_covs[k[hit]], rtol=1e-9)
+        np.testing.assert_array_equal(both.counts[found[hit, g]], grid.counts[k[hit]])
+
+
+def test_overlapping_cells_of_nothing_are_empty() -> None:
+    cells = OverlappingCells.from_points(np.zeros((0, 2)), 0.5)
+    assert len(cells) == 0
+    assert (cells.lookup(np.array([[0.0, 0.0]])) == -1).all()
 
 
 def test_bad_cell_size_is_rejected() -> None:

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 from scanflow.geometry import Pose2D
-from scanflow.maps.ndt_cells import overlapping_cells
+from scanflow.maps.ndt_cells import OverlappingCells
 from scanflow.matching import MatchStatus, match
 from scanflow.matching.ndt import ndt_cost, ndt_evaluate, positive_definite
 
@@ -13,7 +13,7 @@ from scanflow.matching.ndt import ndt_cost, ndt_evaluate, positive_definite
 @pytest.fixture
 def problem(room, caster):
     rng = np.random.default_rng(0)
-    grids = overlapping_cells(caster(room, Pose2D(), noise_m=0.01, rng=rng), 0.5)
+    grids = OverlappingCells.from_points(caster(room, Pose2D(), noise_m=0.01, rng=rng), 0.5)
     source = caster(room, Pose2D(0.1, 0.05, 0.05), noise_m=0.01, rng=rng)
     return grids, source
 
