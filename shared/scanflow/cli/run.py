@@ -59,6 +59,8 @@ def run_command(
     as_json: bool = typer.Option(False, "--json", help="print the summary as JSON"),
 ) -> None:
     """Track scans into a map in one process; settings from SCANFLOW_FRONTEND_*."""
+    if log is not None and not log.exists():
+        raise typer.BadParameter(f"no log at {log}", param_hint="--log")
     settings = FrontendSettings()
     pipeline = Pipeline(settings)
     outputs = _log_outputs(pipeline, log) if log is not None else _sim_outputs(

@@ -1,0 +1,32 @@
+"""`scanflow run`: the simulator through the in-process pipeline, summary and written files."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from scanflow.cli import _register, app
+from scanflow.frontend import load_tum
+from scanflow.maps.export import load_map
+from typer.testing import CliRunner
+
+
+def test_run_simulator_writes_map_and_trajectory(tmp_path: Path) -> None:
+    _register()
+    result = CliRunner().invoke(
+        app, ["run", "--duration", "2", "--json", "--map-out", str(tmp_path)]
+    )
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.output)
+    assert summary["scans"] == 20 and summary["deskew_sources"] == {"odometry": 20}
+    assert summary["statuses"]["initialised"] == 1
+    stamps, poses = load_tum(tmp_path / "trajectory.tum")
+    assert len(stamps) == 20 and poses.shape == (20, 3)
+    assert not load_map(tmp_path / "map.npz").is_empty
+    assert {p.name for p in tmp_path.iterdir()} >= {"map.png", "map.yaml", "map.pgm"}
+
+
+def test_run_rejects_a_missing_log(tmp_path: Path) -> None:
+    _register()
+    result = CliRunner().invoke(app, ["run", "--log", str(tmp_path / "nope.log")])
+    assert result.exit_code == 2 and "no log at" in result.output
