@@ -29,7 +29,8 @@ UNKNOWN_PIXEL = 205
 OCCUPIED_THRESH = 0.65
 FREE_THRESH = 0.196
 NPZ_FORMAT = "scanflow-occupancy"
-NPZ_VERSION = 1
+NPZ_VERSION = 2  # v2 added the per-cell hit sums; v1 files load with cell-centre fallback
+NPZ_READABLE_VERSIONS = (1, 2)
 
 
 def _write_atomic(path: Path, data: bytes) -> Path:
@@ -165,7 +166,8 @@ def load_map_server(yaml_path: Path | str, params: OccupancyParams | None = None
 
 
 def save_npz(grid: OccupancyGrid, path: Path | str) -> Path:
-    """Lossless native format: log-odds, observed mask, lattice placement, params, revision."""
+    """Lossless native format: log-odds, observed mask, hit sums, lattice placement, params,
+    revision."""
     box = grid.extent or CellBox(0, 0, 0, 0)
     meta = {
         "format": NPZ_FORMAT,
@@ -178,19 +180,24 @@ def save_npz(grid: OccupancyGrid, path: Path | str) -> Path:
     }
     buffer = io.BytesIO()
     np.savez_compressed(
-        buffer, log_odds=grid.log_odds, observed=grid.observed, meta=np.array(json.dumps(meta))
+        buffer,
+        log_odds=grid.log_odds,
+        observed=grid.observed,
+        hit_sums=grid.hit_sums,
+        meta=np.array(json.dumps(meta)),
     )
     return _write_atomic(Path(path), buffer.getvalue())
 
 
 def load_npz(path: Path | str) -> OccupancyGrid:
-    """Read a map written by `save_npz` exactly as it was saved."""
+    """Read a map written by `save_npz` exactly as it was saved (a v1 file has no hit sums:
+    its matching fields use cell centres)."""
     path = Path(path)
     with np.load(path, allow_pickle=False) as data:
         meta = json.loads(str(data["meta"]))
-        if meta.get("format") != NPZ_FORMAT or meta.get("version") != NPZ_VERSION:
+        if meta.get("format") != NPZ_FORMAT or meta.get("version") not in NPZ_READABLE_VERSIONS:
             raise ValueError(
-                f"{path}: not a {NPZ_FORMAT} v{NPZ_VERSION} file "
+                f"{path}: not a {NPZ_FORMAT} file of version {NPZ_READABLE_VERSIONS} "
                 f"(format {meta.get('format')!r}, version {meta.get('version')!r})"
             )
         return OccupancyGrid.from_arrays(
@@ -201,6 +208,7 @@ def load_npz(path: Path | str) -> OccupancyGrid:
             meta["anchor_y_m"],
             OccupancyParams(**meta["params"]),
             meta["revision"],
+            data["hit_sums"] if "hit_sums" in data.files else None,
         )
 
 

@@ -1,8 +1,10 @@
 """A map that scan-to-map matchers take as their target: an occupancy grid plus derived views.
 
-The likelihood fields (one per pyramid level) are refreshed lazily, on first access after an
-update, and only around where the scan flipped cells between free/unknown and occupied, so
-keeping them current costs in proportion to the region a scan touched. Occupied points, the
+The likelihood fields (one per pyramid level) measure distances to each occupied cell's mean
+hit point (sub-cell accurate walls; cell centres for maps imported without hit sums). They are
+refreshed lazily, on first access after an update, and only around where the scan flipped cells
+between free/unknown and occupied or added hits to occupied cells, so keeping them current costs
+in proportion to the region a scan touched. Occupied points, the
 max-pool stack and NDT cells are rebuilt whole (their constructors take the whole map) on first
 access after a change of the occupied cells.
 
@@ -92,9 +94,12 @@ class MatchingMap:
         self._sync()
         result = self.grid.insert_scan(points_world, sensor_origin, no_return_endpoints)
         self._seen_revision = self.grid.revision
-        if result.occupied_changed is not None:
+        moved = result.means_changed
+        dirty = moved if result.occupied_changed is None else result.occupied_changed.union(moved)
+        if dirty is not None:
             for layer in self._layers.values():
-                layer.mark_dirty(result.occupied_changed)
+                layer.mark_dirty(dirty)
+        if result.occupied_changed is not None:
             self._occupied_points = None
             self._occupied_version += 1
         return result
@@ -146,7 +151,8 @@ class MatchingMap:
     def maxpool_stack(self, depth: int, level: int = 0) -> MaxPoolStack:
         """Branch-and-bound max-pooled scores of the level's likelihood field, 2**depth deep.
 
-        Rebuilt over the whole field when the occupied cells changed.
+        Rebuilt over the whole field when the occupied cells changed (not when only mean hit
+        points moved: the search works on whole cells anyway).
         """
 
         def build() -> MaxPoolStack:

@@ -9,6 +9,12 @@ right after a doubling, reported by `nbytes` and measured in bench/maps.py.
 
 A cell is updated at most once per scan; a cell hit by some beam of the scan is not also
 cleared by another beam of the same scan.
+
+Each cell also keeps the sums of where endpoints fell inside it (x and y as fractions of the
+cell, and their count; same array size as the grid), so matching fields can measure distances
+to the mean hit point of an occupied cell instead of its centre: walls stay at sub-cell accuracy.
+The sums are halved past HIT_COUNT_CAP hits, which keeps their float32 precision (and lets old
+hits fade) without moving the mean.
 """
 
 from __future__ import annotations
@@ -21,6 +27,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from scanflow.maps.grid import CellBox, GridSpec
 from scanflow.maps.raycast import mark_rays
+
+HIT_COUNT_CAP = 4096.0
 
 
 def _logit(p: float) -> float:
@@ -77,10 +85,12 @@ class OccupancyParams:
 
 @dataclass(frozen=True, slots=True)
 class InsertResult:
-    """What one scan changed: every cell it updated, and where the occupied mask flipped."""
+    """What one scan changed: every cell it updated, where the occupied mask flipped, and where
+    cells that are occupied after the scan got new hits (their mean hit point moved)."""
 
     touched: CellBox | None
     occupied_changed: CellBox | None
+    means_changed: CellBox | None = None
 
 
 def _as_points(name: str, value: ArrayLike) -> NDArray[np.float64]:
@@ -91,6 +101,17 @@ def _as_points(name: str, value: ArrayLike) -> NDArray[np.float64]:
     if bad.any():
         raise ValueError(f"{name} has {int(bad.sum())} non-finite rows, first {p[bad][0]}")
     return p
+
+
+def _checked_hit_sums(hit_sums: NDArray[np.floating], shape: tuple[int, int]) -> NDArray:
+    h = np.asarray(hit_sums, dtype=np.float32)
+    if h.shape != (3, *shape):
+        raise ValueError(f"hit_sums must have shape {(3, *shape)}, got {h.shape}")
+    if not np.isfinite(h).all():
+        raise ValueError("hit_sums has non-finite values")
+    if (h < 0).any():
+        raise ValueError(f"hit_sums must be >= 0, got {float(h.min())}")
+    return h
 
 
 def _grown_axis(
@@ -146,6 +167,7 @@ class OccupancyGrid:
         self._initial_capacity = initial_capacity_cells
         self._log_odds = np.zeros((0, 0), dtype=np.float32)
         self._observed = np.zeros((0, 0), dtype=bool)
+        self._hits = np.zeros((3, 0, 0), dtype=np.float32)  # sum x, sum y (cell fractions), count
         self._storage: CellBox | None = None
         self._extent: CellBox | None = None
         self.revision = 0
@@ -161,8 +183,13 @@ class OccupancyGrid:
         anchor_y_m: float,
         params: OccupancyParams | None = None,
         revision: int = 0,
+        hit_sums: NDArray[np.floating] | None = None,
     ) -> OccupancyGrid:
-        """A grid holding `log_odds` (clamped to the params) over `box`: used by map import."""
+        """A grid holding `log_odds` (clamped to the params) over `box`: used by map import.
+
+        Without `hit_sums` (3, rows, cols) every cell has no recorded hits, so matching fields
+        fall back to the occupied cells' centres.
+        """
         lo = np.asarray(log_odds, dtype=np.float32)
         obs = np.asarray(observed, dtype=bool)
         if lo.shape != box.shape or obs.shape != box.shape:
@@ -171,10 +198,14 @@ class OccupancyGrid:
             )
         if not np.isfinite(lo).all():
             raise ValueError("log_odds has non-finite values")
+        hits = np.zeros((3, *box.shape), dtype=np.float32)
+        if hit_sums is not None:
+            hits[:] = _checked_hit_sums(hit_sums, box.shape)
         grid = cls(params, anchor_x_m, anchor_y_m)
         p = grid.params
         grid._log_odds = np.clip(lo, p.log_odds_min, p.log_odds_max).astype(np.float32)
         grid._observed = obs.copy()
+        grid._hits = hits
         if not box.is_empty:
             grid._storage = grid._extent = box
         grid.revision = revision
@@ -233,7 +264,7 @@ class OccupancyGrid:
     @property
     def nbytes(self) -> int:
         """Memory held by the backing arrays (spare capacity included)."""
-        return int(self._log_odds.nbytes + self._observed.nbytes)
+        return int(self._log_odds.nbytes + self._observed.nbytes + self._hits.nbytes)
 
     def world_to_cells(self, points: NDArray[np.float64]) -> NDArray[np.int64]:
         """Lattice (row, col) of each world point, valid however the grid grows."""
@@ -260,6 +291,28 @@ class OccupancyGrid:
     def observed(self) -> NDArray[np.bool_]:
         """Read-only mask of cells updated at least once, over the extent."""
         return self._extent_view(self._observed)
+
+    @property
+    def hit_sums(self) -> NDArray[np.float32]:
+        """Read-only (3, rows, cols) over the extent: per cell the sums of the endpoints' x and
+        y offsets inside the cell (in cells, [0, 1)) and their count."""
+        if self._extent is None or self._storage is None:
+            return self._hits[:, :0, :0]
+        view = self._hits[(slice(None), *self._extent.slices_in(self._storage))]
+        view.flags.writeable = False
+        return view
+
+    def hit_sums_in(self, box: CellBox) -> NDArray[np.float64]:
+        """`hit_sums` over any lattice box (zero outside the stored area)."""
+        out = np.zeros((3, *box.shape))
+        if self._storage is None:
+            return out
+        inner = box.intersection(self._storage)
+        if not inner.is_empty:
+            out[(slice(None), *inner.slices_in(box))] = self._hits[
+                (slice(None), *inner.slices_in(self._storage))
+            ]
+        return out
 
     def probability(self) -> NDArray[np.float64]:
         """Occupancy probability over the extent (0.5 where never observed)."""
@@ -317,11 +370,13 @@ class OccupancyGrid:
         new = CellBox(rows[0], cols[0], rows[1], cols[1])
         log_odds = np.zeros(new.shape, dtype=np.float32)
         observed = np.zeros(new.shape, dtype=bool)
+        hits = np.zeros((3, *new.shape), dtype=np.float32)
         if old is not None:
             dst = old.slices_in(new)
             log_odds[dst] = self._log_odds
             observed[dst] = self._observed
-        self._log_odds, self._observed, self._storage = log_odds, observed, new
+            hits[(slice(None), *dst)] = self._hits
+        self._log_odds, self._observed, self._hits, self._storage = log_odds, observed, hits, new
         self.storage_generation += 1
         return new
 
@@ -388,8 +443,33 @@ class OccupancyGrid:
         log_odds[hit_mask] += np.float32(self.params.hit_log_odds)
         np.clip(log_odds, self.params.log_odds_min, self.params.log_odds_max, out=log_odds)
         observed |= hit_mask | free_mask
-        flipped = occupied_before != (observed & (log_odds > threshold))
+        occupied_after = observed & (log_odds > threshold)
+        flipped = occupied_before != occupied_after
+        self._add_hits(hits, hit_cells, storage)
 
         self._extent = box.union(self._extent)
         self.revision += 1
-        return InsertResult(box, _true_box(flipped, box))
+        return InsertResult(
+            box, _true_box(flipped, box), _true_box(hit_mask & occupied_after, box)
+        )
+
+    def _add_hits(
+        self,
+        hits: NDArray[np.float64],
+        hit_cells: NDArray[np.int64],
+        storage: CellBox,
+    ) -> None:
+        """Accumulate each endpoint's offset inside its cell; halve the sums past the cap."""
+        if hits.shape[0] == 0:
+            return
+        frac_x = (hits[:, 0] - self.anchor_x_m) / self.resolution_m - hit_cells[:, 1]
+        frac_y = (hits[:, 1] - self.anchor_y_m) / self.resolution_m - hit_cells[:, 0]
+        rows = hit_cells[:, 0] - storage.row0
+        cols = hit_cells[:, 1] - storage.col0
+        sums = self._hits
+        np.add.at(sums[0], (rows, cols), np.clip(frac_x, 0.0, 1.0).astype(np.float32))
+        np.add.at(sums[1], (rows, cols), np.clip(frac_y, 0.0, 1.0).astype(np.float32))
+        np.add.at(sums[2], (rows, cols), np.float32(1.0))
+        full = sums[2, rows, cols] > HIT_COUNT_CAP
+        if full.any():
+            sums[:, rows[full], cols[full]] *= np.float32(0.5)

@@ -5,9 +5,13 @@ fine cell it covers is (max-pooling aligned to the world lattice, so coarse cell
 a growth boundary). Each level's field has sigma and cut-off scaled with its cell size, so
 coarse levels have a wide basin of attraction for the first, rough alignment.
 
-Because the field is cut off at `cutoff_m`, a change of the occupied mask in a box moves field
-values only within the cut-off around it, and those values depend only on obstacles within twice
-the cut-off: a refresh recomputes exactly that neighbourhood.
+Distances are measured to each occupied cell's mean hit point (the grid's hit sums pooled over
+the fine cells it covers); an occupied fine cell without recorded hits (a map imported without
+them) counts as one hit at its centre.
+
+Because the field is cut off at `cutoff_m`, a change of the occupied mask or of a mean hit point
+in a box moves field values only within the cut-off around it, and those values depend only on
+obstacles within twice the cut-off: a refresh recomputes exactly that neighbourhood.
 """
 
 from __future__ import annotations
@@ -17,24 +21,41 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from scanflow.maps.field import LikelihoodField, field_values
+from scanflow.maps.field import LikelihoodField, field_from_means
 from scanflow.maps.grid import CellBox
 from scanflow.maps.occupancy import OccupancyGrid
 
 
-def pool_any(mask: NDArray[np.bool_], factor: int) -> NDArray[np.bool_]:
-    """Block-wise OR over factor x factor blocks (mask sides must be multiples of factor)."""
-    rows, cols = mask.shape
+def pool_sum(values: NDArray[np.float64], factor: int) -> NDArray[np.float64]:
+    """Block-wise sums over factor x factor blocks of the last two axes (multiples of factor)."""
+    *lead, rows, cols = values.shape
     if rows % factor or cols % factor:
-        raise ValueError(f"mask shape {mask.shape} is not a multiple of factor {factor}")
+        raise ValueError(f"shape {values.shape} is not a multiple of factor {factor}")
     if factor == 1:
-        return mask
-    return mask.reshape(rows // factor, factor, cols // factor, factor).any(axis=(1, 3))
+        return values
+    blocks = values.reshape(*lead, rows // factor, factor, cols // factor, factor)
+    return blocks.sum(axis=(-3, -1))
 
 
-def pooled_occupied(grid: OccupancyGrid, box: CellBox, factor: int) -> NDArray[np.bool_]:
-    """Occupied mask of the grid over a box of the `factor`-times-coarser lattice."""
-    return pool_any(grid.occupied_in(box.refined(factor)), factor)
+def occupied_means(grid: OccupancyGrid, box: CellBox, factor: int) -> NDArray[np.float64]:
+    """(K, 2) mean hit points, as fractional (row, col) of the box with cell centres at
+    integers, of the occupied cells of the `factor`-times-coarser lattice over `box`."""
+    fine = box.refined(factor)
+    occupied = grid.occupied_in(fine)
+    sums = grid.hit_sums_in(fine) * occupied
+    # An occupied cell without recorded hits counts as one hit at its centre.
+    bare = occupied & (sums[2] == 0)
+    sums[:, bare] = [[0.5], [0.5], [1.0]]
+    # Offsets in the coarse cell: add the fine cell's place in its block, in fine cells.
+    rows, cols = fine.shape
+    sums[0] += (np.arange(cols) % factor)[None, :] * sums[2]
+    sums[1] += (np.arange(rows) % factor)[:, None] * sums[2]
+    pooled = pool_sum(sums, factor)
+    r, c = np.nonzero(pooled[2])
+    count = pooled[2, r, c]
+    mean_col = c + np.clip(pooled[0, r, c] / (factor * count), 0.0, 1.0) - 0.5
+    mean_row = r + np.clip(pooled[1, r, c] / (factor * count), 0.0, 1.0) - 0.5
+    return np.column_stack((mean_row, mean_col))
 
 
 class FieldLayer:
@@ -64,7 +85,7 @@ class FieldLayer:
         return int(self._values.nbytes)
 
     def mark_dirty(self, fine_box: CellBox) -> None:
-        """Note that the grid's occupied mask changed inside `fine_box` (grid lattice)."""
+        """Note that the grid's occupied mask or mean hit points changed inside `fine_box`."""
         self._pending = fine_box.coarsened(self.factor).union(self._pending)
 
     def _rebuild(self) -> None:
@@ -75,22 +96,17 @@ class FieldLayer:
         if self._box is None:
             self._values = np.zeros((0, 0))
             return
-        self._values = field_values(
-            pooled_occupied(self.grid, self._box, self.factor),
-            self.resolution_m,
-            self.sigma_m,
-            self.cutoff_m,
-        )
+        self._values = self._values_over(self._box)
+
+    def _values_over(self, box: CellBox) -> NDArray[np.float64]:
+        """This level's field over a box of its lattice, from the obstacles inside the box."""
+        means = occupied_means(self.grid, box, self.factor)
+        return field_from_means(box.shape, means, self.resolution_m, self.sigma_m, self.cutoff_m)
 
     def _refresh(self, dirty: CellBox, box: CellBox) -> None:
         source = dirty.expanded(2 * self._margin).intersection(box)
         target = dirty.expanded(self._margin).intersection(box)
-        values = field_values(
-            pooled_occupied(self.grid, source, self.factor),
-            self.resolution_m,
-            self.sigma_m,
-            self.cutoff_m,
-        )
+        values = self._values_over(source)
         self._values[target.slices_in(box)] = values[target.slices_in(source)]
 
     def field(self) -> LikelihoodField:

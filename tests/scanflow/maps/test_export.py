@@ -1,6 +1,8 @@
 """Map files: exact native round trip, map_server PGM/YAML as ROS reads it, PNG for people."""
 
+import json
 import math
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -79,10 +81,40 @@ def test_npz_round_trip_is_exact(tmp_path: Path, grid: OccupancyGrid):
     assert loaded.revision == grid.revision
     np.testing.assert_array_equal(loaded.log_odds, grid.log_odds)
     np.testing.assert_array_equal(loaded.observed, grid.observed)
+    assert grid.hit_sums[2].sum() > 0
+    np.testing.assert_array_equal(loaded.hit_sums, grid.hit_sums)
     # The loaded map keeps growing on the same lattice as the original.
     for g in (grid, loaded):
         g.insert_scan([[9.0, 9.0]], (0.0, 0.0))
     np.testing.assert_array_equal(loaded.log_odds, grid.log_odds)
+
+
+def test_version_1_npz_without_hit_sums_loads_with_cell_centres(
+    tmp_path: Path, grid: OccupancyGrid
+):
+    path = tmp_path / "v1.npz"
+    box = grid.extent
+    meta = {
+        "format": "scanflow-occupancy",
+        "version": 1,
+        "anchor_x_m": grid.anchor_x_m,
+        "anchor_y_m": grid.anchor_y_m,
+        "box": [box.row0, box.col0, box.row1, box.col1],
+        "params": asdict(grid.params),
+        "revision": grid.revision,
+    }
+    np.savez_compressed(
+        path, log_odds=grid.log_odds, observed=grid.observed, meta=np.array(json.dumps(meta))
+    )
+    loaded = load_map(path)
+    np.testing.assert_array_equal(loaded.log_odds, grid.log_odds)
+    assert not loaded.hit_sums.any()
+    # No hits recorded: the field peaks on the occupied cells' centres (those whose
+    # interpolation square lies inside the map).
+    world = MatchingMap(loaded)
+    value, _ = world.likelihood_field().sample(world.occupied_points())
+    assert np.count_nonzero(value) > 0.5 * len(value)
+    np.testing.assert_allclose(value[value > 0], 1.0)
 
 
 def test_npz_of_an_empty_grid(tmp_path: Path):

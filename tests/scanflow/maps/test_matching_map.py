@@ -11,6 +11,7 @@ from scanflow.maps.field import LikelihoodField
 from scanflow.maps.grid import CellBox
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
+from scipy.spatial import cKDTree
 
 
 def room_scan(center, half_size_m=3.0, beams=180, rng=None):
@@ -26,18 +27,35 @@ def room_scan(center, half_size_m=3.0, beams=180, rng=None):
 
 
 def reference_field(grid: OccupancyGrid, level: int, sigma_m: float, cutoff_sigmas: float):
-    """The level's field computed from scratch from the grid's occupied mask."""
+    """The level's field computed from scratch, point by point: exp(-d^2 / 2 sigma^2) with d to
+    the nearest occupied coarse cell's mean hit point (a hit-less occupied cell: its centre)."""
     factor = 2**level
-    extent = grid.extent
-    coarse = extent.coarsened(factor)
-    fine = coarse.refined(factor)
-    occupied = np.zeros(fine.shape, dtype=bool)
-    occupied[extent.slices_in(fine)] = grid.occupied_mask()
-    pooled = occupied.reshape(coarse.shape[0], factor, coarse.shape[1], factor).any(axis=(1, 3))
+    coarse = grid.extent.coarsened(factor)
+    spec = grid.spec_of(coarse, factor)
+    occupied = grid.occupied_mask()
+    sums = grid.hit_sums.astype(np.float64)
+    rows, cols = np.nonzero(occupied)
+    count = sums[2, rows, cols]
+    bare = count == 0
+    frac_x = np.where(bare, 0.5, sums[0, rows, cols] / np.maximum(count, 1))
+    frac_y = np.where(bare, 0.5, sums[1, rows, cols] / np.maximum(count, 1))
+    weight = np.where(bare, 1.0, count)
+    world = grid.spec.cell_centers(np.column_stack((rows, cols)))
+    x = world[:, 0] - 0.5 * grid.resolution_m + frac_x * grid.resolution_m
+    y = world[:, 1] - 0.5 * grid.resolution_m + frac_y * grid.resolution_m
+    # Group the fine hits by coarse cell and weight by their counts.
+    key = spec.world_to_cell(world)
+    groups, inverse = np.unique(key, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    total = np.bincount(inverse, weight)
+    mx = np.bincount(inverse, weight * x) / total
+    my = np.bincount(inverse, weight * y) / total
+    centres = spec.cell_centers(np.argwhere(np.ones(spec.shape, dtype=bool)))
+    d, _ = cKDTree(np.column_stack((mx, my))).query(centres)
     sigma = sigma_m * factor
-    return LikelihoodField.from_occupied(
-        grid.spec_of(coarse, factor), pooled, sigma, cutoff_sigmas * sigma
-    )
+    values = np.where(d <= cutoff_sigmas * sigma, np.exp(-0.5 * (d / sigma) ** 2), 0.0)
+    assert len(groups) == len(mx)
+    return LikelihoodField(spec, values.reshape(spec.shape), sigma)
 
 
 def assert_views_match_scratch(world: MatchingMap, levels=3):
@@ -45,7 +63,7 @@ def assert_views_match_scratch(world: MatchingMap, levels=3):
         got = world.likelihood_field(level)
         want = reference_field(world.grid, level, world.sigma_m, world.cutoff_sigmas)
         assert got.spec == want.spec
-        np.testing.assert_allclose(got.values, want.values, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(got.values, want.values, rtol=0, atol=1e-6)
 
 
 def test_empty_map():
@@ -100,9 +118,9 @@ def test_refresh_touches_only_the_neighbourhood_of_the_change(monkeypatch):
         world.update(room_scan((x, 0.0), 3.0, beams=90), (x, 0.0))
     world.likelihood_field(0)
     shapes = []
-    real = pyramid.field_values
+    real = pyramid.field_from_means
     monkeypatch.setattr(
-        pyramid, "field_values", lambda occ, *a: shapes.append(occ.shape) or real(occ, *a)
+        pyramid, "field_from_means", lambda shape, *a: shapes.append(shape) or real(shape, *a)
     )
     # A new obstacle 0.5 m in front of the sensor: a small change in a big map.
     result = world.update([[0.5, 0.0]], (0.0, 0.0))
@@ -185,3 +203,23 @@ def test_ndt_cells_follow_occupied_points_and_the_lattice():
     world.update([[1.0, 1.0], [1.02, 1.0], [1.0, 1.02]], (0.0, 0.0))
     assert world.ndt_cells(0.5) is not cells
     assert world.nbytes > world.grid.nbytes
+
+
+def test_field_measures_distances_to_the_mean_hit_point_not_the_cell_centre():
+    """A wall at x = 2.0123 (5 cm cells, centres at 2.025): the field at the cell centres near
+    it is the Gaussian of the distance to the wall; without hit sums, to the cell centres."""
+    y = np.linspace(-1.0, 1.0, 801)
+    wall = np.column_stack((np.full_like(y, 2.0123), y))
+    world = MatchingMap()
+    for _ in range(3):
+        world.update(wall, (0.0, 0.0))
+    xs = 1.875 + 0.05 * np.arange(4)  # cell centres up to the wall (the map ends there)
+    probe = np.column_stack((xs, np.full_like(xs, 0.025)))
+    sigma = world.sigma_m
+    value, _ = world.likelihood_field(0).sample(probe)
+    np.testing.assert_allclose(value, np.exp(-0.5 * ((xs - 2.0123) / sigma) ** 2), atol=2e-3)
+    grid = world.grid
+    bare = OccupancyGrid.from_arrays(grid.log_odds, grid.observed, grid.extent, 0.0, 0.0)
+    centres = MatchingMap(bare)
+    value, _ = centres.likelihood_field(0).sample(probe)
+    np.testing.assert_allclose(value, np.exp(-0.5 * ((xs - 2.025) / sigma) ** 2), atol=2e-3)

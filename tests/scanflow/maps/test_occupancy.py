@@ -180,3 +180,42 @@ def test_from_int8_reads_ros_convention():
     np.testing.assert_array_equal(grid.occupied_mask(), data > 65)
     with pytest.raises(ValueError, match=r"-1 or 0\.\.100"):
         OccupancyGrid.from_int8(np.array([[101]]), 0.0, 0.0)
+
+
+def test_hit_sums_hold_the_mean_endpoint_inside_each_cell():
+    grid = OccupancyGrid(OccupancyParams(resolution_m=0.1))
+    hits = np.array([[1.02, 0.53], [1.04, 0.57], [2.55, 0.55]])
+    grid.insert_scan(hits, (0.05, 0.55))
+    cells = grid.world_to_cells(hits) - [grid.extent.row0, grid.extent.col0]
+    sums = grid.hit_sums
+    r, c = cells[0]
+    assert sums[2, r, c] == 2
+    np.testing.assert_allclose(sums[:2, r, c] / 2, [0.3, 0.5], atol=1e-5)
+    r, c = cells[2]
+    np.testing.assert_allclose(sums[:, r, c], [0.5, 0.5, 1.0], atol=1e-5)
+    assert sums[2].sum() == 3
+
+
+def test_hit_sums_survive_growth_and_stay_bounded(monkeypatch):
+    from scanflow.maps import occupancy
+
+    monkeypatch.setattr(occupancy, "HIT_COUNT_CAP", 8.0)
+    grid = OccupancyGrid(initial_capacity_cells=4)
+    for _ in range(20):
+        grid.insert_scan([[0.512, 0.033]], (0.0, 0.0))
+    result = grid.insert_scan([[-3.0, 4.0]], (0.0, 0.0))  # grows the storage
+    assert result.means_changed is not None
+    cell = grid.world_to_cells(np.array([[0.512, 0.033]]))[0] - [grid.extent.row0, grid.extent.col0]
+    x, y, n = grid.hit_sums[:, cell[0], cell[1]]
+    assert 4 <= n <= 8
+    np.testing.assert_allclose([x / n, y / n], [0.24, 0.66], atol=1e-4)
+
+
+def test_from_arrays_checks_hit_sums():
+    box = CellBox(0, 0, 2, 3)
+    lo, obs = np.zeros((2, 3)), np.ones((2, 3), dtype=bool)
+    assert not OccupancyGrid.from_arrays(lo, obs, box, 0.0, 0.0).hit_sums.any()
+    with pytest.raises(ValueError, match="hit_sums must have shape"):
+        OccupancyGrid.from_arrays(lo, obs, box, 0.0, 0.0, hit_sums=np.zeros((3, 3, 2)))
+    with pytest.raises(ValueError, match="hit_sums must be >= 0"):
+        OccupancyGrid.from_arrays(lo, obs, box, 0.0, 0.0, hit_sums=-np.ones((3, 2, 3)))
