@@ -59,7 +59,7 @@ def running(services: tuple[str, ...], **settings: str) -> Iterator[tuple[Launch
             launcher.stop_all()
 
 
-def _wait_alive(session: Any, services: tuple[str, ...], timeout_s: float = 60.0) -> None:
+def _wait_alive(session: Any, services: tuple[str, ...], timeout_s: float = 180.0) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         alive = {
@@ -79,6 +79,7 @@ class Observer:
     def __init__(self, session: Any) -> None:
         self.raw_s: dict[int, float] = {}
         self.pose_s: dict[int, float] = {}
+        self.poses = 0  # every pose received, across replays
         self.done = threading.Condition()
         self._subs = [
             session.declare_subscriber(keys.raw_scan(), self._on(self.raw_s)),
@@ -90,14 +91,16 @@ class Observer:
             now = time.perf_counter()
             table[decode_any(sample.payload.to_bytes()).seq] = now
             with self.done:
+                self.poses += table is self.pose_s
                 self.done.notify_all()
 
         return record
 
     def wait_poses(self, count: int, timeout_s: float) -> None:
+        """Wait until `count` poses arrived in all (replays included)."""
         with self.done:
-            if not self.done.wait_for(lambda: len(self.pose_s) >= count, timeout_s):
-                raise TimeoutError(f"{len(self.pose_s)} of {count} poses after {timeout_s} s")
+            if not self.done.wait_for(lambda: self.poses >= count, timeout_s):
+                raise TimeoutError(f"{self.poses} of {count} poses after {timeout_s} s")
 
 
 def stats(session: Any, service: str) -> ServiceStatsMessage:
@@ -204,7 +207,7 @@ def latency(duration_s: float) -> dict[str, Any]:
 
 
 def memory(log: Path, limit: int | None, replays: int = 3) -> dict[str, Any]:
-    """RSS of every service after one replay of the log and after `replays` in a row."""
+    """RSS of every service after each of `replays` replays of the log in a row."""
     settings = {
         "SCANFLOW_INGEST_LOG": str(log),
         "SCANFLOW_INGEST_RATE": "0",
@@ -213,21 +216,24 @@ def memory(log: Path, limit: int | None, replays: int = 3) -> dict[str, Any]:
     if limit is not None:
         settings["SCANFLOW_INGEST_LIMIT"] = str(limit)
     scans = sum(isinstance(e, LaserScan) for e in source_events(str(log), "robot", 1.0, 0, limit))
+    rss_mib: dict[str, list[float]] = {name: [] for name in SERVICES}
+    map_mib = []
     with running(SERVICES) as (launcher, session):
         observer = Observer(session)
-        proc = launcher.start("ingest", **settings)
-        observer.wait_poses(scans, timeout_s=3600)
-        after_one = {name: stats(session, name) for name in (*SERVICES, "ingest")}
-        proc.wait(3600 * replays)
-        after_all = {name: stats(session, name) for name in SERVICES}
-    mib = 1 / 2**20
+        launcher.start("ingest", **settings)
+        for replay in range(1, replays + 1):
+            observer.wait_poses(replay * scans, timeout_s=3600)
+            time.sleep(1.0)  # let the map server apply the last poses
+            for name in SERVICES:
+                figures = stats(session, name).gauges
+                rss_mib[name].append(round(figures["rss_bytes"] / 2**20, 1))
+                if name == "mapserver":
+                    map_mib.append(round(figures.get("robot.map_bytes", 0.0) / 2**20, 1))
     return {
         "log": log.name,
         "scans_per_replay": scans,
-        "replays": replays,
-        "rss_mib_after_1": {n: s.gauges["rss_bytes"] * mib for n, s in after_one.items()},
-        f"rss_mib_after_{replays}": {n: s.gauges["rss_bytes"] * mib for n, s in after_all.items()},
-        "map_mib": after_all["mapserver"].gauges.get("robot.map_bytes", 0.0) * mib,
+        "rss_mib_after_each_replay": rss_mib,
+        "map_mib_after_each_replay": map_mib,
     }
 
 
@@ -236,6 +242,7 @@ def main() -> None:
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--limit", type=int, default=None, help="scans of freiburg-079 to use")
     parser.add_argument("--latency-s", type=float, default=30.0, help="simulated seconds")
+    parser.add_argument("--replays", type=int, default=3, help="replays for the memory figure")
     parser.add_argument("--only", default="transport,throughput,latency,memory")
     args = parser.parse_args()
     wanted = set(args.only.split(","))
@@ -250,7 +257,7 @@ def main() -> None:
     if "latency" in wanted:
         results["latency"] = latency(args.latency_s)
     if "memory" in wanted:
-        results["memory"] = memory(FREIBURG, args.limit)
+        results["memory"] = memory(FREIBURG, args.limit, args.replays)
     if args.json:
         print(json.dumps(results, indent=2))
         return
