@@ -10,11 +10,12 @@ right after a doubling, reported by `nbytes` and measured in bench/maps.py.
 A cell is updated at most once per scan; a cell hit by some beam of the scan is not also
 cleared by another beam of the same scan.
 
-Each cell also keeps the sums of where endpoints fell inside it (x and y as fractions of the
-cell, and their count; same array size as the grid), so matching fields can measure distances
-to the mean hit point of an occupied cell instead of its centre: walls stay at sub-cell accuracy.
-The sums are halved past HIT_COUNT_CAP hits, which keeps their float32 precision (and lets old
-hits fade) without moving the mean.
+Each cell also keeps the sums of where endpoints fell inside it (x and y offsets in 1/256 of a
+cell, a unit u standing for (u + 0.5) / 256, uint16; and their count, uint8: 5 more bytes per
+cell), so matching fields can measure
+distances to the mean hit point of an occupied cell instead of its centre: walls stay at
+sub-cell accuracy. Sums and count are halved when the count would pass 255, which bounds them
+(and lets old hits fade) without moving the mean.
 """
 
 from __future__ import annotations
@@ -23,12 +24,14 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from scanflow.maps.grid import CellBox, GridSpec
 from scanflow.maps.raycast import mark_rays
 
-HIT_COUNT_CAP = 4096.0
+HIT_UNITS_PER_CELL = 256  # hit offsets are stored in 1/256 of a cell
+HIT_COUNT_MAX = 255
 
 
 def _logit(p: float) -> float:
@@ -103,15 +106,74 @@ def _as_points(name: str, value: ArrayLike) -> NDArray[np.float64]:
     return p
 
 
-def _checked_hit_sums(hit_sums: NDArray[np.floating], shape: tuple[int, int]) -> NDArray:
-    h = np.asarray(hit_sums, dtype=np.float32)
+@njit(cache=True)
+def _pooled_hit_means(log_odds, observed, hit_xy, hit_n, threshold, row0, col0, rows, cols, factor):  # type: ignore[no-untyped-def]
+    """See OccupancyGrid.occupied_hit_means; (row0, col0) is the fine box's first cell in
+    storage indices (the box may reach outside the storage: those cells are empty)."""
+    out = np.empty((rows * cols, 2))
+    n_out = 0
+    stored_rows, stored_cols = log_odds.shape
+    for cr in range(rows):
+        for cc in range(cols):
+            sx = sy = n = 0.0
+            for i in range(factor):
+                r = row0 + cr * factor + i
+                if r < 0 or r >= stored_rows:
+                    continue
+                for j in range(factor):
+                    c = col0 + cc * factor + j
+                    if c < 0 or c >= stored_cols or not observed[r, c]:
+                        continue
+                    if log_odds[r, c] <= threshold:
+                        continue
+                    count = float(hit_n[r, c])
+                    if count > 0:
+                        sx += (hit_xy[0, r, c] + 0.5 * count) / HIT_UNITS_PER_CELL + j * count
+                        sy += (hit_xy[1, r, c] + 0.5 * count) / HIT_UNITS_PER_CELL + i * count
+                        n += count
+                    else:
+                        sx += 0.5 + j
+                        sy += 0.5 + i
+                        n += 1.0
+            if n > 0:
+                out[n_out, 0] = cr + min(max(sy / (factor * n), 0.0), 1.0) - 0.5
+                out[n_out, 1] = cc + min(max(sx / (factor * n), 0.0), 1.0) - 0.5
+                n_out += 1
+    return out[:n_out]
+
+
+@njit(cache=True)
+def _accumulate_hits(hit_xy, hit_n, rows, cols, units):  # type: ignore[no-untyped-def]
+    """Add each hit's (x, y) offset units to its cell, halving a full cell's weight first."""
+    for k in range(rows.shape[0]):
+        r, c = rows[k], cols[k]
+        if hit_n[r, c] == HIT_COUNT_MAX:  # keep half the weight, same mean
+            half = HIT_COUNT_MAX // 2
+            hit_n[r, c] = half
+            hit_xy[0, r, c] = round(hit_xy[0, r, c] * half / HIT_COUNT_MAX)
+            hit_xy[1, r, c] = round(hit_xy[1, r, c] * half / HIT_COUNT_MAX)
+        hit_n[r, c] += 1
+        hit_xy[0, r, c] += units[k, 0]
+        hit_xy[1, r, c] += units[k, 1]
+
+
+def _quantised_hit_sums(
+    hit_sums: NDArray[np.floating], shape: tuple[int, int]
+) -> tuple[NDArray[np.uint16], NDArray[np.uint8]]:
+    """Storage form of (3, rows, cols) hit sums (offsets in cells, counts): counts above the
+    maximum are scaled down with their sums, which keeps the means."""
+    h = np.asarray(hit_sums, dtype=np.float64)
     if h.shape != (3, *shape):
         raise ValueError(f"hit_sums must have shape {(3, *shape)}, got {h.shape}")
     if not np.isfinite(h).all():
         raise ValueError("hit_sums has non-finite values")
     if (h < 0).any():
         raise ValueError(f"hit_sums must be >= 0, got {float(h.min())}")
-    return h
+    scale = np.maximum(h[2] / HIT_COUNT_MAX, 1.0)
+    count = np.rint(h[2] / scale)
+    most = count * (HIT_UNITS_PER_CELL - 1)
+    xy = np.clip(np.rint((h[:2] * HIT_UNITS_PER_CELL - 0.5 * h[2]) / scale), 0, most)
+    return xy.astype(np.uint16), count.astype(np.uint8)
 
 
 def _grown_axis(
@@ -167,7 +229,8 @@ class OccupancyGrid:
         self._initial_capacity = initial_capacity_cells
         self._log_odds = np.zeros((0, 0), dtype=np.float32)
         self._observed = np.zeros((0, 0), dtype=bool)
-        self._hits = np.zeros((3, 0, 0), dtype=np.float32)  # sum x, sum y (cell fractions), count
+        self._hit_xy = np.zeros((2, 0, 0), dtype=np.uint16)  # sums of x, y offsets in cells/256
+        self._hit_n = np.zeros((0, 0), dtype=np.uint8)
         self._storage: CellBox | None = None
         self._extent: CellBox | None = None
         self.revision = 0
@@ -198,14 +261,14 @@ class OccupancyGrid:
             )
         if not np.isfinite(lo).all():
             raise ValueError("log_odds has non-finite values")
-        hits = np.zeros((3, *box.shape), dtype=np.float32)
-        if hit_sums is not None:
-            hits[:] = _checked_hit_sums(hit_sums, box.shape)
+        hit_xy, hit_n = _quantised_hit_sums(
+            np.zeros((3, *box.shape)) if hit_sums is None else hit_sums, box.shape
+        )
         grid = cls(params, anchor_x_m, anchor_y_m)
         p = grid.params
         grid._log_odds = np.clip(lo, p.log_odds_min, p.log_odds_max).astype(np.float32)
         grid._observed = obs.copy()
-        grid._hits = hits
+        grid._hit_xy, grid._hit_n = hit_xy, hit_n
         if not box.is_empty:
             grid._storage = grid._extent = box
         grid.revision = revision
@@ -264,7 +327,8 @@ class OccupancyGrid:
     @property
     def nbytes(self) -> int:
         """Memory held by the backing arrays (spare capacity included)."""
-        return int(self._log_odds.nbytes + self._observed.nbytes + self._hits.nbytes)
+        arrays = (self._log_odds, self._observed, self._hit_xy, self._hit_n)
+        return int(sum(a.nbytes for a in arrays))
 
     def world_to_cells(self, points: NDArray[np.float64]) -> NDArray[np.int64]:
         """Lattice (row, col) of each world point, valid however the grid grows."""
@@ -294,25 +358,41 @@ class OccupancyGrid:
 
     @property
     def hit_sums(self) -> NDArray[np.float32]:
-        """Read-only (3, rows, cols) over the extent: per cell the sums of the endpoints' x and
-        y offsets inside the cell (in cells, [0, 1)) and their count."""
+        """(3, rows, cols) over the extent: per cell the sums of the endpoints' x and y offsets
+        inside the cell (in cells, each in [0, 1)) and their count (a copy)."""
         if self._extent is None or self._storage is None:
-            return self._hits[:, :0, :0]
-        view = self._hits[(slice(None), *self._extent.slices_in(self._storage))]
-        view.flags.writeable = False
-        return view
-
-    def hit_sums_in(self, box: CellBox) -> NDArray[np.float64]:
-        """`hit_sums` over any lattice box (zero outside the stored area)."""
-        out = np.zeros((3, *box.shape))
-        if self._storage is None:
-            return out
-        inner = box.intersection(self._storage)
-        if not inner.is_empty:
-            out[(slice(None), *inner.slices_in(box))] = self._hits[
-                (slice(None), *inner.slices_in(self._storage))
-            ]
+            return np.zeros((3, 0, 0), dtype=np.float32)
+        rows, cols = self._extent.slices_in(self._storage)
+        out = np.empty((3, *self._extent.shape), dtype=np.float32)
+        out[2] = self._hit_n[rows, cols]
+        out[:2] = (self._hit_xy[:, rows, cols] + 0.5 * out[2]) / np.float32(HIT_UNITS_PER_CELL)
         return out
+
+    def occupied_hit_means(self, box: CellBox, factor: int = 1) -> NDArray[np.float64]:
+        """(K, 2) mean hit points of the occupied cells of the `factor`-times-coarser lattice
+        over `box` (a box of that lattice), as fractional (row, col) of the box with cell
+        centres at integers.
+
+        A coarse cell pools the hits of the occupied fine cells it covers; an occupied fine cell
+        without recorded hits (a map imported without them) counts as one hit at its centre.
+        """
+        if factor < 1:
+            raise ValueError(f"factor must be >= 1, got {factor}")
+        if self._storage is None or box.is_empty:
+            return np.zeros((0, 2))
+        fine = box.refined(factor)
+        return _pooled_hit_means(
+            self._log_odds,
+            self._observed,
+            self._hit_xy,
+            self._hit_n,
+            np.float32(self.params.threshold_log_odds()),
+            fine.row0 - self._storage.row0,
+            fine.col0 - self._storage.col0,
+            box.shape[0],
+            box.shape[1],
+            factor,
+        )
 
     def probability(self) -> NDArray[np.float64]:
         """Occupancy probability over the extent (0.5 where never observed)."""
@@ -370,13 +450,16 @@ class OccupancyGrid:
         new = CellBox(rows[0], cols[0], rows[1], cols[1])
         log_odds = np.zeros(new.shape, dtype=np.float32)
         observed = np.zeros(new.shape, dtype=bool)
-        hits = np.zeros((3, *new.shape), dtype=np.float32)
+        hit_xy = np.zeros((2, *new.shape), dtype=np.uint16)
+        hit_n = np.zeros(new.shape, dtype=np.uint8)
         if old is not None:
             dst = old.slices_in(new)
             log_odds[dst] = self._log_odds
             observed[dst] = self._observed
-            hits[(slice(None), *dst)] = self._hits
-        self._log_odds, self._observed, self._hits, self._storage = log_odds, observed, hits, new
+            hit_xy[(slice(None), *dst)] = self._hit_xy
+            hit_n[dst] = self._hit_n
+        self._log_odds, self._observed, self._storage = log_odds, observed, new
+        self._hit_xy, self._hit_n = hit_xy, hit_n
         self.storage_generation += 1
         return new
 
@@ -454,22 +537,20 @@ class OccupancyGrid:
         )
 
     def _add_hits(
-        self,
-        hits: NDArray[np.float64],
-        hit_cells: NDArray[np.int64],
-        storage: CellBox,
+        self, hits: NDArray[np.float64], hit_cells: NDArray[np.int64], storage: CellBox
     ) -> None:
-        """Accumulate each endpoint's offset inside its cell; halve the sums past the cap."""
-        if hits.shape[0] == 0:
-            return
-        frac_x = (hits[:, 0] - self.anchor_x_m) / self.resolution_m - hit_cells[:, 1]
-        frac_y = (hits[:, 1] - self.anchor_y_m) / self.resolution_m - hit_cells[:, 0]
-        rows = hit_cells[:, 0] - storage.row0
-        cols = hit_cells[:, 1] - storage.col0
-        sums = self._hits
-        np.add.at(sums[0], (rows, cols), np.clip(frac_x, 0.0, 1.0).astype(np.float32))
-        np.add.at(sums[1], (rows, cols), np.clip(frac_y, 0.0, 1.0).astype(np.float32))
-        np.add.at(sums[2], (rows, cols), np.float32(1.0))
-        full = sums[2, rows, cols] > HIT_COUNT_CAP
-        if full.any():
-            sums[:, rows[full], cols[full]] *= np.float32(0.5)
+        """Accumulate each endpoint's offset inside its cell (see the module docstring)."""
+        offset = np.column_stack(
+            (
+                (hits[:, 0] - self.anchor_x_m) / self.resolution_m - hit_cells[:, 1],
+                (hits[:, 1] - self.anchor_y_m) / self.resolution_m - hit_cells[:, 0],
+            )
+        )
+        units = np.clip(np.floor(offset * HIT_UNITS_PER_CELL), 0, HIT_UNITS_PER_CELL - 1)
+        _accumulate_hits(
+            self._hit_xy,
+            self._hit_n,
+            hit_cells[:, 0] - storage.row0,
+            hit_cells[:, 1] - storage.col0,
+            units.astype(np.uint16),
+        )

@@ -26,38 +26,6 @@ from scanflow.maps.grid import CellBox
 from scanflow.maps.occupancy import OccupancyGrid
 
 
-def pool_sum(values: NDArray[np.float64], factor: int) -> NDArray[np.float64]:
-    """Block-wise sums over factor x factor blocks of the last two axes (multiples of factor)."""
-    *lead, rows, cols = values.shape
-    if rows % factor or cols % factor:
-        raise ValueError(f"shape {values.shape} is not a multiple of factor {factor}")
-    if factor == 1:
-        return values
-    blocks = values.reshape(*lead, rows // factor, factor, cols // factor, factor)
-    return blocks.sum(axis=(-3, -1))
-
-
-def occupied_means(grid: OccupancyGrid, box: CellBox, factor: int) -> NDArray[np.float64]:
-    """(K, 2) mean hit points, as fractional (row, col) of the box with cell centres at
-    integers, of the occupied cells of the `factor`-times-coarser lattice over `box`."""
-    fine = box.refined(factor)
-    occupied = grid.occupied_in(fine)
-    sums = grid.hit_sums_in(fine) * occupied
-    # An occupied cell without recorded hits counts as one hit at its centre.
-    bare = occupied & (sums[2] == 0)
-    sums[:, bare] = [[0.5], [0.5], [1.0]]
-    # Offsets in the coarse cell: add the fine cell's place in its block, in fine cells.
-    rows, cols = fine.shape
-    sums[0] += (np.arange(cols) % factor)[None, :] * sums[2]
-    sums[1] += (np.arange(rows) % factor)[:, None] * sums[2]
-    pooled = pool_sum(sums, factor)
-    r, c = np.nonzero(pooled[2])
-    count = pooled[2, r, c]
-    mean_col = c + np.clip(pooled[0, r, c] / (factor * count), 0.0, 1.0) - 0.5
-    mean_row = r + np.clip(pooled[1, r, c] / (factor * count), 0.0, 1.0) - 0.5
-    return np.column_stack((mean_row, mean_col))
-
-
 class FieldLayer:
     """One pyramid level's likelihood field over the grid's storage, kept current lazily.
 
@@ -100,7 +68,7 @@ class FieldLayer:
 
     def _values_over(self, box: CellBox) -> NDArray[np.float64]:
         """This level's field over a box of its lattice, from the obstacles inside the box."""
-        means = occupied_means(self.grid, box, self.factor)
+        means = self.grid.occupied_hit_means(box, self.factor)
         return field_from_means(box.shape, means, self.resolution_m, self.sigma_m, self.cutoff_m)
 
     def _refresh(self, dirty: CellBox, box: CellBox) -> None:

@@ -190,25 +190,23 @@ def test_hit_sums_hold_the_mean_endpoint_inside_each_cell():
     sums = grid.hit_sums
     r, c = cells[0]
     assert sums[2, r, c] == 2
-    np.testing.assert_allclose(sums[:2, r, c] / 2, [0.3, 0.5], atol=1e-5)
+    np.testing.assert_allclose(sums[:2, r, c] / 2, [0.3, 0.5], atol=2e-3)  # 1/512 cell
     r, c = cells[2]
-    np.testing.assert_allclose(sums[:, r, c], [0.5, 0.5, 1.0], atol=1e-5)
+    np.testing.assert_allclose(sums[:, r, c], [0.5, 0.5, 1.0], atol=2e-3)
     assert sums[2].sum() == 3
 
 
-def test_hit_sums_survive_growth_and_stay_bounded(monkeypatch):
-    from scanflow.maps import occupancy
-
-    monkeypatch.setattr(occupancy, "HIT_COUNT_CAP", 8.0)
+def test_hit_sums_survive_growth_and_stay_bounded():
     grid = OccupancyGrid(initial_capacity_cells=4)
-    for _ in range(20):
-        grid.insert_scan([[0.512, 0.033]], (0.0, 0.0))
+    for _ in range(130):
+        grid.insert_scan([[0.512, 0.033], [0.512, 0.033]], (0.0, 0.0))
     result = grid.insert_scan([[-3.0, 4.0]], (0.0, 0.0))  # grows the storage
     assert result.means_changed is not None
-    cell = grid.world_to_cells(np.array([[0.512, 0.033]]))[0] - [grid.extent.row0, grid.extent.col0]
-    x, y, n = grid.hit_sums[:, cell[0], cell[1]]
-    assert 4 <= n <= 8
-    np.testing.assert_allclose([x / n, y / n], [0.24, 0.66], atol=1e-4)
+    cell = grid.world_to_cells(np.array([[0.512, 0.033]]))[0]
+    r, c = cell - [grid.extent.row0, grid.extent.col0]
+    x, y, n = grid.hit_sums[:, r, c]
+    assert 127 <= n <= 255  # 260 hits: halved once on the way
+    np.testing.assert_allclose([x / n, y / n], [0.24, 0.66], atol=2e-3)
 
 
 def test_from_arrays_checks_hit_sums():
