@@ -50,3 +50,18 @@ def test_every_scan_is_deskewed_like_the_library_and_junk_is_counted(launcher, b
     assert stats.counters["received.scan"] == len(expected)
     assert stats.counters["seq.robot/scan.missed"] == 0
     assert launcher.processes["deskew"].poll() is None
+
+
+def test_a_scan_without_odometry_leaves_after_the_latency_budget_uncorrected(
+    launcher, bus, start
+):
+    deskewed = bus.record(keys.deskewed_scan("bare"))
+    start("deskew", SCANFLOW_DESKEW_ODOM_WAIT_S="0.2")
+    scans = [e for e in source_events(None, "bare", 0.5, 1, None) if isinstance(e, LaserScan)]
+    for scan in scans:
+        bus.put(keys.raw_scan("bare"), ScanMessage(scan).encode())
+    bus.wait_until(lambda: len(deskewed) == len(scans), 30.0, "scans without odometry")
+    assert [m.seq for m in deskewed] == [s.seq for s in scans]
+    assert {m.source_used for m in deskewed} == {"none"}
+    for message, scan in zip(deskewed, scans, strict=True):
+        np.testing.assert_array_equal(message.points, deskew(scan).points.astype(np.float32))

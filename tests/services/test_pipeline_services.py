@@ -90,6 +90,7 @@ def run_ingest(launcher, bus, timeout_s: float = 120.0, **settings: str) -> None
 def test_simulated_run_equals_the_in_process_front_end(pipeline):
     launcher, bus = pipeline
     poses = bus.record(keys.pose())
+    notices = bus.record(keys.map_key("*", "changed"))
     run_ingest(launcher, bus, **SIM)
     expected, grid = in_process(source_events(None, "robot", SIM_S, 7, None))
     bus.wait_until(lambda: len(poses) >= len(expected), 30.0, "every pose")
@@ -106,6 +107,31 @@ def test_simulated_run_equals_the_in_process_front_end(pipeline):
         assert all(v == 0 for k, v in stats.counters.items() if k.endswith(".missed")), stats
     (path,) = bus.get(keys.trajectory("robot"))
     np.testing.assert_array_equal(path.poses, [o.pose.to_array() for o in expected])
+    assert_map_queries(bus, grid, notices)
+
+
+def assert_map_queries(bus, grid: OccupancyGrid, notices: list) -> None:
+    """Region, images and change notices agree with the in-process map."""
+    (meta,) = bus.get(keys.map_key("robot", "meta"))
+    assert meta.spec == grid.spec
+    (whole,) = bus.get(keys.map_key("robot", "region"))
+    np.testing.assert_array_equal(whole.occupancy, grid.to_int8())
+    x0, y0 = grid.spec.origin_x_m + 0.525, grid.spec.origin_y_m + 0.275  # mid-cell corners
+    selector = f"{keys.map_key('robot', 'region')}?x0={x0};y0={y0};x1={x0 + 1.0};y1={y0 + 2.0}"
+    (window,) = bus.get(selector)
+    rows, cols = window.occupancy.shape
+    assert (rows, cols) == (41, 21)  # 2 m x 1 m at 5 cm, both corner cells included
+    r0, c0 = window.row0, window.col0
+    np.testing.assert_array_equal(window.occupancy, grid.to_int8()[r0 : r0 + rows, c0 : c0 + cols])
+    (png,) = bus.get(f"{keys.map_key('robot', 'image')}?format=png")
+    assert png.data.startswith(b"\x89PNG")
+    (yaml,) = bus.get(f"{keys.map_key('robot', 'image')}?format=yaml")
+    assert f"resolution: {grid.resolution_m!r}" in yaml.data.decode()
+    (pgm,) = bus.get(f"{keys.map_key('robot', 'image')}?format=pgm")
+    assert pgm.data.startswith(b"P5")
+    bus.wait_until(lambda: notices and notices[-1].revision == meta.revision, 10.0, "last notice")
+    revisions = [n.revision for n in notices]
+    assert revisions == sorted(set(revisions))
 
 
 def test_real_log_slice_equals_the_in_process_front_end(pipeline, data_file):
