@@ -64,6 +64,12 @@ class KDTreeIndex:
         return self.tree.query(queries, k=1, distance_upper_bound=max_distance_m, workers=1)
 
 
+# What compiled lookups take: (points, order, starts, origin_x_m, origin_y_m, cell_m, cols, rows).
+GridArrays = tuple[
+    NDArray[np.float64], NDArray[np.int64], NDArray[np.int64], float, float, float, int, int
+]
+
+
 @dataclass(frozen=True, eq=False)
 class GridIndex:
     """Bucket grid over the target points (sorted by cell) for compiled lookups."""
@@ -89,6 +95,12 @@ class GridIndex:
         order, starts, cols, rows = _bucket(points, lo[0] - cell, lo[1] - cell, cell)
         return GridIndex(points, order, starts, lo[0] - cell, lo[1] - cell, cell, cols, rows)
 
+    @property
+    def arrays(self) -> GridArrays:
+        """The grid as one tuple for the numba lookups (`grid_k_nearest`)."""
+        return (self.points, self.order, self.starts, self.origin_x_m, self.origin_y_m,
+                self.cell_m, self.cols, self.rows)
+
 
 @njit(cache=True)
 def _bucket(
@@ -110,95 +122,79 @@ def _bucket(
 
 
 @njit(cache=True)
-def grid_nearest(
-    points: NDArray[np.float64],
-    order: NDArray[np.int64],
-    starts: NDArray[np.int64],
-    ox: float,
-    oy: float,
-    cell: float,
-    cols: int,
-    rows: int,
+def grid_k_nearest(
+    grid: GridArrays,
     qx: float,
     qy: float,
-    max_distance_m: float,
-) -> tuple[int, float]:
-    """Index and squared distance of the nearest target point within max_distance_m, or -1."""
+    radius_m: float,
+    best_d2: NDArray[np.float64],
+    best_j: NDArray[np.int64],
+) -> int:
+    """Fill best_j / best_d2 (caller's buffers of length k, nearest first) with the k nearest
+    target points within radius_m of (qx, qy), -1 / inf padded; return how many were found."""
+    points, order, starts, ox, oy, cell, cols, rows = grid
+    k = len(best_j)
+    best_d2[:] = np.inf
+    best_j[:] = -1
     cx = math.floor((qx - ox) / cell)
     cy = math.floor((qy - oy) / cell)
-    ring = math.ceil(max_distance_m / cell)
-    best = -1
-    best_d2 = max_distance_m * max_distance_m
+    ring = math.ceil(radius_m / cell)
+    r2 = radius_m * radius_m
     for yy in range(max(cy - ring, 0), min(cy + ring + 1, rows)):
         for xx in range(max(cx - ring, 0), min(cx + ring + 1, cols)):
             c = yy * cols + xx
-            for k in range(starts[c], starts[c + 1]):
-                j = order[k]
+            for s in range(starts[c], starts[c + 1]):
+                j = order[s]
                 dx = points[j, 0] - qx
                 dy = points[j, 1] - qy
                 d2 = dx * dx + dy * dy
-                if d2 < best_d2:
-                    best_d2 = d2
-                    best = j
-    return best, best_d2
+                if d2 <= r2 and d2 < best_d2[k - 1]:
+                    m = k - 1
+                    while m > 0 and best_d2[m - 1] > d2:
+                        best_d2[m] = best_d2[m - 1]
+                        best_j[m] = best_j[m - 1]
+                        m -= 1
+                    best_d2[m] = d2
+                    best_j[m] = j
+    count = 0
+    while count < k and best_j[count] >= 0:
+        count += 1
+    return count
 
 
 @njit(cache=True)
-def _normals(
-    points: NDArray[np.float64],
-    order: NDArray[np.int64],
-    starts: NDArray[np.int64],
-    ox: float,
-    oy: float,
-    cell: float,
-    cols: int,
-    rows: int,
-    k: int,
-    radius_m: float,
-    max_flatness: float,
-) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+def _lines(
+    grid: GridArrays, k: int, radius_m: float, fit_radius_m: float, max_flatness: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_], NDArray[np.int64],
+           NDArray[np.float64]]:
+    points = grid[0]
     n = len(points)
     normals = np.zeros((n, 2))
+    centres = np.zeros((n, 2))
     ok = np.zeros(n, dtype=np.bool_)
+    neighbours = np.full((n, k), -1, dtype=np.int64)
+    spread = np.zeros(n)
     best_d2 = np.empty(k)
     best_j = np.empty(k, dtype=np.int64)
-    r2 = radius_m * radius_m
-    ring = math.ceil(radius_m / cell)
     for i in range(n):
-        qx, qy = points[i, 0], points[i, 1]
-        best_d2[:] = np.inf
-        best_j[:] = -1
-        cx = math.floor((qx - ox) / cell)
-        cy = math.floor((qy - oy) / cell)
-        for yy in range(max(cy - ring, 0), min(cy + ring + 1, rows)):
-            for xx in range(max(cx - ring, 0), min(cx + ring + 1, cols)):
-                c = yy * cols + xx
-                for s in range(starts[c], starts[c + 1]):
-                    j = order[s]
-                    dx = points[j, 0] - qx
-                    dy = points[j, 1] - qy
-                    d2 = dx * dx + dy * dy
-                    if d2 <= r2 and d2 < best_d2[k - 1]:
-                        m = k - 1
-                        while m > 0 and best_d2[m - 1] > d2:
-                            best_d2[m] = best_d2[m - 1]
-                            best_j[m] = best_j[m - 1]
-                            m -= 1
-                        best_d2[m] = d2
-                        best_j[m] = j
-        if best_j[k - 1] < 0:
+        count = grid_k_nearest(grid, points[i, 0], points[i, 1], radius_m, best_d2, best_j)
+        if count < 2:
             continue
+        # Beyond the two-point line, only neighbours within the fit radius: as many as the
+        # local density gives, so sparse scans keep short lines and dense ones average noise.
+        while count > 2 and best_d2[count - 1] > fit_radius_m * fit_radius_m:
+            count -= 1
         mx = 0.0
         my = 0.0
-        for m in range(k):
+        for m in range(count):
             mx += points[best_j[m], 0]
             my += points[best_j[m], 1]
-        mx /= k
-        my /= k
+        mx /= count
+        my /= count
         sxx = 0.0
         syy = 0.0
         sxy = 0.0
-        for m in range(k):
+        for m in range(count):
             dx = points[best_j[m], 0] - mx
             dy = points[best_j[m], 1] - my
             sxx += dx * dx
@@ -214,20 +210,43 @@ def _normals(
         phi = 0.5 * math.atan2(2.0 * sxy, sxx - syy)
         normals[i, 0] = -math.sin(phi)
         normals[i, 1] = math.cos(phi)
+        centres[i, 0] = mx
+        centres[i, 1] = my
+        neighbours[i, :count] = best_j[:count]
+        spread[i] = lam_max - lam_min
         ok[i] = True
-    return normals, ok
+    return normals, centres, ok, neighbours, spread
 
 
-def target_normals(
-    grid: GridIndex, k: int = 5, radius_m: float = 0.5, max_flatness: float = 0.05
-) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """Unit normal of each target point from its k nearest neighbours (itself included) within
-    `radius_m`; `ok` is False where fewer than k are near or the patch is not
-    line-like (minor/major scatter > max_flatness, e.g. corners and clutter)."""
+@dataclass(frozen=True, eq=False)
+class TargetLines:
+    """The line fitted through each target point's neighbourhood (total least squares).
+
+    `normals` and `centres` (the neighbours' centroid) define the line; `ok` is False where it
+    is unusable; `neighbours` (-1 padded) and `spread_m2` (major minus minor scatter
+    eigenvalue) let the covariance propagate the target points' noise through the fit.
+    """
+
+    normals: NDArray[np.float64]
+    centres: NDArray[np.float64]
+    ok: NDArray[np.bool_]
+    neighbours: NDArray[np.int64]
+    spread_m2: NDArray[np.float64]
+
+
+def target_lines(
+    grid: GridIndex,
+    k: int = 8,
+    radius_m: float = 0.5,
+    fit_radius_m: float = 0.2,
+    max_flatness: float = 0.05,
+) -> TargetLines:
+    """Line of each target point from its nearest neighbours (itself included): up to k within
+    `fit_radius_m`, at least the two-point line to the nearest within `radius_m`; not ok when it
+    has no neighbour or the patch is not line-like (minor/major scatter > max_flatness: corners,
+    clutter)."""
     if not k >= 2:
         raise ValueError(f"k must be >= 2, got {k}")
-    return _normals(
-        grid.points, grid.order, grid.starts, grid.origin_x_m, grid.origin_y_m, grid.cell_m,
-        grid.cols, grid.rows, k, radius_m, max_flatness,
-    )
-
+    if not 0.0 < fit_radius_m <= radius_m:
+        raise ValueError(f"fit_radius_m must be in (0, radius_m={radius_m}], got {fit_radius_m}")
+    return TargetLines(*_lines(grid.arrays, k, radius_m, fit_radius_m, max_flatness))

@@ -1,10 +1,10 @@
-"""Point-to-line ICP (Censi 2008, PL-ICP): each source point against the line through its
-nearest target point, with the line's normal fitted once from the target's neighbours.
+"""Point-to-line ICP (Censi 2008, PL-ICP): each source point against the line fitted through
+its nearest target point's neighbourhood (fitted once per target).
 
-Cost sum_i rho(n_i . (T p_i - q_i)) with Cauchy weights, an adaptive association gate and a
+Cost sum_i rho(n_i . (T p_i - c_i)) with Cauchy weights, an adaptive association gate and a
 Gauss-Newton step on the 3x3 normal equations per iteration. The whole iteration loop is one
 numba function over a `GridIndex` (see correspondence.py for why); the Python side validates,
-builds the target index and turns the outcome into a `MatchResult`.
+builds the target index and turns the outcome into a `MatchResult` with Censi's covariance.
 """
 
 from __future__ import annotations
@@ -28,12 +28,14 @@ from scanflow.matching.api import (
 from scanflow.matching.checks import analyse_hessian, characteristic_length_m
 from scanflow.matching.correspondence import (
     MAD_TO_SIGMA,
+    GridArrays,
     GridIndex,
+    TargetLines,
     adaptive_gate_m,
-    grid_nearest,
-    target_normals,
+    grid_k_nearest,
+    target_lines,
 )
-from scanflow.matching.covariance import least_squares_covariance
+from scanflow.matching.covariance import line_fit_covariance, unknown_covariance
 
 MIN_PAIRS = 6
 # Solver outcome codes (shared with icp).
@@ -43,16 +45,10 @@ CONVERGED, MAX_ITER, TOO_FEW, SINGULAR = 0, 1, 2, 3
 @njit(cache=True)
 def _plicp_kernel(
     src: NDArray[np.float64],
-    tgt: NDArray[np.float64],
+    grid: GridArrays,
     normals: NDArray[np.float64],
-    normal_ok: NDArray[np.bool_],
-    order: NDArray[np.int64],
-    starts: NDArray[np.int64],
-    ox: float,
-    oy: float,
-    cell: float,
-    cols: int,
-    rows: int,
+    centres: NDArray[np.float64],
+    line_ok: NDArray[np.bool_],
     pose0: NDArray[np.float64],
     gate_max_m: float,
     gate_min_m: float,
@@ -62,18 +58,20 @@ def _plicp_kernel(
     tol_rad: float,
     max_step_m: float,
     max_step_rad: float,
-) -> tuple[NDArray[np.float64], NDArray[np.float64], float, int, int, int]:
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64], NDArray[np.float64],
+           int, int]:
     n = len(src)
     x, y, th = pose0[0], pose0[1], pose0[2]
     gate = gate_max_m
     dist = np.empty(n)
     res = np.empty(n)
-    jx = np.empty(n)
-    jy = np.empty(n)
-    jt = np.empty(n)
+    jac = np.empty((n, 3))
+    rows = np.empty(n, dtype=np.int64)
+    assoc = np.full(n, -1, dtype=np.int64)
+    weights = np.zeros(n)
     hess = np.zeros((3, 3))
-    ssr = 0.0
-    m = 0
+    near_d2 = np.empty(1)
+    near_j = np.empty(1, dtype=np.int64)
     code = MAX_ITER
     it = 0
     while it < max_iterations:
@@ -83,15 +81,18 @@ def _plicp_kernel(
         for i in range(n):
             px = c * src[i, 0] - s * src[i, 1] + x
             py = s * src[i, 0] + c * src[i, 1] + y
-            j, d2 = grid_nearest(tgt, order, starts, ox, oy, cell, cols, rows, px, py, gate)
-            if j < 0 or not normal_ok[j]:
+            grid_k_nearest(grid, px, py, gate, near_d2, near_j)
+            j, d2 = near_j[0], near_d2[0]
+            if j < 0 or not line_ok[j]:
                 continue
             nx, ny = normals[j, 0], normals[j, 1]
             dist[m] = math.sqrt(d2)
-            res[m] = nx * (px - tgt[j, 0]) + ny * (py - tgt[j, 1])
-            jx[m] = nx
-            jy[m] = ny
-            jt[m] = nx * -py + ny * px
+            res[m] = nx * (px - centres[j, 0]) + ny * (py - centres[j, 1])
+            jac[m, 0] = nx
+            jac[m, 1] = ny
+            jac[m, 2] = nx * -py + ny * px
+            rows[m] = i
+            assoc[i] = j
             m += 1
         if m < MIN_PAIRS:
             code = TOO_FEW
@@ -99,16 +100,15 @@ def _plicp_kernel(
         scale = max(cauchy_min_m, MAD_TO_SIGMA * np.median(np.abs(res[:m])))
         hess[:, :] = 0.0
         g = np.zeros(3)
-        ssr = 0.0
+        weights[:] = 0.0
         for i in range(m):
             u = res[i] / scale
             w = 1.0 / (1.0 + u * u)
-            a = (jx[i], jy[i], jt[i])
+            weights[rows[i]] = w
             for r in range(3):
-                g[r] += w * a[r] * res[i]
+                g[r] += w * jac[i, r] * res[i]
                 for q in range(3):
-                    hess[r, q] += w * a[r] * a[q]
-            ssr += w * res[i] * res[i]
+                    hess[r, q] += w * jac[i, r] * jac[i, q]
         if np.linalg.det(hess) <= 1e-12 * np.trace(hess) ** 3:
             code = SINGULAR
             break
@@ -124,7 +124,9 @@ def _plicp_kernel(
         if t_norm < tol_m and abs(step[2]) < tol_rad:
             code = CONVERGED
             break
-    return np.array([x, y, th]), hess, ssr, m, it, code
+        if it < max_iterations:  # the next iteration re-associates every point
+            assoc[:] = -1
+    return np.array([x, y, th]), hess, assoc, weights, it, code
 
 
 @register_method("plicp")
@@ -136,8 +138,9 @@ def match_plicp(
     max_correspondence_m: float = 1.0,
     min_correspondence_m: float = 0.15,
     cauchy_min_m: float = 0.01,
-    normal_neighbours: int = 2,
+    normal_neighbours: int = 8,
     normal_radius_m: float = 0.5,
+    normal_fit_radius_m: float = 0.2,
     grid_cell_m: float = 0.25,
     max_iterations: int = 50,
     tolerance_m: float = 1e-3,
@@ -152,37 +155,61 @@ def match_plicp(
     if bad is not None:
         return bad
     grid = GridIndex.build(tgt, grid_cell_m)
-    normals, normal_ok = target_normals(grid, normal_neighbours, normal_radius_m)
-    if normal_ok.sum() < MIN_PAIRS:
+    lines = target_lines(grid, normal_neighbours, normal_radius_m, normal_fit_radius_m)
+    if lines.ok.sum() < MIN_PAIRS:
         return failed(
             "plicp", MatchStatus.TOO_FEW_POINTS, guess,
-            f"only {int(normal_ok.sum())} target points have a line-like neighbourhood",
+            f"only {int(lines.ok.sum())} target points have a line-like neighbourhood",
         )
-    pose_arr, hess, ssr, inliers, iterations, code = _plicp_kernel(
-        source, tgt, normals, normal_ok, grid.order, grid.starts, grid.origin_x_m,
-        grid.origin_y_m, grid.cell_m, grid.cols, grid.rows, guess.to_array(),
+    pose_arr, hess, assoc, weights, iterations, code = _plicp_kernel(
+        source, grid.arrays, lines.normals, lines.centres, lines.ok, guess.to_array(),
         max_correspondence_m, min_correspondence_m, cauchy_min_m, max_iterations,
         tolerance_m, tolerance_rad, max_step_m, max_step_rad,
     )
     return line_match_result(
-        "plicp", source, guess, Pose2D.from_array(pose_arr), hess, ssr, inliers, iterations,
-        code, min_inlier_fraction,
+        "plicp", source, tgt, lines, guess, Pose2D.from_array(pose_arr), hess, assoc, weights,
+        iterations, code, min_inlier_fraction,
+    )
+
+
+def pair_covariance(
+    source: NDArray[np.float64],
+    target: NDArray[np.float64],
+    lines: TargetLines,
+    pose: Pose2D,
+    assoc: NDArray[np.int64],
+    weights: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """Censi covariance of `pose` for source point i paired with target line assoc[i] (-1: none)."""
+    paired = assoc >= 0
+    if paired.sum() <= 3:
+        return unknown_covariance()
+    j = assoc[paired]
+    moved = pose.transform_points(source[paired])
+    normals, centres = lines.normals[j], lines.centres[j]
+    residuals = np.sum(normals * (moved - centres), axis=1)
+    return line_fit_covariance(
+        moved, weights[paired], residuals, normals, centres, lines.neighbours[j],
+        lines.spread_m2[j], target, np.array([pose.x, pose.y]),
     )
 
 
 def line_match_result(
     method: str,
     source: NDArray[np.float64],
+    target: NDArray[np.float64],
+    lines: TargetLines,
     guess: Pose2D,
     pose: Pose2D,
     hessian: NDArray[np.float64],
-    ssr: float,
-    inliers: int,
+    assoc: NDArray[np.int64],
+    weights: NDArray[np.float64],
     iterations: int,
     code: int,
     min_inlier_fraction: float,
 ) -> MatchResult:
-    """Status, covariance and degeneracy of a point-to-line solution (shared by icp and plicp)."""
+    """Status, covariance and degeneracy of a solution scored on target lines (icp, plicp)."""
+    inliers = int(np.count_nonzero(assoc >= 0))
     if code == TOO_FEW:
         return failed(
             method, MatchStatus.NO_OVERLAP, guess,
@@ -196,7 +223,7 @@ def line_match_result(
             iterations,
         )
         return replace(singular, weak_direction=weak)
-    cov = least_squares_covariance(hessian, ssr, inliers)
+    cov = pair_covariance(source, target, lines, pose, assoc, weights)
     fraction = inliers / len(source)
     cond = analyse_hessian(hessian, characteristic_length_m(source))
     status, message, weak = MatchStatus.OK, "", None
