@@ -56,10 +56,10 @@ class NDTCells:
         cols = math.floor((hi[0] - lo[0]) / cell_size_m) + 1
         rows = math.floor((hi[1] - lo[1]) / cell_size_m) + 1
         spec = GridSpec(float(lo[0]), float(lo[1]), cell_size_m, rows, cols)
-        moments = _cell_moments(p, spec.origin_x_m, spec.origin_y_m, cell_size_m, rows, cols)
-        index, means, inv_covs, counts = cells_from_moments(
-            moments, min_points, p[0] if len(p) else np.zeros(2)
+        index, moments = _sparse_moments(
+            p, spec.origin_x_m, spec.origin_y_m, cell_size_m, rows, cols, 1, min_points
         )
+        means, inv_covs, counts = cell_distributions(moments, p[0] if len(p) else np.zeros(2))
         return NDTCells(spec, index.reshape(rows, cols), means, inv_covs, counts)
 
     def __len__(self) -> int:
@@ -75,49 +75,63 @@ class NDTCells:
 
 
 @njit(cache=True)
-def _cell_moments(points, origin_x, origin_y, size, rows, cols):  # type: ignore[no-untyped-def]
-    """Per cell (flat index): count, sum x, sum y, sum xx, sum xy, sum yy of the points.
+def _sparse_moments(points, origin_x, origin_y, size, rows, cols, span, min_points):  # type: ignore[no-untyped-def]
+    """(flat index of kept cell numbers or -1, (K, 6) moments of the kept cells).
 
-    Moments are taken about the first point, which keeps the sums small (no cancellation far
-    from the origin). One pass instead of a bincount per moment.
+    Block (r, c) covers span x span cells of `size` from cell (r, c): span 1 gives plain
+    cells; span 2 the 2 x 2 blocks of OverlappingCells, each point added to the four blocks
+    holding it. Moments (count, sum x, sum y, sum xx, sum xy, sum yy) are accumulated only
+    for blocks holding points, about the first point (small sums, no cancellation far from
+    the origin); blocks with fewer than `min_points` points are dropped.
     """
-    out = np.zeros((rows * cols, 6))
-    if points.shape[0] == 0:
-        return out
-    x0, y0 = points[0, 0], points[0, 1]
+    index = np.full(rows * cols, -1, dtype=np.int64)
+    moments = np.zeros((points.shape[0] * span * span, 6))
+    touched = np.empty(points.shape[0] * span * span, dtype=np.int64)
+    n = 0
+    x0, y0 = (points[0, 0], points[0, 1]) if points.shape[0] else (0.0, 0.0)
     for i in range(points.shape[0]):
         col = math.floor((points[i, 0] - origin_x) / size)
         row = math.floor((points[i, 1] - origin_y) / size)
         x, y = points[i, 0] - x0, points[i, 1] - y0
-        cell = out[row * cols + col]
-        cell[0] += 1.0
-        cell[1] += x
-        cell[2] += y
-        cell[3] += x * x
-        cell[4] += x * y
-        cell[5] += y * y
-    return out
+        for r in range(max(row - span + 1, 0), min(row, rows - 1) + 1):
+            for c in range(max(col - span + 1, 0), min(col, cols - 1) + 1):
+                flat = r * cols + c
+                k = index[flat]
+                if k < 0:
+                    k = index[flat] = n
+                    touched[n] = flat
+                    n += 1
+                m = moments[k]
+                m[0] += 1.0
+                m[1] += x
+                m[2] += y
+                m[3] += x * x
+                m[4] += x * y
+                m[5] += y * y
+    kept = 0
+    for k in range(n):
+        if moments[k, 0] >= min_points:
+            moments[kept] = moments[k]
+            index[touched[k]] = kept
+            kept += 1
+        else:
+            index[touched[k]] = -1
+    return index, moments[:kept]
 
 
-def cells_from_moments(
-    moments: NDArray[np.float64], min_points: int, about: NDArray[np.float64]
-) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
-    """(flat index or -1, means, inverse covariances, counts) of the cells with enough points.
-
-    `moments` rows are _cell_moments' (count, sums about `about`).
-    """
-    kept = np.flatnonzero(moments[:, 0] >= min_points)
-    n, sx, sy, sxx, sxy, syy = moments[kept].T
+def cell_distributions(
+    moments: NDArray[np.float64], about: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+    """(means, regularised inverse covariances, counts) from `_sparse_moments`' moments."""
+    n, sx, sy, sxx, sxy, syy = moments.T
     mx, my = sx / n, sy / n
     dof = np.maximum(n - 1, 1)
-    cov = np.empty((len(kept), 2, 2))
+    cov = np.empty((len(n), 2, 2))
     cov[:, 0, 0] = (sxx - n * mx * mx) / dof
     cov[:, 0, 1] = cov[:, 1, 0] = (sxy - n * mx * my) / dof
     cov[:, 1, 1] = (syy - n * my * my) / dof
-    index = np.full(len(moments), -1, dtype=np.int64)
-    index[kept] = np.arange(len(kept))
     means = np.column_stack((mx, my)) + about
-    return index, means, regularised_inverse(cov), n.astype(np.int64)
+    return means, regularised_inverse(cov), n.astype(np.int64)
 
 
 def regularised_inverse(cov: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -180,17 +194,16 @@ class OverlappingCells:
             lo = hi = np.zeros(2, dtype=np.int64)
         cols, rows = (hi - lo + 1).tolist()
         origin = anchor + lo * half
-        moments = _cell_moments(p, origin[0], origin[1], half, rows, cols).reshape(rows, cols, 6)
-        blocks = moments[:-1, :-1] + moments[1:, :-1] + moments[:-1, 1:] + moments[1:, 1:]
-        index, means, inv_covs, counts = cells_from_moments(
-            blocks.reshape(-1, 6), min_points, p[0] if len(p) else np.zeros(2)
+        index, moments = _sparse_moments(
+            p, origin[0], origin[1], half, rows - 1, cols - 1, 2, min_points
         )
+        means, inv_covs, counts = cell_distributions(moments, p[0] if len(p) else np.zeros(2))
         return OverlappingCells(
             float(origin[0]),
             float(origin[1]),
             half,
             (int(lo[1] % 2), int(lo[0] % 2)),
-            index.reshape(blocks.shape[:2]),
+            index.reshape(rows - 1, cols - 1),
             means,
             inv_covs,
             counts,

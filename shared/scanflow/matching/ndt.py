@@ -141,18 +141,34 @@ def surface_hessian(
     moved = moved_points(points, pose)
     k = cells.lookup(moved)[:, 0]
     hit = k >= 0
-    _, vecs = np.linalg.eigh(cells.inv_covs[k[hit]])
-    return line_hessian(moved[hit] - pose[:2], vecs[:, :, 1])
+    inv = cells.inv_covs[k[hit]]
+    # The tightest axis is the inverse covariance's major axis: closed form for 2 x 2.
+    phi = 0.5 * np.arctan2(2.0 * inv[:, 0, 1], inv[:, 0, 0] - inv[:, 1, 1])
+    return line_hessian(moved[hit] - pose[:2], np.column_stack((np.cos(phi), np.sin(phi))))
+
+
+@njit(cache=True)
+def _floored(hessian, ratio):  # type: ignore[no-untyped-def]
+    """(ok, H with eigenvalues floored at ratio * max |eigenvalue|): see positive_definite."""
+    out = np.zeros((3, 3))
+    if not np.all(np.isfinite(hessian)):
+        return False, out
+    vals, vecs = np.linalg.eigh(0.5 * (hessian + hessian.T))
+    top = np.max(np.abs(vals))
+    if top <= 0.0:
+        return False, out
+    for k in range(3):
+        v = max(vals[k], ratio * top)
+        for a in range(3):
+            for b in range(3):
+                out[a, b] += vecs[a, k] * v * vecs[b, k]
+    return True, out
 
 
 def positive_definite(hessian: NDArray[np.float64]) -> NDArray[np.float64] | None:
     """H with its eigenvalues floored at a fraction of the largest |eigenvalue|; None if H = 0."""
-    vals, vecs = np.linalg.eigh(0.5 * (hessian + hessian.T))
-    top = float(np.max(np.abs(vals)))
-    if not math.isfinite(top) or top <= 0.0:
-        return None
-    vals = np.maximum(vals, PD_FLOOR_RATIO * top)
-    return (vecs * vals) @ vecs.T
+    ok, floored = _floored(np.asarray(hessian, dtype=np.float64), PD_FLOOR_RATIO)
+    return floored if ok else None
 
 
 def newton_level(
