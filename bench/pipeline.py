@@ -29,6 +29,7 @@ from scanflow.pipeline import Pipeline
 from scanflow.scan import LaserScan
 from scanflow.wire import ScanMessage, ServiceStatsMessage, decode_any
 
+from services.common.launch import PIPELINE as SERVICES
 from services.common.launch import Launcher, free_port
 from services.common.zsession import open_session
 from services.ingest.sources import source_events
@@ -36,7 +37,6 @@ from services.ingest.sources import source_events
 _DEFAULT_DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 DATA_DIR = Path(os.environ.get("SCANFLOW_DATA_DIR", _DEFAULT_DATA))
 FREIBURG = DATA_DIR / "freiburg-079-corrected.log.gz"
-SERVICES = ("deskew", "matcher", "mapserver")
 
 
 @contextmanager
@@ -52,25 +52,11 @@ def running(services: tuple[str, ...], **settings: str) -> Iterator[tuple[Launch
         try:
             for name in services:
                 launcher.start(name)
-            _wait_alive(session, services)
+            launcher.wait_healthy(services)
             yield launcher, session
         finally:
             session.close()
             launcher.stop_all()
-
-
-def _wait_alive(session: Any, services: tuple[str, ...], timeout_s: float = 180.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        alive = {
-            str(r.ok.key_expr).split("/")[-2]
-            for r in session.liveliness().get(keys.health(), timeout=2.0)
-            if r.ok is not None
-        }
-        if set(services) <= alive:
-            return
-        time.sleep(0.2)
-    raise TimeoutError(f"services {services} did not come up in {timeout_s} s")
 
 
 class Observer:

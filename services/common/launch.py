@@ -8,10 +8,17 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from scanflow import keys
+from scanflow.config import ZenohSettings
+
+from services.common.zsession import open_session
+
 ORDER = ("router", "deskew", "matcher", "mapserver", "gateway", "ingest")
+PIPELINE = ("deskew", "matcher", "mapserver")  # what must listen before ingest publishes
 
 
 def free_port() -> int:
@@ -115,6 +122,24 @@ class Launcher:
     def exited(self) -> dict[str, int]:
         """Services that have ended, with their exit codes."""
         return {n: p.returncode for n, p in self.processes.items() if p.poll() is not None}
+
+    def wait_healthy(self, services: Iterable[str], timeout_s: float = 180.0) -> None:
+        """Block until every named service shows its health token (any instance)."""
+        wanted = set(services)
+        session = open_session(ZenohSettings(connect=[f"tcp/127.0.0.1:{self.zenoh_port}"]))
+        try:
+            deadline = time.monotonic() + timeout_s
+            while True:
+                replies = session.liveliness().get(keys.health(), timeout=2.0)
+                alive = {str(r.ok.key_expr).split("/")[-2] for r in replies if r.ok is not None}
+                if wanted <= alive:
+                    return
+                if time.monotonic() > deadline:
+                    missing = sorted(wanted - alive)
+                    raise TimeoutError(f"services {missing} not up after {timeout_s} s")
+                time.sleep(0.2)
+        finally:
+            session.close()
 
     def log_text(self, name: str) -> str:
         path = self.log_dir / f"{name}.log"

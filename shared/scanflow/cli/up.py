@@ -24,7 +24,7 @@ def up(
     limit: Annotated[int | None, typer.Option(help="publish at most this many scans")] = None,
 ) -> None:
     """Start the whole pipeline as local processes; stop them all on Ctrl-C or SIGTERM."""
-    from services.common.launch import ORDER, Launcher
+    from services.common.launch import ORDER, PIPELINE, Launcher
 
     settings = {
         "SCANFLOW_INGEST_RATE": str(rate),
@@ -50,6 +50,8 @@ def up(
             if name == "gateway" and importlib.util.find_spec("services.gateway") is None:
                 typer.echo("gateway: not installed, skipped")
                 continue
+            if name == "ingest":  # publish only once the pipeline listens
+                launcher.wait_healthy(PIPELINE)
             launcher.start(name)
         typer.echo(f"source:   {log or 'built-in simulator'} at rate {rate}")
         typer.echo(f"gateway:  http://127.0.0.1:{port}/")
