@@ -46,6 +46,14 @@ def default_log() -> Path:
     return root / "intel-corrected.log.gz"
 
 
+def existing_log(path: Path | None) -> Path:
+    """`path`, or the default log, or exit with a clear message when it is missing."""
+    log = path or default_log()
+    if not log.exists():
+        raise SystemExit(f"log not found: {log} (set --data or SCANFLOW_DATA_DIR)")
+    return log
+
+
 def timed(fn, *args, **kwargs):  # type: ignore[no-untyped-def]
     t0 = time.perf_counter()
     out = fn(*args, **kwargs)
@@ -128,10 +136,7 @@ def main() -> None:
     parser.add_argument("--pairs", type=int, default=20)
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
-    log = args.data or default_log()
-    if not log.exists():
-        raise SystemExit(f"log not found: {log} (set --data or SCANFLOW_DATA_DIR)")
-    result = run(log, args.pairs)
+    result = run(existing_log(args.data), args.pairs)
     if args.json:
         print(json.dumps(result, indent=2))
     else:

@@ -30,7 +30,7 @@ from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.matching import match
 from scanflow.sim import SimConfig, simulate
 
-from bench.csm import default_log
+from bench.csm import existing_log
 
 METHODS = ("gn", "lm", "ndt")
 SIM_GUESS_ERROR = (0.05, 0.05, math.radians(1.0))
@@ -119,9 +119,7 @@ def main() -> None:
     parser.add_argument("--sim-seconds", type=float, default=20.0)
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
-    log = args.data or default_log()
-    if not log.exists():
-        raise SystemExit(f"log not found: {log} (set --data or SCANFLOW_DATA_DIR)")
+    log = existing_log(args.data)
     result = {"real": real_pairs(log, args.pairs), "sim": sim_map(args.sim_seconds, 0)}
     print(json.dumps(result, indent=None if args.json else 2))
 

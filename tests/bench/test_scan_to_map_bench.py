@@ -1,0 +1,38 @@
+"""bench.scan_to_map runs end to end on a few real pairs and a short simulated tour."""
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+DATA = Path(os.environ.get("SCANFLOW_DATA_DIR", REPO / ".." / "shared" / "data"))
+LOG = DATA / "intel-corrected.log.gz"
+
+
+@pytest.mark.skipif(not LOG.exists(), reason=f"real log {LOG} not available")
+def test_bench_scan_to_map_reports_every_method_and_both_map_fields():
+    args = ["--json", "--pairs", "3", "--sim-seconds", "1.5", "--data", str(LOG)]
+    out = subprocess.run(
+        [sys.executable, "-m", "bench.scan_to_map", *args],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=120,
+    )
+    result = json.loads(out.stdout)
+    assert result["real"]["pairs"] == 3
+    for method in ("gn", "lm", "ndt"):
+        row = result["real"][method]
+        assert row["ms_median"] > 0 and row["cpu_ms_median"] >= 0
+        assert 0.0 <= row["success_5cm_0.5deg"] <= row["success_10cm_1deg"] <= 1.0
+    sim = result["sim"]
+    assert sim["scans"] == 15
+    for fields in ("mean_hits", "cell_centres"):
+        assert math.isfinite(sim[fields]["trans_mm_median"])
+        assert sim[fields]["trans_mm_median"] <= sim[fields]["trans_mm_p95"]
