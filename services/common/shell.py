@@ -66,10 +66,22 @@ class ServiceShell:
 
     def put(self, key: str, payload: bytes) -> None:
         """Publish on `key` through a cached reliable, blocking publisher."""
+        self._cached_publisher(key).put(payload)
+
+    def wait_for_subscribers(self, key: str, timeout_s: float) -> bool:
+        """Wait until something subscribes to `key` (True), or `timeout_s` passes (False)."""
+        pub = self._cached_publisher(key)
+        deadline = time.monotonic() + timeout_s
+        while not pub.matching_status.matching:
+            if self.stop_event.wait(0.05) or time.monotonic() > deadline:
+                return False
+        return True
+
+    def _cached_publisher(self, key: str) -> zenoh.Publisher:
         pub = self._publishers.get(key)
         if pub is None:
             pub = self._publishers[key] = self.publisher(key)
-        pub.put(payload)
+        return pub
 
     def subscribe(
         self,

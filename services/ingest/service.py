@@ -51,6 +51,7 @@ class Ingest:
             if isinstance(event, LaserScan):
                 if event.seq == 0:
                     self.credit.reset(robot)
+                    self._wait_for_pipeline(keys.raw_scan(robot, prefix))
                 if not self.credit.acquire(robot, event.seq):
                     break
                 self.shell.put(keys.raw_scan(robot, prefix), ScanMessage(event).encode())
@@ -62,6 +63,14 @@ class Ingest:
                 self.shell.seqs.observe(f"{robot}/odom", event.seq)
         self.shell.counters.add("published.scan", scans)
         return scans
+
+    def _wait_for_pipeline(self, key: str) -> None:
+        """Scans published before anyone subscribes are lost: wait for a subscriber first."""
+        if not self.shell.wait_for_subscribers(key, self.settings.wait_subscribers_s):
+            self.shell.log.warning(
+                "nothing subscribes to %s after %.0f s: publishing anyway",
+                key, self.settings.wait_subscribers_s,
+            )
 
     def drain(self) -> bool:
         """Wait for the pose of every robot's last scan (bounded by `drain_timeout_s`)."""

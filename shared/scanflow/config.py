@@ -74,6 +74,7 @@ class IngestSettings(ServiceSettings):
     sim_duration_s: float = Field(60.0, gt=0.0)
     sim_seed: int = 0
     stall_timeout_s: float = Field(10.0, gt=0.0, description="no pose for this long: resume")
+    wait_subscribers_s: float = Field(60.0, ge=0.0, description="wait for a scan subscriber")
     drain_timeout_s: float = Field(60.0, ge=0.0, description="wait for the last pose at the end")
 
 

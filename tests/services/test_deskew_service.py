@@ -65,3 +65,17 @@ def test_a_scan_without_odometry_leaves_after_the_latency_budget_uncorrected(
     assert {m.source_used for m in deskewed} == {"none"}
     for message, scan in zip(deskewed, scans, strict=True):
         np.testing.assert_array_equal(message.points, deskew(scan).points.astype(np.float32))
+
+
+def test_ingest_waits_for_a_subscriber_before_publishing(launcher, bus, start):
+    deskewed = bus.record(keys.deskewed_scan())
+    launcher.start(
+        "ingest",
+        SCANFLOW_INGEST_WINDOW="0",
+        SCANFLOW_INGEST_DRAIN_TIMEOUT_S="0.5",
+        SCANFLOW_INGEST_SIM_DURATION_S="1",
+    )
+    bus.wait_until(lambda: "ingest/0" in bus.alive(), 30.0, "ingest up")
+    start("deskew")
+    bus.wait_until(lambda: len(deskewed) == 10, 30.0, "all 10 scans, none published into nothing")
+    assert [m.seq for m in deskewed] == list(range(10))
