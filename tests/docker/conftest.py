@@ -14,6 +14,7 @@ import hashlib
 import json
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import time
@@ -214,8 +215,15 @@ class ComposeProject:
         self.compose("start", service)
 
     def kill9(self, service: str) -> None:
-        """SIGKILL the service's main process (a crash: the restart policy brings it back)."""
-        run(["docker", "kill", "--signal", "KILL", self.container(service)])
+        """SIGKILL the service's main process from outside: a crash, which the restart policy
+        answers (`docker kill` would count as a manual stop and disable it)."""
+        pid = int(run(["docker", "inspect", "-f", "{{.State.Pid}}", self.container(service)])
+                  .stdout)
+        try:
+            os.kill(pid, signal.SIGKILL)  # the daemon shares our PID namespace
+        except (ProcessLookupError, PermissionError):
+            run(["docker", "run", "--rm", "--pid=host", "--user=0", "--entrypoint=bash",
+                 IMAGE, "-c", f"kill -9 {pid}"])
 
     def network(self, service: str) -> str:
         """The (first) network the service's container is attached to."""
