@@ -177,13 +177,14 @@ def _lines(
     best_d2 = np.empty(k)
     best_j = np.empty(k, dtype=np.int64)
     for i in range(n):
-        count = grid_k_nearest(grid, points[i, 0], points[i, 1], radius_m, best_d2, best_j)
+        # Up to k neighbours within the fit radius (as many as the local density gives, so
+        # sparse scans keep short lines and dense ones average noise), else the two-point line.
+        count = grid_k_nearest(grid, points[i, 0], points[i, 1], fit_radius_m, best_d2, best_j)
+        if count < 2:
+            count = min(grid_k_nearest(grid, points[i, 0], points[i, 1], radius_m, best_d2,
+                                       best_j), 2)
         if count < 2:
             continue
-        # Beyond the two-point line, only neighbours within the fit radius: as many as the
-        # local density gives, so sparse scans keep short lines and dense ones average noise.
-        while count > 2 and best_d2[count - 1] > fit_radius_m * fit_radius_m:
-            count -= 1
         mx = 0.0
         my = 0.0
         for m in range(count):
