@@ -257,7 +257,7 @@ def correlative_match(
     )
     step_rad = angular_resolution_rad or default_angular_step_rad(source, field.spec.resolution_m)
     depth = stack_depth(math.floor(linear_m / field.spec.resolution_m + 1e-9))
-    stack = MaxPoolStack.from_values(field.spec, np.clip(field.values, 0.0, 1.0), depth)
+    stack = MaxPoolStack.from_values(field.spec, field.values, depth)
     cand = build_candidates(source, stack, guess, linear_m, angular_rad, step_rad)
     k, ix, iy, score = search(cand, exhaustive)
     if score <= 0:
