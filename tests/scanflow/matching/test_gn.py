@@ -52,6 +52,26 @@ def test_jacobian_matches_finite_differences(room_map_points, room, caster) -> N
     np.testing.assert_allclose(2 * lin.gradient, num, rtol=1e-3, atol=1e-3)
 
 
+def test_compiled_linearisation_equals_the_sampled_field(room_map_points) -> None:
+    """Cost, hits, J^T J and J^T r from one compiled pass equal LikelihoodField.sample's,
+    points off the grid included (value 0, no gradient)."""
+    field = points_field(room_map_points, 0.05, 0.1)
+    rng = np.random.default_rng(2)
+    pts = np.vstack((rng.uniform(-5, 5, (300, 2)), [[40.0, 0.0], [0.0, -40.0]]))
+    pose = np.array([0.05, -0.02, 0.1])
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    moved = pts @ np.array([[c, s], [-s, c]]) + pose[:2]
+    value, grad = field.sample(moved)
+    d_theta = np.column_stack((-s * pts[:, 0] - c * pts[:, 1], c * pts[:, 0] - s * pts[:, 1]))
+    jac = -np.column_stack((grad, (grad * d_theta).sum(axis=1)))
+    r = 1.0 - value
+    lin = linearise(field, pts, pose)
+    assert lin.cost == pytest.approx(r @ r, rel=1e-12)
+    assert lin.hits == np.count_nonzero(value)
+    np.testing.assert_allclose(lin.hessian, jac.T @ jac, rtol=1e-10, atol=1e-9)
+    np.testing.assert_allclose(lin.gradient, jac.T @ r, rtol=1e-10, atol=1e-9)
+
+
 def test_convergence_needs_small_translation_and_small_absolute_rotation() -> None:
     assert converged_step(np.array([1e-5, 0.0, -1e-5]), 1e-3, 1e-3)
     assert not converged_step(np.array([1e-5, 0.0, -0.2]), 1e-3, 1e-3)  # the seed's bug
