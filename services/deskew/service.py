@@ -12,7 +12,6 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 
-import numpy as np
 from scanflow import keys
 from scanflow.config import DeskewSettings, ZenohSettings
 from scanflow.frontend import ACCEPTED
@@ -98,7 +97,7 @@ class DeskewService:
             robot_id=robot_id,
             seq=scan.seq,
             stamp_s=result.reference_stamp_s,
-            points=result.points.astype(np.float32),
+            points=result.points,
             source_used=result.source_used,
             times_assumed=result.times_assumed,
             beam_count=result.beam_count,

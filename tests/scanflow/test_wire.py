@@ -44,9 +44,9 @@ def f64_arrays(shape: Any, allow_inf: bool = False) -> st.SearchStrategy[np.ndar
     return hnp.arrays(np.float64, shape, elements=elems)
 
 
-def f32_points(n: int) -> st.SearchStrategy[np.ndarray]:
-    elems = st.floats(-1e4, 1e4, allow_nan=False, width=32)
-    return hnp.arrays(np.float32, (n, 2), elements=elems)
+def f64_points(n: int) -> st.SearchStrategy[np.ndarray]:
+    elems = st.floats(-1e4, 1e4, allow_nan=False, width=64)
+    return hnp.arrays(np.float64, (n, 2), elements=elems)
 
 
 @st.composite
@@ -94,7 +94,7 @@ def deskewed_messages(draw: st.DrawFn) -> wire.DeskewedScanMessage:
         robot_id=draw(ids),
         seq=draw(counts),
         stamp_s=draw(finite),
-        points=draw(f32_points(n)),
+        points=draw(f64_points(n)),
         source_used=draw(texts),
         times_assumed=draw(st.booleans()),
         beam_count=beams,
@@ -380,6 +380,17 @@ def test_bad_scan_fields_name_the_field(changes: dict[str, Any], pattern: str) -
         wire.ScanMessage.decode(_payload(SCAN, **changes))
 
 
+def test_deskewed_points_keep_every_float64_bit_and_refuse_float32() -> None:
+    points = np.array([[0.1, 1.0 / 3.0], [math.pi, -2.0 / 7.0]])  # not representable in float32
+    msg = wire.DeskewedScanMessage("r", 0, 0.0, points, "odometry", False, 2, 0)
+    decoded = wire.DeskewedScanMessage.decode(msg.encode())
+    assert decoded.points.dtype == np.float64
+    assert decoded.points.tobytes() == points.tobytes()
+    narrow = {"points": wire.codec.encode_array(points, "<f4")}
+    with pytest.raises(wire.SchemaError, match=r"points\.d: expected dtype '<f8', got '<f4'"):
+        wire.decode_any(_payload(msg, **narrow))
+
+
 def test_zero_sized_arrays_with_huge_dimensions_are_refused() -> None:
     envelope = {"d": "<f8", "s": [0, 2**62, 2**62], "b": b""}
     with pytest.raises(wire.SchemaError, match=r"poses\.s: sizes must be integers"):
@@ -398,7 +409,7 @@ def test_scan_errors_surface_as_chained_decode_errors() -> None:
     [
         (
             wire.DeskewedScanMessage("r", 0, 0.0, np.zeros((1, 2)), "none", True, 1, 0),
-            {"points": wire.codec.encode_array(np.full((1, 2), np.nan), "<f4")},
+            {"points": wire.codec.encode_array(np.full((1, 2), np.nan), "<f8")},
             "points contains non-finite",
         ),
         (

@@ -93,6 +93,9 @@ class ScanMessage(Message):
 class DeskewedScanMessage(Message):
     """A scan after motion compensation: valid endpoints in the sensor frame at `stamp_s`.
 
+    `points` travel as float64, bit for bit what the deskewer computed, so a front end fed
+    from the bus sees exactly the input of the in-process pipeline (360 beams: 5.8 kB).
+
     `beam_count` is the raw scan's beam count and `dropped_count` its masked beams;
     `source_used` names the motion source the deskewer used (e.g. "odometry", "none"),
     `times_assumed` is True when beam times came from the scan duration, not the driver.
@@ -103,7 +106,7 @@ class DeskewedScanMessage(Message):
         "robot_id": TEXT,
         "seq": INT,
         "stamp_s": NUMBER,
-        "points": array("<f4"),
+        "points": array("<f8"),
         "source_used": TEXT,
         "times_assumed": FLAG,
         "beam_count": INT,
@@ -112,7 +115,7 @@ class DeskewedScanMessage(Message):
     robot_id: str
     seq: int
     stamp_s: float
-    points: NDArray[np.float32]
+    points: NDArray[np.float64]
     source_used: str
     times_assumed: bool
     beam_count: int
@@ -122,7 +125,7 @@ class DeskewedScanMessage(Message):
         check_text("robot_id", self.robot_id)
         object.__setattr__(self, "seq", check_count("seq", self.seq))
         object.__setattr__(self, "stamp_s", check_finite("stamp_s", self.stamp_s))
-        points = check_array("points", self.points, np.float32, (None, 2))
+        points = check_array("points", self.points, np.float64, (None, 2))
         object.__setattr__(self, "points", points)
         check_text("source_used", self.source_used, allow_empty=True)
         object.__setattr__(self, "times_assumed", bool(self.times_assumed))
