@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import numpy as np
+from scanflow.frontend import insert_scan
 from scanflow.frontend.trajectory import TrajectoryStore
 from scanflow.geometry import Pose2D
 from scanflow.maps.grid import CellBox
@@ -53,10 +53,8 @@ class RobotMap:
         return True
 
     def insert(self, scan: DeskewedScanMessage, pose: Pose2D) -> None:
-        """The front end's insertion: points within the grid's max range, seen from `pose`."""
-        points = scan.points.astype(np.float64)
-        in_range = np.hypot(points[:, 0], points[:, 1]) <= self.map.grid.params.max_range_m
-        result = self.map.update(pose.transform_points(points[in_range]), (pose.x, pose.y))
+        """The front end's own insertion of `scan` at `pose`; remembers the touched cells."""
+        result = insert_scan(self.map, scan.points, pose)
         if result.touched is not None:
             self.dirty = result.touched.union(self.dirty)
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-from scanflow.frontend import Frontend, default_settings
 from scanflow.geometry import Pose2D
 from scanflow.wire import DeskewedScanMessage, PoseEstimateMessage
 
@@ -15,7 +14,6 @@ from services.matcher.shard import owns
 
 def scan(seq: int, points: np.ndarray | None = None) -> DeskewedScanMessage:
     pts = np.array([[2.0, 0.0], [2.0, 1.0], [1.5, -1.0]]) if points is None else points
-    pts = pts.astype(np.float32)
     return DeskewedScanMessage("r", seq, 0.1 * seq, pts, "none", True, len(pts), 0)
 
 
@@ -42,16 +40,14 @@ def test_pairing_is_bounded():
     assert list(pairing.scans) == [2, 3, 4] and pairing.scans_evicted == 2
 
 
-def test_robot_map_inserts_like_the_front_end():
-    rng = np.random.default_rng(1)
-    points = rng.uniform(-5, 5, (200, 2))
+def test_robot_map_inserts_a_paired_scan_and_notices_the_change():
     at = Pose2D(0.3, -0.2, 0.4)
-    frontend = Frontend(default_settings())
-    frontend._insert(points.astype(np.float32).astype(np.float64), at)
     robot = RobotMap("r", pending_limit=10)
-    robot.pairing.add_scan(scan(3, points))
+    assert not robot.apply(pose(2, at))  # a pose without an inserted scan changes no cell
+    assert robot.take_change(0.5) is None and robot.map.revision == 0
+    robot.pairing.add_scan(scan(3))
     assert robot.apply(pose(3, at))
-    np.testing.assert_array_equal(robot.map.grid.log_odds, frontend.map.grid.log_odds)
+    assert robot.map.revision == 1 and robot.state == (1, 3)
     notice = robot.take_change(1.0)
     assert notice.min_x_m < at.x < notice.max_x_m and robot.take_change(2.0) is None
 

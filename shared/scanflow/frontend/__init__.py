@@ -5,6 +5,7 @@
     out = frontend.process(points_m, stamp_s, odom_pose=None, seq=0)   # -> FrontendOutput
     out.pose, out.covariance, out.status, out.inserted ...
     frontend.map (MatchingMap, the robot's map), frontend.trajectory.save_tum(path)
+    insert_scan(matching_map, points_m, pose)  # the front end's map insertion, for map servers
 
 See `scanflow.frontend.tracker` for what happens to each scan.
 """
@@ -23,6 +24,7 @@ from scanflow.frontend.tracker import (
     FrontendOutput,
     FrontendStatus,
     default_settings,
+    insert_scan,
 )
 from scanflow.frontend.trajectory import TrajectoryStore, load_tum, save_tum, tum_text
 
@@ -39,6 +41,7 @@ __all__ = [
     "TrajectoryStore",
     "compose_odometry_increment",
     "default_settings",
+    "insert_scan",
     "load_tum",
     "rejection_reason",
     "save_tum",

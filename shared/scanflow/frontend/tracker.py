@@ -36,7 +36,7 @@ from scanflow.frontend.prediction import MotionPredictor, Prediction
 from scanflow.frontend.trajectory import TrajectoryStore
 from scanflow.geometry import Pose2D
 from scanflow.maps.matching_map import MatchingMap
-from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
+from scanflow.maps.occupancy import InsertResult, OccupancyGrid, OccupancyParams
 from scanflow.matching import MatchResult, match
 from scanflow.matching.api import as_points
 
@@ -87,6 +87,16 @@ class _Step:
     odom_pose: Pose2D | None
     seq: int
     match_time_s: float = 0.0
+
+
+def insert_scan(
+    matching_map: MatchingMap, points_sensor_m: ArrayLike, pose: Pose2D
+) -> InsertResult:
+    """Insert a scan's endpoints (sensor frame) within the grid's max range, seen from `pose`
+    (T_map_sensor): the one insertion the front end and the map server both use."""
+    points = as_points(points_sensor_m, "points_sensor_m")
+    in_range = np.hypot(points[:, 0], points[:, 1]) <= matching_map.grid.params.max_range_m
+    return matching_map.update(pose.transform_points(points[in_range]), (pose.x, pose.y))
 
 
 def default_settings() -> FrontendSettings:
@@ -204,7 +214,7 @@ class Frontend:
         inserted, insert_time_s = False, 0.0
         if status in ACCEPTED and self._filter.should_insert(step.stamp_s, pose):
             t0 = time.perf_counter()
-            self._insert(step.points, pose)
+            insert_scan(self.map, step.points, pose)
             insert_time_s = time.perf_counter() - t0
             self._filter.mark_inserted(step.stamp_s, pose)
             inserted = True
@@ -223,12 +233,6 @@ class Frontend:
             match_time_s=step.match_time_s,
             insert_time_s=insert_time_s,
         )
-
-    def _insert(self, points: NDArray[np.float64], pose: Pose2D) -> None:
-        """Insert the scan's points (within the grid's max range) seen from `pose`."""
-        max_range_m = self.map.grid.params.max_range_m
-        in_range = np.hypot(points[:, 0], points[:, 1]) <= max_range_m
-        self.map.update(pose.transform_points(points[in_range]), (pose.x, pose.y))
 
     def _motion_noise(self, motion: Pose2D) -> NDArray[np.float64]:
         s = self.settings

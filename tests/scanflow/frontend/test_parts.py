@@ -16,11 +16,15 @@ from scanflow.frontend import (
     PredictionSource,
     TrajectoryStore,
     compose_odometry_increment,
+    insert_scan,
     load_tum,
     rejection_reason,
     tum_text,
 )
 from scanflow.geometry import Pose2D
+from scanflow.maps.grid import CellBox
+from scanflow.maps.matching_map import MatchingMap
+from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
 from scanflow.matching import MatchResult, MatchStatus
 
 coord = st.floats(-50.0, 50.0, allow_nan=False)
@@ -143,3 +147,15 @@ def test_tum_quaternion_is_a_yaw_rotation(theta: float) -> None:
 def test_tum_shape_error_names_the_field() -> None:
     with pytest.raises(ValueError, match="poses must have shape"):
         tum_text(np.zeros(2), np.zeros((3, 3)))
+
+
+def test_insert_scan_keeps_points_within_max_range_seen_from_the_pose() -> None:
+    pose = Pose2D(1.0, -2.0, math.pi / 2)
+    near, far = np.array([[3.0, 0.0]]), np.array([[30.0, 0.0]])
+    with_far = MatchingMap(OccupancyGrid(OccupancyParams(max_range_m=10.0)))
+    result = insert_scan(with_far, np.vstack([near, far]), pose)
+    alone = MatchingMap(OccupancyGrid(OccupancyParams(max_range_m=10.0)))
+    insert_scan(alone, near, pose)
+    np.testing.assert_array_equal(with_far.grid.log_odds, alone.grid.log_odds)  # far: no ray
+    sensor, hit = with_far.grid.world_to_cells(np.array([[1.0, -2.0], [1.0, 1.0]]))
+    assert result.touched == CellBox.around(np.array([sensor, hit]))  # the ray, in the map frame
