@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import tempfile
 import threading
-from collections import OrderedDict, deque
+from collections import deque
 from pathlib import Path
 
 import zenoh
@@ -39,7 +39,7 @@ from services.matcher.requests import answer
 from services.matcher.shard import owns
 
 SEED_TIMEOUT_S = 5.0
-MAX_PENDING_ODOMETRY = 4096  # odometry samples held ahead of the scans (and for lookup)
+MAX_PENDING_ODOMETRY = 4096  # odometry samples held ahead of the scans
 
 
 class Track:
@@ -54,29 +54,20 @@ class Track:
         self.frontend = frontend
         self.stage = stage or DeskewStage()
         self.pending: deque[Odometry] = deque()
-        self._measured: OrderedDict[float, Pose2D] = OrderedDict()
 
     def add_odometry(self, odom: Odometry) -> None:
         self.pending.append(odom)
         while len(self.pending) > MAX_PENDING_ODOMETRY:
-            self._feed(self.pending.popleft())
+            self.stage.add_odometry(self.pending.popleft())
 
     def odom_pose(self, stamp_s: float) -> Pose2D | None:
-        """The odometry measured at `stamp_s` if a sample has that stamp (logs with one
-        odometry pose per scan), else interpolated by the deskew stage, else None."""
+        """The odometry pose at `stamp_s` exactly as the in-process pipeline takes it."""
         while self.pending:
             odom = self.pending.popleft()
-            self._feed(odom)
+            self.stage.add_odometry(odom)
             if odom.stamp_s > stamp_s:
                 break
-        measured = self._measured.get(stamp_s)
-        return measured if measured is not None else self.stage.odometry_pose_at(stamp_s)
-
-    def _feed(self, odom: Odometry) -> None:
-        self.stage.add_odometry(odom)
-        self._measured[odom.stamp_s] = odom.pose
-        while len(self._measured) > MAX_PENDING_ODOMETRY:
-            self._measured.popitem(last=False)
+        return self.stage.odometry_pose_at(stamp_s)
 
 
 class MatcherService:

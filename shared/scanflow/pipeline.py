@@ -1,8 +1,10 @@
 """The in-process pipeline for one robot: the deskew stage, then the scan-to-map front end.
 
 It is what `scanflow run` and the benchmarks use, and the reference the distributed services
-are compared with: the deskew service runs the same `DeskewStage`, the matcher service the same
-`Frontend`.
+equal bit for bit: the deskew service runs the same `DeskewStage` (points travel as float64),
+the matcher the same `Frontend` with odometry from `DeskewStage.odometry_pose_at`, the map
+server the front end's own `insert_scan`. (The deskew service may wait for odometry that
+arrives after a scan; in-process, a scan is deskewed with the odometry that came before it.)
 
     pipeline = Pipeline(settings)              # FrontendSettings; deskew on by default
     pipeline.add_odometry(sample)              # every Odometry sample, in any order
@@ -12,6 +14,7 @@ are compared with: the deskew service runs the same `DeskewStage`, the matcher s
 from __future__ import annotations
 
 import time
+from collections import OrderedDict
 from dataclasses import dataclass
 
 from scanflow.config import FrontendSettings
@@ -29,6 +32,8 @@ from scanflow.geometry import Pose2D
 from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.scan import LaserScan, Odometry
 
+MEASURED_POSES_KEPT = 256  # recent odometry samples looked up by exact stamp
+
 
 class DeskewStage:
     """Per robot: buffer odometry, deskew each scan with it (else with the constant-velocity
@@ -44,9 +49,14 @@ class DeskewStage:
         self.odometry = odometry if odometry is not None else OdometryBuffer()
         self.velocity = ConstantVelocityModel()
         self.enabled = enabled
+        self._measured: OrderedDict[float, Pose2D] = OrderedDict()
 
     def add_odometry(self, sample: Odometry) -> bool:
         """Buffer one sample; False when it was older than the buffer's window."""
+        self._measured[sample.stamp_s] = sample.pose
+        self._measured.move_to_end(sample.stamp_s)
+        if len(self._measured) > MEASURED_POSES_KEPT:
+            self._measured.popitem(last=False)
         return self.odometry.add_odometry(sample)
 
     def observe_pose(self, stamp_s: float, pose: Pose2D) -> None:
@@ -59,7 +69,11 @@ class DeskewStage:
         return deskew(scan, sources, self.reference)
 
     def odometry_pose_at(self, stamp_s: float) -> Pose2D | None:
-        """The interpolated odometry pose at `stamp_s`, None when the buffer does not cover it."""
+        """The odometry pose measured at `stamp_s` when a recent sample has exactly that stamp
+        (logs with one odometry pose per scan), else the buffer's interpolation, else None."""
+        measured = self._measured.get(stamp_s)
+        if measured is not None:
+            return measured
         if self.odometry.coverage_gap(stamp_s, stamp_s) is not None:
             return None
         x, y, theta = self.odometry.poses_at([stamp_s])

@@ -72,3 +72,13 @@ def test_deskew_stage_odometry_pose_at() -> None:
     assert pose is not None
     assert math.isclose(pose.x, 0.1) and math.isclose(pose.theta, 0.1)
     assert stage.odometry_pose_at(2.0) is None
+
+
+def test_deskew_stage_gives_the_measured_odometry_at_its_exact_stamp() -> None:
+    stage = DeskewStage()
+    measured = Pose2D(1.0, 2.0, 3.0)
+    stage.add_odometry(Odometry(5.0, measured))
+    assert stage.odometry_pose_at(5.0) is measured  # one sample: no interpolation possible
+    stage.add_odometry(Odometry(5.2, Pose2D(1.2, 2.0, -3.0)))
+    assert stage.odometry_pose_at(5.0) is measured
+    assert stage.odometry_pose_at(5.1) is not None and stage.odometry_pose_at(4.0) is None

@@ -1,8 +1,7 @@
-"""The whole pipeline as real processes through a real router, against the in-process front end.
+"""The whole pipeline as real processes through a real router, against the in-process pipeline.
 
-Reference: the pipeline's `DeskewStage` + `Frontend` fed the same events in the same order,
-with the deskewed points rounded to float32 as the wire carries them and the odometry pose at
-a scan's stamp taken as the matcher does (the measured sample at that stamp, else interpolated).
+Reference: the plain `scanflow.pipeline.Pipeline` fed the same source events in the same order
+(`services.ingest.sources.source_events`); poses and the served map must equal it bit for bit.
 """
 
 from __future__ import annotations
@@ -13,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 from scanflow import keys
-from scanflow.frontend import Frontend, default_settings
+from scanflow.frontend import FrontendOutput
 from scanflow.maps.export import load_npz
 from scanflow.maps.occupancy import OccupancyGrid
-from scanflow.pipeline import DeskewStage
+from scanflow.pipeline import Pipeline
 from scanflow.scan import LaserScan
 from scanflow.wire import MapImageMessage, PoseEstimateMessage
 
@@ -26,28 +25,19 @@ pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 SIM_S = 6.0
 SIM = {"SCANFLOW_INGEST_SIM_DURATION_S": str(SIM_S), "SCANFLOW_INGEST_SIM_SEED": "7"}
+LOG_SCANS = 40
 
 
-def in_process(events) -> tuple[list, OccupancyGrid]:
-    """(per-scan front end outputs, final grid) of the in-process stages on `events`."""
-    stage = DeskewStage()
-    frontend = Frontend(default_settings())
-    measured = {}
+def in_process(events) -> tuple[list[FrontendOutput], OccupancyGrid]:
+    """(per-scan front end outputs, final grid) of the in-process pipeline on `events`."""
+    pipeline = Pipeline()
     outputs = []
     for event in events:
-        if not isinstance(event, LaserScan):
-            stage.add_odometry(event)
-            measured[event.stamp_s] = event.pose
-            continue
-        result = stage.process(event)
-        stamp_s = result.reference_stamp_s
-        odom_pose = measured.get(stamp_s) or stage.odometry_pose_at(stamp_s)
-        points = result.points.astype(np.float32).astype(np.float64)
-        out = frontend.process(points, stamp_s, odom_pose, event.seq)
-        if out.accepted:
-            stage.observe_pose(stamp_s, out.pose)
-        outputs.append(out)
-    return outputs, frontend.map.grid
+        if isinstance(event, LaserScan):
+            outputs.append(pipeline.process(event).estimate)
+        else:
+            pipeline.add_odometry(event)
+    return outputs, pipeline.frontend.map.grid
 
 
 def served_grid(bus, robot: str = "robot") -> OccupancyGrid:
@@ -87,7 +77,24 @@ def run_ingest(launcher, bus, timeout_s: float = 120.0, **settings: str) -> None
     assert proc.returncode == 0, launcher.log_text("ingest")
 
 
-def test_simulated_run_equals_the_in_process_front_end(pipeline):
+def assert_every_scan_processed(bus, scans: int) -> None:
+    """Deskew and matcher each took every scan, and no stream reports a missed seq."""
+    deskew, matcher = bus.stats("deskew"), bus.stats("matcher")
+    assert deskew.counters["received.scan"] == scans
+    assert matcher.counters["received.scan"] == scans
+    for stats in (deskew, matcher):
+        assert all(v == 0 for k, v in stats.counters.items() if k.endswith(".missed")), stats
+
+
+def assert_served_map(bus, grid: OccupancyGrid, scans: int) -> None:
+    bus.wait_until(
+        lambda: bus.stats("mapserver").counters.get("received.pose", 0) >= scans,
+        30.0, "map server caught up",
+    )
+    assert_same_grid(served_grid(bus), grid)
+
+
+def test_simulated_run_equals_the_in_process_pipeline(pipeline):
     launcher, bus = pipeline
     poses = bus.record(keys.pose())
     notices = bus.record(keys.map_key("*", "changed"))
@@ -95,16 +102,8 @@ def test_simulated_run_equals_the_in_process_front_end(pipeline):
     expected, grid = in_process(source_events(None, "robot", SIM_S, 7, None))
     bus.wait_until(lambda: len(poses) >= len(expected), 30.0, "every pose")
     assert_same_poses(poses, expected)
-    bus.wait_until(
-        lambda: bus.stats("mapserver").counters.get("received.pose", 0) >= len(expected),
-        30.0, "map server caught up",
-    )
-    assert_same_grid(served_grid(bus), grid)
-    deskew, matcher = bus.stats("deskew"), bus.stats("matcher")
-    assert deskew.counters["received.scan"] == len(expected)
-    assert matcher.counters["received.scan"] == len(expected)
-    for stats in (deskew, matcher):
-        assert all(v == 0 for k, v in stats.counters.items() if k.endswith(".missed")), stats
+    assert_served_map(bus, grid, len(expected))
+    assert_every_scan_processed(bus, len(expected))
     (path,) = bus.get(keys.trajectory("robot"))
     np.testing.assert_array_equal(path.poses, [o.pose.to_array() for o in expected])
     assert_map_queries(bus, grid, notices)
@@ -134,20 +133,19 @@ def assert_map_queries(bus, grid: OccupancyGrid, notices: list) -> None:
     assert revisions == sorted(set(revisions))
 
 
-def test_real_log_slice_equals_the_in_process_front_end(pipeline, data_file):
+def test_real_log_slice_equals_the_in_process_pipeline(pipeline, data_file):
     launcher, bus = pipeline
     log = data_file("aces-corrected.log.gz")
     poses = bus.record(keys.pose())
-    limit = 25
-    run_ingest(launcher, bus, SCANFLOW_INGEST_LOG=str(log), SCANFLOW_INGEST_LIMIT=str(limit))
-    expected, grid = in_process(source_events(str(log), "robot", 1.0, 0, limit))
-    bus.wait_until(lambda: len(poses) >= limit, 30.0, "every pose")
+    limit = {"SCANFLOW_INGEST_LOG": str(log), "SCANFLOW_INGEST_LIMIT": str(LOG_SCANS)}
+    run_ingest(launcher, bus, **limit)
+    expected, grid = in_process(source_events(str(log), "robot", 1.0, 0, LOG_SCANS))
+    assert len(expected) == LOG_SCANS
+    assert sum(o.inserted for o in expected) > 1  # the map grew beyond the first scan
+    bus.wait_until(lambda: len(poses) >= LOG_SCANS, 30.0, "every pose")
     assert_same_poses(poses, expected)
-    bus.wait_until(
-        lambda: bus.stats("mapserver").counters.get("received.pose", 0) >= limit,
-        30.0, "map server caught up",
-    )
-    assert_same_grid(served_grid(bus), grid)
+    assert_served_map(bus, grid, LOG_SCANS)
+    assert_every_scan_processed(bus, LOG_SCANS)
 
 
 def test_two_matchers_split_the_robots_by_shard(launcher, bus, start):
