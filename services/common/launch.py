@@ -96,18 +96,23 @@ class Launcher:
         return proc
 
     def stop(self, name: str, timeout_s: float = 15.0) -> int | None:
-        """SIGTERM one service and wait for it (SIGKILL after `timeout_s`); its exit code."""
+        """SIGTERM one service and wait for it (SIGKILL after `timeout_s`); its exit code.
+
+        0 also when the service died of the SIGTERM sent here (uvicorn re-raises the signal
+        after its graceful shutdown): that is the clean stop that was asked for.
+        """
         proc = self.processes.get(name)
         if proc is None:
             return None
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(timeout_s)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-        return proc.returncode
+        if proc.poll() is not None:
+            return proc.returncode
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            return proc.wait()
+        return 0 if proc.returncode == -signal.SIGTERM else proc.returncode
 
     def kill(self, name: str) -> None:
         """SIGKILL one service (a crash, for recovery tests)."""

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import threading
 import time
 
@@ -11,6 +13,7 @@ from hypothesis import strategies as st
 
 from services.common.counters import Counters, SeqTracker
 from services.common.inbox import Inbox
+from services.common.launch import Launcher
 from services.ingest.flow import CreditWindow, Pacer
 
 
@@ -131,3 +134,22 @@ def test_pacer_at_rate_zero_never_waits():
     for stamp in (1.0, 2.0, 3.0):
         pacer.wait(stamp)
     assert stop.waits == []
+
+
+def _python(code: str) -> subprocess.Popen[bytes]:
+    """A child that prints "ready" once `code` (its signal setup) ran, then sleeps."""
+    script = f"import signal, sys, time\n{code}\nprint('ready', flush=True)\ntime.sleep(60)"
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE)
+    assert proc.stdout is not None and proc.stdout.readline() == b"ready\n"
+    return proc
+
+
+def test_launcher_counts_death_by_its_own_sigterm_as_a_clean_stop(tmp_path):
+    launcher = Launcher({}, tmp_path)
+    launcher.processes["reraises"] = _python("")  # SIGTERM's default action, as uvicorn's re-raise
+    launcher.processes["fails"] = _python(
+        "signal.signal(signal.SIGTERM, lambda *_: sys.exit(3))"
+    )
+    launcher.processes["done"] = subprocess.Popen([sys.executable, "-c", "raise SystemExit(4)"])
+    launcher.processes["done"].wait()
+    assert launcher.stop_all() == {"done": 4, "fails": 3, "reraises": 0}

@@ -1,4 +1,5 @@
-"""`scanflow up` end to end: everything starts, the run completes, Ctrl-C stops it all cleanly."""
+"""`scanflow up` end to end: everything starts, the run completes, Ctrl-C or SIGTERM stops it
+all cleanly (every service, the gateway too, reports exit 0, and so does `scanflow up`)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,8 @@ from services.common.launch import free_port
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 
-def test_up_runs_the_simulator_through_and_stops_on_ctrl_c(tmp_path):
+@pytest.mark.parametrize("stop_signal", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_up_runs_the_simulator_through_and_stops_cleanly(tmp_path, stop_signal):
     out = tmp_path / "up.out"
     data = tmp_path / "data"
     cmd = [
@@ -30,12 +32,12 @@ def test_up_runs_the_simulator_through_and_stops_on_ctrl_c(tmp_path):
                 assert time.monotonic() < deadline, out.read_text()
                 time.sleep(0.3)
         finally:
-            proc.send_signal(signal.SIGINT)
+            proc.send_signal(stop_signal)
             proc.wait(60)
     text = out.read_text()
     assert proc.returncode == 0, text
     for line in ("gateway:  http://127.0.0.1:", f"data dir: {data}", "Ctrl-C stops everything."):
         assert line in text
-    for service in ("ingest", "mapserver", "matcher", "deskew", "router"):
+    for service in ("ingest", "gateway", "mapserver", "matcher", "deskew", "router"):
         assert f"  {service}: exit 0" in text, text
     assert (data / "robot.map.npz").exists() and (data / "robot.trajectory.npz").exists()

@@ -23,7 +23,8 @@ def up(
     data_dir: Annotated[Path, typer.Option(help="map snapshots")] = Path("scanflow-data"),
     limit: Annotated[int | None, typer.Option(help="publish at most this many scans")] = None,
 ) -> None:
-    """Start the whole pipeline as local processes; stop them all on Ctrl-C or SIGTERM."""
+    """Start the whole pipeline as local processes; stop them all on Ctrl-C or SIGTERM.
+    Exits 0 when every service stopped cleanly, else 1 naming the ones that did not."""
     from services.common.launch import ORDER, PIPELINE, Launcher
 
     settings = {
@@ -47,6 +48,8 @@ def up(
     signal.signal(signal.SIGINT, on_signal)
     try:
         for name in ORDER:
+            if stopping:
+                break
             if name == "gateway" and importlib.util.find_spec("services.gateway") is None:
                 typer.echo("gateway: not installed, skipped")
                 continue
@@ -68,5 +71,10 @@ def up(
             time.sleep(0.5)
     finally:
         typer.echo("stopping...")
-        for name, code in launcher.stop_all().items():
+        codes = launcher.stop_all()
+        for name, code in codes.items():
             typer.echo(f"  {name}: exit {code}")
+    failed = sorted(name for name, code in codes.items() if code != 0)
+    if failed:
+        typer.echo(f"not a clean stop: {', '.join(failed)} (logs: {log_dir})", err=True)
+        raise typer.Exit(1)
