@@ -3,7 +3,8 @@
 Conventions (the same as ROS sensor_msgs/LaserScan):
 - beam i points at `angle_min_rad + i * angle_increment_rad`, counter-clockwise, in the
   sensor frame (x forward, y left);
-- `stamp_s` is the time of the first beam; beam i was measured at `stamp_s + beam_time_offsets_s[i]`.
+- `stamp_s` is the time of the first beam; beam i was measured at
+  `stamp_s + beam_time_offsets_s[i]`.
   When a driver gives no per-beam times, offsets are assumed uniform over `scan_duration_s`
   (and `beam_times_assumed` tells so);
 - a beam is valid when its range is finite, positive, >= `range_min_m` and < `range_max_m`.
