@@ -86,16 +86,18 @@ def field_from_means(
     resolution_m: float,
     sigma_m: float,
     cutoff_m: float,
-) -> NDArray[np.float64]:
+    dtype: type[np.floating] = np.float64,
+) -> NDArray[np.floating]:
     """exp(-d^2 / (2 sigma^2)) per cell, d the distance to the nearest of the `mean_rc` points.
 
     `mean_rc` (K, 2) are fractional (row, col) with cell centres at integers (one per occupied
     cell: its mean hit point, or its centre). Only cells within `cutoff_m` of a point are
     written, so the cost is K * (cut-off in cells)^2, whatever the grid's size; with integer
-    `mean_rc` the result equals `field_values` of those cells (to rounding).
+    `mean_rc` the result equals `field_values` of those cells (to rounding). Maps keep their
+    fields as float32 (`dtype`): half the memory, and ample precision for values in [0, 1].
     """
     _check_sigma_cutoff(sigma_m, cutoff_m)
-    values = np.zeros(shape)
+    values = np.zeros(shape, dtype=dtype)
     means = np.ascontiguousarray(mean_rc, dtype=np.float64).reshape(-1, 2)
     if means.shape[0] and values.size:
         _splat_means(values, means, float(resolution_m), float(sigma_m), float(cutoff_m))
@@ -107,7 +109,7 @@ class LikelihoodField:
     """Field values on a grid (cell centres) with bilinear value + gradient lookup."""
 
     spec: GridSpec
-    values: NDArray[np.float64]
+    values: NDArray[np.floating]  # float64, or float32 for a map's fields
     sigma_m: float
 
     def __post_init__(self) -> None:

@@ -207,3 +207,37 @@ class CellBox:
             slice(self.row0 - outer.row0, self.row1 - outer.row0),
             slice(self.col0 - outer.col0, self.col1 - outer.col0),
         )
+
+
+def _grown_axis(old: tuple[int, int], need: tuple[int, int]) -> tuple[int, int]:
+    """[lo, hi) holding `need`: `old` if it does, else `need` plus half its size on each side
+    that grew and at most a quarter (of what `old` had) on a side that did not."""
+    if old[0] <= need[0] and need[1] <= old[1]:
+        return old
+    spare = max((need[1] - need[0]) // 2, 1)
+    lo = need[0] - spare if need[0] < old[0] else max(old[0], need[0] - spare // 2)
+    hi = need[1] + spare if need[1] > old[1] else min(old[1], need[1] + spare // 2)
+    return lo, hi
+
+
+def grown_box(old: CellBox | None, need: CellBox, minimum_cells: int = 1) -> CellBox:
+    """The box a growable array should cover to hold `need` (its used cells plus the new ones).
+
+    `old` itself while it holds `need`; else each axis that must grow gets `need` plus 50 % spare
+    on the side(s) it grew, keeping up to 25 % on the other: an array that keeps growing is
+    reallocated O(log size) times per axis and stays within 2x of `need` per axis, 4x in area
+    (doubling the whole old box instead reached 12x on a long-range log). The first box is `need`
+    centred in at least `minimum_cells` per axis.
+    """
+    if old is None:
+        rows, cols = need.shape
+        pad_r, pad_c = max(minimum_cells - rows, 0), max(minimum_cells - cols, 0)
+        return CellBox(
+            need.row0 - pad_r // 2,
+            need.col0 - pad_c // 2,
+            need.row1 + pad_r - pad_r // 2,
+            need.col1 + pad_c - pad_c // 2,
+        )
+    r0, r1 = _grown_axis((old.row0, old.row1), (need.row0, need.row1))
+    c0, c1 = _grown_axis((old.col0, old.col1), (need.col0, need.col1))
+    return CellBox(r0, c0, r1, c1)

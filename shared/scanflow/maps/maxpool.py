@@ -41,9 +41,13 @@ class MaxPoolStack:
     pad_cells: int
 
     @staticmethod
-    def from_values(spec: GridSpec, values: NDArray[np.float64], depth: int) -> MaxPoolStack:
-        """Quantise probabilities in [0, 1] to integers and pool them up to 2**depth cells."""
-        v = np.ascontiguousarray(values, dtype=np.float64)
+    def from_values(spec: GridSpec, values: NDArray[np.floating], depth: int) -> MaxPoolStack:
+        """Quantise probabilities in [0, 1] to integers and pool them up to 2**depth cells.
+
+        float32 or float64 values (a map's field view) are read in place, not copied."""
+        v = np.asarray(values)
+        if v.dtype not in (np.float32, np.float64):
+            v = v.astype(np.float64)
         if v.shape != spec.shape:
             raise ValueError(f"values shape {v.shape} != grid shape {spec.shape}")
         if depth < 0:

@@ -1,11 +1,12 @@
 """A growable log-odds occupancy grid: free along each beam, occupied at its end, clamped.
 
-Growth is amortised doubling of one contiguous array (not tiles): cells are indexed on a lattice
-fixed in the world (cell (0, 0) has its corner at the anchor), and when a scan reaches beyond the
-stored box the box at least doubles along the axis that grew, so the whole map is copied only
-O(log size) times. One contiguous array lets every derived view (distance fields, pyramids,
-exports) slice any region directly, with no tile stitching; the price is up to ~4x spare capacity
-right after a doubling, reported by `nbytes` and measured in bench/maps.py.
+Growth is amortised reallocation of one contiguous array (not tiles): cells are indexed on a
+lattice fixed in the world (cell (0, 0) has its corner at the anchor), and when a scan reaches
+beyond the stored box, each axis that must grow gets the used extent plus 50 % spare on the side
+it grew (`grid.grown_box`), so the map is copied O(log size) times and the storage stays within
+~2x of the extent per axis. One contiguous array lets every derived view (distance fields,
+pyramids, exports) slice any region directly, with no tile stitching; the spare capacity is
+reported by `nbytes` and measured in bench/maps.py.
 
 A cell is updated at most once per scan; a cell hit by some beam of the scan is not also
 cleared by another beam of the same scan.
@@ -27,7 +28,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
-from scanflow.maps.grid import CellBox, GridSpec
+from scanflow.maps.grid import CellBox, GridSpec, grown_box
 from scanflow.maps.raycast import mark_rays
 
 HIT_UNITS_PER_CELL = 256  # hit offsets are stored in 1/256 of a cell
@@ -174,25 +175,6 @@ def _quantised_hit_sums(
     most = count * (HIT_UNITS_PER_CELL - 1)
     xy = np.clip(np.rint((h[:2] * HIT_UNITS_PER_CELL - 0.5 * h[2]) / scale), 0, most)
     return xy.astype(np.uint16), count.astype(np.uint8)
-
-
-def _grown_axis(
-    old: tuple[int, int] | None, need: tuple[int, int], minimum: int
-) -> tuple[int, int]:
-    """New [lo, hi) along one axis: at least double the old size, spare room where it grew."""
-    size = need[1] - need[0]
-    if old is None:
-        target = max(size, minimum)
-        lo = need[0] - (target - size) // 2
-        return lo, lo + target
-    if need == old:
-        return old
-    target = max(size, 2 * (old[1] - old[0]), minimum)
-    spare = target - size
-    grew_lo, grew_hi = need[0] < old[0], need[1] > old[1]
-    lo_pad = spare // 2 if (grew_lo and grew_hi) else (spare if grew_lo else 0)
-    lo = need[0] - lo_pad
-    return lo, lo + target
 
 
 def _true_box(mask: NDArray[np.bool_], box: CellBox) -> CellBox | None:
@@ -429,35 +411,23 @@ class OccupancyGrid:
     # ---- writing --------------------------------------------------------------------------
 
     def _reserve(self, box: CellBox) -> CellBox:
-        """Make the backing arrays hold `box`, growing by at least doubling (amortised copies).
-
-        Returns the (possibly new) storage box.
-        """
+        """Make the backing arrays hold `box`, growing as `grown_box` says (amortised copies of
+        the used extent only). Returns the (possibly new) storage box."""
         old = self._storage
         if old is not None and old.contains_box(box):
             return old
-        need = box.union(old)
-        rows = _grown_axis(
-            None if old is None else (old.row0, old.row1),
-            (need.row0, need.row1),
-            self._initial_capacity,
-        )
-        cols = _grown_axis(
-            None if old is None else (old.col0, old.col1),
-            (need.col0, need.col1),
-            self._initial_capacity,
-        )
-        new = CellBox(rows[0], cols[0], rows[1], cols[1])
+        new = grown_box(old, box.union(self._extent), self._initial_capacity)
         log_odds = np.zeros(new.shape, dtype=np.float32)
         observed = np.zeros(new.shape, dtype=bool)
         hit_xy = np.zeros((2, *new.shape), dtype=np.uint16)
         hit_n = np.zeros(new.shape, dtype=np.uint8)
-        if old is not None:
-            dst = old.slices_in(new)
-            log_odds[dst] = self._log_odds
-            observed[dst] = self._observed
-            hit_xy[(slice(None), *dst)] = self._hit_xy
-            hit_n[dst] = self._hit_n
+        if old is not None and self._extent is not None:
+            # Cells outside the extent were never written: only the extent moves.
+            src, dst = self._extent.slices_in(old), self._extent.slices_in(new)
+            log_odds[dst] = self._log_odds[src]
+            observed[dst] = self._observed[src]
+            hit_xy[(slice(None), *dst)] = self._hit_xy[(slice(None), *src)]
+            hit_n[dst] = self._hit_n[src]
         self._log_odds, self._observed, self._storage = log_odds, observed, new
         self._hit_xy, self._hit_n = hit_xy, hit_n
         self.storage_generation += 1

@@ -22,16 +22,20 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanflow.maps.field import LikelihoodField, field_from_means
-from scanflow.maps.grid import CellBox
+from scanflow.maps.grid import CellBox, grown_box
 from scanflow.maps.occupancy import OccupancyGrid
 
 
 class FieldLayer:
-    """One pyramid level's likelihood field over the grid's storage, kept current lazily.
+    """One pyramid level's likelihood field over the grid's extent padded by the cut-off, kept
+    current lazily.
 
-    `mark_dirty` records where the grid's occupied mask changed; `field()` refreshes just the
-    affected neighbourhood, or everything after the grid's storage was reallocated (which
-    happens O(log size) times as the grid doubles).
+    The padding lets obstacles on the outermost cells of the extent keep their whole field
+    around them (cut at the border, a wall there read as ~0 and matchers saw no overlap). Values
+    are float32 (plenty for a field in [0, 1]) in an array that grows like the grid's storage
+    (`grown_box`) but follows the extent, not the grid's spare capacity. `mark_dirty` records
+    where the grid's occupied mask or mean hit points changed; `field()` refreshes just the
+    affected neighbourhood.
     """
 
     def __init__(self, grid: OccupancyGrid, factor: int, sigma_m: float, cutoff_m: float) -> None:
@@ -42,10 +46,9 @@ class FieldLayer:
         self.sigma_m = sigma_m
         self.cutoff_m = cutoff_m
         self.resolution_m = grid.resolution_m * factor
-        self._margin = math.ceil(cutoff_m / self.resolution_m) + 1
-        self._values = np.zeros((0, 0))
+        self.margin_cells = math.ceil(cutoff_m / self.resolution_m) + 1
+        self._values = np.zeros((0, 0), dtype=np.float32)
         self._box: CellBox | None = None
-        self._generation = -1
         self._pending: CellBox | None = None
 
     @property
@@ -56,41 +59,55 @@ class FieldLayer:
         """Note that the grid's occupied mask or mean hit points changed inside `fine_box`."""
         self._pending = fine_box.coarsened(self.factor).union(self._pending)
 
-    def _rebuild(self) -> None:
-        storage = self.grid.storage_box
-        self._box = None if storage is None else storage.coarsened(self.factor)
-        self._generation = self.grid.storage_generation
-        self._pending = None
-        if self._box is None:
-            self._values = np.zeros((0, 0))
-            return
-        self._values = self._values_over(self._box)
+    def padded_extent(self) -> CellBox | None:
+        """The box this level's field covers: the grid's extent on this level's lattice plus the
+        cut-off margin (None while the grid is empty)."""
+        extent = self.grid.extent
+        return None if extent is None else extent.coarsened(self.factor).expanded(self.margin_cells)
 
-    def _values_over(self, box: CellBox) -> NDArray[np.float64]:
+    def _values_over(self, box: CellBox) -> NDArray[np.float32]:
         """This level's field over a box of its lattice, from the obstacles inside the box."""
         means = self.grid.occupied_hit_means(box, self.factor)
-        return field_from_means(box.shape, means, self.resolution_m, self.sigma_m, self.cutoff_m)
+        return field_from_means(
+            box.shape, means, self.resolution_m, self.sigma_m, self.cutoff_m, np.float32
+        )
+
+    def _hold(self, need: CellBox) -> CellBox:
+        """Grow the values array to hold `need` and return the box it covers. Cells it adds are
+        farther than the cut-off from every obstacle the old values saw, so they start at 0;
+        new obstacles are pending."""
+        if self._box is None:
+            self._box = grown_box(None, need)
+            self._values = self._values_over(self._box)
+            self._pending = None
+        elif not self._box.contains_box(need):
+            new = grown_box(self._box, need)
+            values = np.zeros(new.shape, dtype=np.float32)
+            kept = self._box.intersection(new)
+            values[kept.slices_in(new)] = self._values[kept.slices_in(self._box)]
+            self._box, self._values = new, values
+        return self._box
 
     def _refresh(self, dirty: CellBox, box: CellBox) -> None:
-        source = dirty.expanded(2 * self._margin).intersection(box)
-        target = dirty.expanded(self._margin).intersection(box)
+        source = dirty.expanded(2 * self.margin_cells).intersection(box)
+        target = dirty.expanded(self.margin_cells).intersection(box)
         values = self._values_over(source)
         self._values[target.slices_in(box)] = values[target.slices_in(source)]
 
     def field(self) -> LikelihoodField:
-        """The field over the grid's extent at this level; a read-only view valid until the
-        next grid update (copy `values` to keep a snapshot)."""
-        if self._generation != self.grid.storage_generation:
-            self._rebuild()
-        elif self._pending is not None and self._box is not None:
-            self._refresh(self._pending, self._box)
-            self._pending = None
-        extent = self.grid.extent
-        if extent is None or self._box is None:
+        """The field over the padded extent at this level; a read-only view valid until the next
+        grid update (copy `values` to keep a snapshot)."""
+        padded = self.padded_extent()
+        if padded is None:
             return LikelihoodField(
-                self.grid.spec_of(CellBox(0, 0, 0, 0), self.factor), np.zeros((0, 0)), self.sigma_m
+                self.grid.spec_of(CellBox(0, 0, 0, 0), self.factor),
+                np.zeros((0, 0), dtype=np.float32),
+                self.sigma_m,
             )
-        coarse = extent.coarsened(self.factor)
-        view = self._values[coarse.slices_in(self._box)]
+        box = self._hold(padded)
+        if self._pending is not None:
+            self._refresh(self._pending, box)
+            self._pending = None
+        view = self._values[padded.slices_in(box)]
         view.flags.writeable = False
-        return LikelihoodField(self.grid.spec_of(coarse, self.factor), view, self.sigma_m)
+        return LikelihoodField(self.grid.spec_of(padded, self.factor), view, self.sigma_m)

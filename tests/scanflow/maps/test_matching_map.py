@@ -6,11 +6,13 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scanflow.geometry import Pose2D
 from scanflow.maps import pyramid
 from scanflow.maps.field import LikelihoodField
 from scanflow.maps.grid import CellBox
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
+from scanflow.matching import MatchStatus, match
 from scipy.spatial import cKDTree
 
 
@@ -26,11 +28,28 @@ def room_scan(center, half_size_m=3.0, beams=180, rng=None):
     return points
 
 
+ROOM_LO, ROOM_HI = np.array([-3.0, -2.01]), np.array([3.01, 2.01])
+
+
+def half_room_scan(pose: Pose2D, beams: int = 181) -> np.ndarray:
+    """Sensor-frame endpoints of a 180-degree scan (facing the pose's +x) from inside the room
+    ROOM_LO..ROOM_HI: from (0, 0, 0) every wall it sees lies on the border of its own map."""
+    a = pose.theta + np.linspace(-math.pi / 2, math.pi / 2, beams)
+    d = np.column_stack((np.cos(a), np.sin(a)))
+    origin = np.array([pose.x, pose.y])
+    d_safe = np.where(np.abs(d) < 1e-12, 1e-12, d)  # axis-parallel beams: the far wall only
+    t = np.min(np.where(d_safe > 0, ROOM_HI - origin, ROOM_LO - origin) / d_safe, axis=1)
+    return pose.inverse().transform_points(origin + d * t[:, None])
+
+
 def reference_field(grid: OccupancyGrid, level: int, sigma_m: float, cutoff_sigmas: float):
     """The level's field computed from scratch, point by point: exp(-d^2 / 2 sigma^2) with d to
-    the nearest occupied coarse cell's mean hit point (a hit-less occupied cell: its centre)."""
+    the nearest occupied coarse cell's mean hit point (a hit-less occupied cell: its centre),
+    over the extent padded by the cut-off (ceil(cut-off / cell) + 1 cells)."""
     factor = 2**level
-    coarse = grid.extent.coarsened(factor)
+    sigma = sigma_m * factor
+    margin = math.ceil(cutoff_sigmas * sigma / (grid.resolution_m * factor)) + 1
+    coarse = grid.extent.coarsened(factor).expanded(margin)
     spec = grid.spec_of(coarse, factor)
     occupied = grid.occupied_mask()
     sums = grid.hit_sums.astype(np.float64)
@@ -52,7 +71,6 @@ def reference_field(grid: OccupancyGrid, level: int, sigma_m: float, cutoff_sigm
     my = np.bincount(inverse, weight * y) / total
     centres = spec.cell_centers(np.argwhere(np.ones(spec.shape, dtype=bool)))
     d, _ = cKDTree(np.column_stack((mx, my))).query(centres)
-    sigma = sigma_m * factor
     values = np.where(d <= cutoff_sigmas * sigma, np.exp(-0.5 * (d / sigma) ** 2), 0.0)
     assert len(groups) == len(mx)
     return LikelihoodField(spec, values.reshape(spec.shape), sigma)
@@ -213,7 +231,7 @@ def test_field_measures_distances_to_the_mean_hit_point_not_the_cell_centre():
     world = MatchingMap()
     for _ in range(3):
         world.update(wall, (0.0, 0.0))
-    xs = 1.875 + 0.05 * np.arange(4)  # cell centres up to the wall (the map ends there)
+    xs = 1.875 + 0.05 * np.arange(8)  # cell centres on both sides of the wall (the map's edge)
     probe = np.column_stack((xs, np.full_like(xs, 0.025)))
     sigma = world.sigma_m
     value, _ = world.likelihood_field(0).sample(probe)
@@ -223,3 +241,42 @@ def test_field_measures_distances_to_the_mean_hit_point_not_the_cell_centre():
     centres = MatchingMap(bare)
     value, _ = centres.likelihood_field(0).sample(probe)
     np.testing.assert_allclose(value, np.exp(-0.5 * ((xs - 2.025) / sigma) ** 2), atol=2e-3)
+
+
+def test_field_extends_past_walls_on_the_border_of_the_map():
+    """Walls on the outermost cells of the extent keep their whole field: the field is padded
+    by its cut-off, at every level."""
+    world = MatchingMap()
+    world.update(half_room_scan(Pose2D(0.0, 0.0, 0.0)), (0.0, 0.0))
+    assert world.grid.spec.origin_x_m + world.grid.spec.width_m == pytest.approx(3.05)
+    for level, field in enumerate(reversed(world.likelihood_pyramid(3))):
+        assert field.values.dtype == np.float32
+        sigma = world.sigma_m * 2**level
+        beyond = np.array([[3.01 + sigma, 0.3], [0.5, 2.01 + sigma], [0.5, -2.01 - sigma]])
+        value, grad = field.sample(beyond)
+        np.testing.assert_allclose(value, np.exp(-0.5), atol=0.1 * 2**level)
+        assert grad[0, 0] < 0 and grad[1, 1] < 0 and grad[2, 1] > 0  # falling away outwards
+        far, _ = field.sample(np.array([[3.01 + 4.5 * sigma, 0.3]]))
+        assert far[0] == 0.0
+
+
+def test_gn_localises_a_scan_whose_walls_lie_on_the_map_border():
+    world = MatchingMap()
+    world.update(half_room_scan(Pose2D(0.0, 0.0, 0.0)), (0.0, 0.0))
+    truth = Pose2D(0.15, -0.1, 0.05)
+    result = match(half_room_scan(truth), world, Pose2D(0.0, 0.0, 0.0), method="gn")
+    assert result.status == MatchStatus.OK, result.message
+    assert abs(result.pose.x - truth.x) < 0.02 and abs(result.pose.y - truth.y) < 0.02
+    assert abs(result.pose.theta - truth.theta) < 0.01
+
+
+def test_view_memory_follows_the_extent_not_the_storage():
+    """A grid with a large spare capacity: the fields cover the padded extent only."""
+    world = MatchingMap(OccupancyGrid(initial_capacity_cells=2000))
+    world.update(room_scan((0.0, 0.0), 2.0), (0.0, 0.0))
+    fields = world.likelihood_pyramid(3)
+    margin = math.ceil(world.cutoff_sigmas * world.sigma_m / world.resolution_m) + 1
+    padded = [world.grid.extent.coarsened(2**k).expanded(margin).shape for k in (2, 1, 0)]
+    assert [f.values.shape for f in fields] == padded
+    assert world.nbytes - world.grid.nbytes == sum(4 * r * c for r, c in padded)  # float32
+    assert world.grid.nbytes >= 2000 * 2000 * 10
