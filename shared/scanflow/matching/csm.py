@@ -87,11 +87,31 @@ def _before(k, ix, iy, best_k, best_ix, best_iy, half_steps):  # type: ignore[no
 
 
 @njit(cache=True)
-def _exhaustive(levels, rows, cols, pad, w, half_steps):  # type: ignore[no-untyped-def]
-    best = (-1, 0, 0, 0)
+def _suppressed(k, ix0, ix1, iy0, iy1, picks, n_picks, r_cells, r_steps):  # type: ignore[no-untyped-def]
+    """True if the offsets ix0..ix1 x iy0..iy1 at angle k all lie inside one earlier pick's box
+    (+-r_cells offsets, +-r_steps angles): non-maximum suppression for the top-K search."""
+    for p in range(n_picks):
+        if (
+            abs(k - picks[p, 0]) <= r_steps
+            and picks[p, 1] - r_cells <= ix0
+            and ix1 <= picks[p, 1] + r_cells
+            and picks[p, 2] - r_cells <= iy0
+            and iy1 <= picks[p, 2] + r_cells
+        ):
+            return True
+    return False
+
+
+@njit(cache=True)
+def _exhaustive(  # type: ignore[no-untyped-def]
+    levels, rows, cols, pad, w, half_steps, picks, n_picks, r_cells, r_steps, floor
+):
+    best = (floor - 1, 0, 0, 0)
     for k in range(rows.shape[0]):
         for iy in range(-w, w + 1):
             for ix in range(-w, w + 1):
+                if _suppressed(k, ix, ix, iy, iy, picks, n_picks, r_cells, r_steps):
+                    continue
                 score = _score(levels, 0, rows[k], cols[k], iy, ix, pad)
                 if score > best[0] or (
                     score == best[0] and _before(k, ix, iy, best[1], best[2], best[3], half_steps)
@@ -106,7 +126,9 @@ def _min_square(lo, hi):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def _branch_and_bound(levels, rows, cols, pad, w, top, half_steps):  # type: ignore[no-untyped-def]
+def _branch_and_bound(  # type: ignore[no-untyped-def]
+    levels, rows, cols, pad, w, top, half_steps, picks, n_picks, r_cells, r_steps, floor
+):
     n_angles = rows.shape[0]
     step = 2**top
     starts = np.arange(-w, w + 1, step)
@@ -122,16 +144,19 @@ def _branch_and_bound(levels, rows, cols, pad, w, top, half_steps):  # type: ign
     nodes = np.empty((n_init + 4 * (top + 1), 5), dtype=np.int64)
     nodes[:n_init] = init[np.argsort(init[:, 0], kind="mergesort")]
     size = n_init
-    best = (-1, 0, 0, 0)
+    # Scores below `floor` are not wanted: starting the best there prunes them from the start.
+    best = (floor - 1, 0, 0, 0)
     children = np.empty((4, 5), dtype=np.int64)
     while size > 0:
         size -= 1
         bound, k, ix0, iy0, h = nodes[size]
         if bound < best[0]:
             continue
+        ix1, iy1 = min(ix0 + 2**h - 1, w), min(iy0 + 2**h - 1, w)
+        if _suppressed(k, ix0, ix1, iy0, iy1, picks, n_picks, r_cells, r_steps):
+            continue
         if bound == best[0] and best[0] >= 0:
-            span = 2**h - 1
-            lower = _min_square(ix0, min(ix0 + span, w)) + _min_square(iy0, min(iy0 + span, w))
+            lower = _min_square(ix0, ix1) + _min_square(iy0, iy1)
             if lower > best[2] * best[2] + best[3] * best[3]:
                 continue
         if h == 0:
@@ -168,20 +193,53 @@ def stack_depth(half_cells: int) -> int:
     return max(math.floor(math.log2(max(2 * half_cells + 1, 2) / 2)), 0)
 
 
-def search(cand: Candidates, exhaustive: bool) -> tuple[int, int, int, int]:
-    """(k, ix, iy, score) of the best candidate: every one scored, or branch and bound."""
+def search_top(
+    cand: Candidates,
+    exhaustive: bool,
+    count: int,
+    suppress_cells: int,
+    suppress_steps: int,
+    min_ratio: float = 0.0,
+) -> list[tuple[int, int, int, int]]:
+    """(k, ix, iy, score) of up to `count` distinct optima, best first (greedy non-maximum
+    suppression): each is the best candidate outside the boxes of +-suppress_cells offsets and
+    +-suppress_steps angles around the earlier ones, scoring > 0 and >= min_ratio x the first
+    (which also prunes the later searches). The first is returned even if it scores 0."""
+    if count < 1 or suppress_cells < 0 or suppress_steps < 0 or not 0.0 <= min_ratio <= 1.0:
+        raise ValueError(
+            f"count must be >= 1, suppression >= 0 and min_ratio in [0, 1], got count={count}, "
+            f"suppress_cells={suppress_cells}, suppress_steps={suppress_steps}, "
+            f"min_ratio={min_ratio}"
+        )
     st = cand.stack
     w = cand.half_cells
-    if exhaustive:
-        score, k, ix, iy = _exhaustive(
-            st.levels, cand.rows, cand.cols, st.pad_cells, w, cand.half_steps
-        )
-    else:
-        top = min(st.depth, stack_depth(w))
-        score, k, ix, iy = _branch_and_bound(
-            st.levels, cand.rows, cand.cols, st.pad_cells, w, top, cand.half_steps
-        )
-    return int(k), int(ix), int(iy), int(score)
+    top = min(st.depth, stack_depth(w))
+    picks = np.zeros((count, 3), dtype=np.int64)
+    found: list[tuple[int, int, int, int]] = []
+    floor = 0
+    for n in range(count):
+        if exhaustive:
+            score, k, ix, iy = _exhaustive(
+                st.levels, cand.rows, cand.cols, st.pad_cells, w, cand.half_steps,
+                picks, n, suppress_cells, suppress_steps, floor,
+            )
+        else:
+            score, k, ix, iy = _branch_and_bound(
+                st.levels, cand.rows, cand.cols, st.pad_cells, w, top, cand.half_steps,
+                picks, n, suppress_cells, suppress_steps, floor,
+            )
+        if n > 0 and score < floor:
+            break
+        if n == 0:
+            floor = max(1, math.ceil(min_ratio * score))
+        picks[n] = (k, ix, iy)
+        found.append((int(k), int(ix), int(iy), int(score)))
+    return found
+
+
+def search(cand: Candidates, exhaustive: bool) -> tuple[int, int, int, int]:
+    """(k, ix, iy, score) of the best candidate: every one scored, or branch and bound."""
+    return search_top(cand, exhaustive, 1, 0, 0)[0]
 
 
 @njit(cache=True)
@@ -240,8 +298,12 @@ def correlative_match(
     angular_resolution_rad: float | None,
     sigma_m: float | None,
     refine: str | None,
+    candidates: int = 1,
+    suppress_m: float = 0.0,
+    suppress_rad: float = 0.0,
+    candidate_min_ratio: float = 0.0,
 ) -> MatchResult:
-    """Shared body of `csm` and `csm_exhaustive`."""
+    """Shared body of `csm` and `csm_exhaustive`; extra["candidates"] lists the distinct optima."""
     bad = check_inputs(method, source, target, guess)
     if bad is not None:
         return bad
@@ -259,11 +321,17 @@ def correlative_match(
     depth = stack_depth(math.floor(linear_m / field.spec.resolution_m + 1e-9))
     stack = MaxPoolStack.from_values(field.spec, field.values, depth)
     cand = build_candidates(source, stack, guess, linear_m, angular_rad, step_rad)
-    k, ix, iy, score = search(cand, exhaustive)
+    res = field.spec.resolution_m
+    found = search_top(
+        cand, exhaustive, candidates, math.floor(suppress_m / res + 1e-9),
+        math.floor(suppress_rad / step_rad + 1e-9), candidate_min_ratio,
+    )
+    k, ix, iy, score = found[0]
     if score <= 0:
         return failed(method, MatchStatus.NO_OVERLAP, guess, "no candidate puts a point on the map")
-    res = field.spec.resolution_m
-    pose = Pose2D(guess.x + ix * res, guess.y + iy * res, float(cand.angles_rad[k]))
+    poses = [Pose2D(guess.x + c[1] * res, guess.y + c[2] * res, float(cand.angles_rad[c[0]]))
+             for c in found]
+    pose = poses[0]
     result = MatchResult(
         pose=pose,
         covariance=olson_covariance(cand, k, ix, iy, step_rad),
@@ -277,6 +345,8 @@ def correlative_match(
             "cell_offset": (ix, iy),
             "angle_step": k - cand.half_steps,
             "angular_step_rad": step_rad,
+            "candidates": poses,
+            "candidate_scores": [c[3] / (SCORE_SCALE * len(source)) for c in found],
         },
     )
     if refine is None:
@@ -302,8 +372,17 @@ def match_csm(
     sigma_m: float | None = None,
     refine: str | None = None,
     exhaustive: bool = False,
+    candidates: int = 1,
+    suppress_m: float = 0.25,
+    suppress_rad: float = math.radians(5.0),
+    candidate_min_ratio: float = 0.0,
 ) -> MatchResult:
-    """Branch-and-bound correlative search (exhaustive=True scores every candidate instead)."""
+    """Branch-and-bound correlative search (exhaustive=True scores every candidate instead).
+
+    extra["candidates"] lists up to `candidates` distinct optima, best first: each the best pose
+    outside +-suppress_m (x and y) / +-suppress_rad boxes around the earlier ones, scoring at
+    least candidate_min_ratio x the best.
+    """
     name = "csm_exhaustive" if exhaustive else "csm"
     return correlative_match(
         name,
@@ -317,6 +396,10 @@ def match_csm(
         angular_resolution_rad,
         sigma_m,
         refine,
+        candidates,
+        suppress_m,
+        suppress_rad,
+        candidate_min_ratio,
     )
 
 

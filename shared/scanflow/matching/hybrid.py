@@ -1,22 +1,63 @@
 """Method "csm+plicp": correlative search for the basin, point-to-line ICP for the fine pose.
 
 Local matchers fail once the initial error leaves their basin (tens of cm, a few degrees);
-branch-and-bound correlative search (`csm`) finds the global optimum of the window on a
-likelihood grid at grid resolution, and `plicp` then refines it to sub-centimetre precision.
+branch-and-bound correlative search (`csm`) scores its window on a likelihood grid at grid
+resolution. On sparse scans far apart its best lattice peak is not always the right basin (a
+sharp true peak between lattice points can score below a broad wrong one), so the K best
+DISTINCT csm peaks are each refined by `plicp` and the refinement that makes the two scans
+overlap best wins: the fraction of points of each scan within a fixed gate of the other
+(densified) scan, computed the same way for every candidate and not by csm score.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from scanflow.geometry import Pose2D
-from scanflow.matching.api import MatchResult, register_method
+from scanflow.matching.api import MatchResult, register_method, target_points
 from scanflow.matching.csm import match_csm
+from scanflow.matching.field_cost import densify_scan
 from scanflow.matching.plicp import match_plicp
+
+# Densification step of the overlap test: point-to-surface distances to ~1 cm.
+OVERLAP_STEP_M = 0.02
+
+
+@dataclass(frozen=True, eq=False)
+class OverlapScorer:
+    """Symmetric overlap of two scans under a pose: the selection criterion for hypotheses."""
+
+    source: NDArray[np.float64]
+    target: NDArray[np.float64]
+    source_tree: cKDTree
+    target_tree: cKDTree
+    gate_m: float
+
+    @staticmethod
+    def build(
+        source: NDArray[np.float64], target: NDArray[np.float64], gate_m: float
+    ) -> OverlapScorer:
+        """KD-trees over both scans densified along their surfaces (sparse far points)."""
+        if not gate_m > 0:
+            raise ValueError(f"overlap gate_m must be > 0, got {gate_m}")
+        return OverlapScorer(
+            source, target, cKDTree(densify_scan(source, OVERLAP_STEP_M)),
+            cKDTree(densify_scan(target, OVERLAP_STEP_M)), gate_m,
+        )
+
+    def score(self, pose: Pose2D) -> float:
+        """Fraction of source points within the gate of the target plus the same the other way
+        (0..2): symmetric, so a pose that hides part of either scan pays for it."""
+        d_src, _ = self.target_tree.query(pose.transform_points(self.source),
+                                          distance_upper_bound=self.gate_m)
+        d_tgt, _ = self.source_tree.query(pose.inverse().transform_points(self.target),
+                                          distance_upper_bound=self.gate_m)
+        return float(np.mean(d_src <= self.gate_m) + np.mean(d_tgt <= self.gate_m))
 
 
 @register_method("csm+plicp")
@@ -28,19 +69,41 @@ def match_csm_plicp(
     linear_m: float = 0.5,
     angular_rad: float = math.radians(20.0),
     resolution_m: float = 0.05,
+    hypotheses: int = 3,
+    suppress_m: float = 0.25,
+    suppress_rad: float = math.radians(5.0),
+    hypothesis_min_ratio: float = 0.6,
+    overlap_gate_m: float = 0.1,
     **plicp_options: float,
 ) -> MatchResult:
-    """Search +-linear_m / +-angular_rad around `guess` with csm, then refine with plicp."""
+    """Search +-linear_m / +-angular_rad around `guess` with csm for up to `hypotheses` distinct
+    peaks (suppress_m / suppress_rad apart, scoring >= hypothesis_min_ratio x the best), refine
+    each with plicp, keep the refinement with the best overlap."""
     coarse = match_csm(
         source, target, guess, linear_m=linear_m, angular_rad=angular_rad,
-        resolution_m=resolution_m,
+        resolution_m=resolution_m, candidates=hypotheses, suppress_m=suppress_m,
+        suppress_rad=suppress_rad, candidate_min_ratio=hypothesis_min_ratio,
     )
     if not coarse.ok:
         return replace(coarse, method="csm+plicp")
-    fine = match_plicp(source, target, coarse.pose, **plicp_options)
+    starts: list[Pose2D] = coarse.extra["candidates"]
+    fines = [match_plicp(source, target, start, **plicp_options) for start in starts]
+    overlaps = [math.nan] * len(fines)
+    if len(fines) > 1:
+        scorer = OverlapScorer.build(source, target_points(target), overlap_gate_m)
+        # A failed refinement ranks below every successful one; ties keep the csm order.
+        overlaps = [scorer.score(f.pose) if f.ok else -1.0 for f in fines]
+    best = int(np.argmax(overlaps)) if len(fines) > 1 else 0
+    fine = fines[best]
     return replace(
         fine,
         method="csm+plicp",
         iterations=fine.iterations + coarse.iterations,
-        extra={**fine.extra, "csm_pose": coarse.pose, "csm_score": coarse.score},
+        extra={
+            **fine.extra,
+            "csm_pose": starts[best],
+            "csm_score": coarse.extra["candidate_scores"][best],
+            "hypothesis": best,
+            "overlaps": overlaps,
+        },
     )

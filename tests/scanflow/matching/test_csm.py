@@ -4,6 +4,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from scanflow.geometry import Pose2D
 from scanflow.matching import MatchStatus, match
 
@@ -87,3 +89,64 @@ def test_covariance_is_calibrated(room, caster, room_map_points) -> None:
         e = r.pose.relative_to(true).to_array()
         nees.append(e @ np.linalg.solve(r.covariance, e))
     assert 1.0 < np.mean(nees) < 9.0, np.mean(nees)
+
+
+# `caster` is a pure function: sharing it across examples is safe.
+@settings(
+    max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    count=st.integers(1, 6),
+    suppress_cells=st.integers(0, 3),
+    suppress_steps=st.integers(0, 2),
+    few=st.booleans(),
+    min_ratio=st.sampled_from([0.0, 0.5, 0.9]),
+)
+def test_top_k_branch_and_bound_equals_exhaustive_top_k(
+    caster, seed: int, count: int, suppress_cells: int, suppress_steps: int, few: bool,
+    min_ratio: float,
+) -> None:
+    """The K distinct optima of branch and bound are exactly those of the exhaustive search:
+    same poses, same scores, same order; each outside the suppression box of the earlier ones."""
+    rng = np.random.default_rng(seed)
+    world = random_world(rng)
+    a = Pose2D(rng.uniform(-2, 2), rng.uniform(-2, 2), rng.uniform(-3, 3))
+    b = a * Pose2D(rng.normal(0, 0.1), rng.normal(0, 0.1), rng.normal(0, 0.05))
+    target = caster(world, a, beams=90, noise_m=0.02, rng=rng)
+    source = caster(world, b, beams=90, noise_m=0.02, rng=rng)
+    if few:
+        source = source[:12]  # many equal scores: the tie-break decides
+    step_rad = math.radians(1.0)
+    options = {
+        "linear_m": 0.3, "angular_rad": math.radians(4), "angular_resolution_rad": step_rad,
+        "candidates": count, "suppress_m": 0.05 * suppress_cells + 1e-6,
+        "suppress_rad": step_rad * suppress_steps + 1e-9, "candidate_min_ratio": min_ratio,
+    }
+    guess = b.relative_to(a)
+    fast = match(source, target, guess, method="csm", **options)
+    ref = match(source, target, guess, method="csm_exhaustive", **options)
+    assert fast.status is ref.status
+    if not ref.ok:
+        return
+    assert fast.extra["candidates"] == ref.extra["candidates"]
+    assert fast.extra["candidate_scores"] == ref.extra["candidate_scores"]
+    assert fast.pose == fast.extra["candidates"][0] == ref.pose
+    scores = ref.extra["candidate_scores"]
+    assert 1 <= len(scores) <= count and scores == sorted(scores, reverse=True)
+    assert min(scores) >= min_ratio * scores[0] - 1e-12
+    poses = ref.extra["candidates"]
+    for i, p in enumerate(poses):
+        for q in poses[:i]:
+            inside = (
+                abs(p.x - q.x) <= 0.05 * suppress_cells + 1e-6
+                and abs(p.y - q.y) <= 0.05 * suppress_cells + 1e-6
+                and abs(p.theta - q.theta) <= step_rad * suppress_steps + 1e-6
+            )
+            assert not inside, (i, p, q)
+
+
+def test_top_k_rejects_bad_counts(room, caster) -> None:
+    scan = caster(room, Pose2D())
+    with pytest.raises(ValueError, match="count"):
+        match(scan, scan, method="csm", candidates=0)
