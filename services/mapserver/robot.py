@@ -7,7 +7,7 @@ from scanflow.frontend.trajectory import TrajectoryStore
 from scanflow.geometry import Pose2D
 from scanflow.maps.grid import CellBox
 from scanflow.maps.matching_map import MatchingMap
-from scanflow.maps.occupancy import OccupancyGrid
+from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
 from scanflow.wire import DeskewedScanMessage, MapChangedMessage, PoseEstimateMessage
 
 from services.mapserver.pairing import Pairing
@@ -17,10 +17,17 @@ from services.mapserver.snapshot import Snapshot
 class RobotMap:
     """Inserts paired scans at their published poses with the library's map update."""
 
-    def __init__(self, robot_id: str, pending_limit: int, snap: Snapshot | None = None) -> None:
+    def __init__(
+        self,
+        robot_id: str,
+        pending_limit: int,
+        snap: Snapshot | None = None,
+        params: OccupancyParams | None = None,
+    ) -> None:
+        """`params`: the new map's (the matcher's front end settings); a snapshot keeps its own."""
         self.robot_id = robot_id
         self.pairing = Pairing(pending_limit)
-        self.map = MatchingMap(snap.grid if snap else OccupancyGrid())
+        self.map = MatchingMap(snap.grid if snap else OccupancyGrid(params))
         self.trajectory = TrajectoryStore()
         if snap is not None:
             for stamp_s, row in zip(snap.stamps_s, snap.poses, strict=True):

@@ -12,7 +12,9 @@ from pathlib import Path
 
 import zenoh
 from scanflow import keys
-from scanflow.config import MapServerSettings, ZenohSettings
+from scanflow.config import FrontendSettings, MapServerSettings, ZenohSettings
+from scanflow.frontend import default_settings
+from scanflow.maps.occupancy import OccupancyParams
 from scanflow.wire import DeskewedScanMessage, Message, PoseEstimateMessage
 
 from services.common.logs import configure_logging
@@ -27,8 +29,16 @@ Builder = Callable[[RobotMap, zenoh.Parameters], Message]
 class MapServer:
     """Per-robot maps built from the bus, served on queryables, persisted as snapshots."""
 
-    def __init__(self, settings: MapServerSettings, zenoh_settings: ZenohSettings) -> None:
+    def __init__(
+        self,
+        settings: MapServerSettings,
+        zenoh_settings: ZenohSettings,
+        frontend_settings: FrontendSettings | None = None,
+    ) -> None:
+        """`frontend_settings`: the matchers' (their map resolution), default the documented."""
         self.settings = settings
+        frontend = frontend_settings if frontend_settings is not None else default_settings()
+        self.params = OccupancyParams(resolution_m=frontend.map_resolution_m)
         self.data_dir = Path(settings.data_dir)
         self.shell = ServiceShell(
             "mapserver", settings.instance, zenoh_settings, settings.queue_size
@@ -63,7 +73,9 @@ class MapServer:
         robot_id = message.robot_id
         robot = self.robots.get(robot_id)
         if robot is None:
-            robot = self.robots[robot_id] = RobotMap(robot_id, self.settings.pending_limit)
+            robot = self.robots[robot_id] = RobotMap(
+                robot_id, self.settings.pending_limit, params=self.params
+            )
         if isinstance(message, DeskewedScanMessage):
             robot.pairing.add_scan(message)  # inserts are sparse: their seqs have gaps
             return
@@ -158,7 +170,8 @@ def _region(robot: RobotMap, params: zenoh.Parameters) -> Message:
 
 
 def main() -> None:
-    """Run the map server with settings from SCANFLOW_MAPSERVER_* and SCANFLOW_ZENOH_*."""
+    """Run the map server (settings: SCANFLOW_MAPSERVER_*, SCANFLOW_ZENOH_*, and the map
+    resolution from SCANFLOW_FRONTEND_*, so its maps have the matchers' lattice)."""
     settings = MapServerSettings()
     configure_logging(settings.log_level)
-    MapServer(settings, ZenohSettings()).run()
+    MapServer(settings, ZenohSettings(), FrontendSettings()).run()

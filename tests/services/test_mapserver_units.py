@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 from scanflow.geometry import Pose2D
+from scanflow.maps.occupancy import OccupancyParams
 from scanflow.wire import DeskewedScanMessage, PoseEstimateMessage
 
 from services.mapserver.pairing import Pairing
@@ -50,6 +51,14 @@ def test_robot_map_inserts_a_paired_scan_and_notices_the_change():
     assert robot.map.revision == 1 and robot.state == (1, 3)
     notice = robot.take_change(1.0)
     assert notice.min_x_m < at.x < notice.max_x_m and robot.take_change(2.0) is None
+
+
+def test_robot_map_uses_the_given_params_and_a_reset_keeps_them():
+    robot = RobotMap("r", pending_limit=10, params=OccupancyParams(resolution_m=0.1))
+    robot.pairing.add_scan(scan(0))
+    robot.apply(pose(0))
+    robot.reset()
+    assert robot.map.grid.resolution_m == 0.1 and robot.map.revision == 0
 
 
 def test_snapshot_round_trip(tmp_path):
