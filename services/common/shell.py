@@ -217,7 +217,9 @@ class ServiceShell:
         )
 
     def _reply_stats(self, query: zenoh.Query) -> None:
-        query.reply(query.key_expr, self.stats().encode())
+        # Reply on our own concrete key: replies on the queried wildcard would be
+        # consolidated into one across all services.
+        query.reply(keys.stats(self.service, self.instance, self.prefix), self.stats().encode())
 
     def _serve_queries(self) -> None:
         while not self.stop_event.is_set():
