@@ -56,3 +56,15 @@ def test_far_off_grid_lookups_score_zero() -> None:
 def test_bad_input_names_the_problem(values: np.ndarray, depth: int, match: str) -> None:
     with pytest.raises(ValueError, match=match):
         MaxPoolStack.from_values(GridSpec(0.0, 0.0, 0.1, 3, 3), values, depth)
+
+
+def test_float32_views_pool_like_float64() -> None:
+    """A map's field is a float32 view into a larger array: pooled without a float64 copy, to
+    the same integers (the probabilities are not near a quantisation boundary here)."""
+    rng = np.random.default_rng(3)
+    big = (np.rint(rng.random((20, 24)) * SCORE_SCALE) / SCORE_SCALE).astype(np.float32)
+    view = big[3:15, 2:21]
+    spec = GridSpec(0.0, 0.0, 0.05, *view.shape)
+    got = MaxPoolStack.from_values(spec, view, 3)
+    want = MaxPoolStack.from_values(spec, view.astype(np.float64), 3)
+    np.testing.assert_array_equal(got.levels, want.levels)
