@@ -4,9 +4,10 @@ Local matchers fail once the initial error leaves their basin (tens of cm, a few
 branch-and-bound correlative search (`csm`) scores its window on a likelihood grid at grid
 resolution. On sparse scans far apart its best lattice peak is not always the right basin (a
 sharp true peak between lattice points can score below a broad wrong one), so the K best
-DISTINCT csm peaks are each refined by `plicp` and the refinement that makes the two scans
-overlap best wins: the fraction of points of each scan within a fixed gate of the other
-(densified) scan, computed the same way for every candidate and not by csm score.
+DISTINCT csm peaks are each refined by `plicp` and the refinement under which the most source
+points lie within a fixed gate of the (densified) target wins, computed the same way for every
+candidate and not by csm score; csm's best is kept unless another is clearly better (a margin:
+on the real logs near-ties switched to wrong basins as often as to right ones).
 """
 
 from __future__ import annotations
@@ -30,11 +31,9 @@ OVERLAP_STEP_M = 0.02
 
 @dataclass(frozen=True, eq=False)
 class OverlapScorer:
-    """Symmetric overlap of two scans under a pose: the selection criterion for hypotheses."""
+    """Fraction of source points within a fixed gate of the target: the hypothesis criterion."""
 
     source: NDArray[np.float64]
-    target: NDArray[np.float64]
-    source_tree: cKDTree
     target_tree: cKDTree
     gate_m: float
 
@@ -42,22 +41,23 @@ class OverlapScorer:
     def build(
         source: NDArray[np.float64], target: NDArray[np.float64], gate_m: float
     ) -> OverlapScorer:
-        """KD-trees over both scans densified along their surfaces (sparse far points)."""
+        """KD-tree over the target densified along its surfaces (sparse far points)."""
         if not gate_m > 0:
             raise ValueError(f"overlap gate_m must be > 0, got {gate_m}")
-        return OverlapScorer(
-            source, target, cKDTree(densify_scan(source, OVERLAP_STEP_M)),
-            cKDTree(densify_scan(target, OVERLAP_STEP_M)), gate_m,
-        )
+        return OverlapScorer(source, cKDTree(densify_scan(target, OVERLAP_STEP_M)), gate_m)
 
     def score(self, pose: Pose2D) -> float:
-        """Fraction of source points within the gate of the target plus the same the other way
-        (0..2): symmetric, so a pose that hides part of either scan pays for it."""
-        d_src, _ = self.target_tree.query(pose.transform_points(self.source),
-                                          distance_upper_bound=self.gate_m)
-        d_tgt, _ = self.source_tree.query(pose.inverse().transform_points(self.target),
-                                          distance_upper_bound=self.gate_m)
-        return float(np.mean(d_src <= self.gate_m) + np.mean(d_tgt <= self.gate_m))
+        """Fraction (0..1) of the source points, moved by `pose`, within the gate of the target."""
+        d, _ = self.target_tree.query(pose.transform_points(self.source),
+                                      distance_upper_bound=self.gate_m)
+        return float(np.mean(d <= self.gate_m))
+
+
+def pick_hypothesis(overlaps: list[float], switch_margin: float) -> int:
+    """Index of the hypothesis to keep: the first (csm's best) unless another overlaps by more
+    than `switch_margin` (a fraction of the source points) more."""
+    best = int(np.argmax(overlaps))
+    return best if overlaps[best] > overlaps[0] + switch_margin else 0
 
 
 @register_method("csm+plicp")
@@ -74,11 +74,12 @@ def match_csm_plicp(
     suppress_rad: float = math.radians(5.0),
     hypothesis_min_ratio: float = 0.6,
     overlap_gate_m: float = 0.1,
+    switch_margin: float = 0.02,
     **plicp_options: float,
 ) -> MatchResult:
     """Search +-linear_m / +-angular_rad around `guess` with csm for up to `hypotheses` distinct
     peaks (suppress_m / suppress_rad apart, scoring >= hypothesis_min_ratio x the best), refine
-    each with plicp, keep the refinement with the best overlap."""
+    each with plicp, keep csm's best unless another refinement overlaps by > switch_margin more."""
     coarse = match_csm(
         source, target, guess, linear_m=linear_m, angular_rad=angular_rad,
         resolution_m=resolution_m, candidates=hypotheses, suppress_m=suppress_m,
@@ -93,7 +94,7 @@ def match_csm_plicp(
         scorer = OverlapScorer.build(source, target_points(target), overlap_gate_m)
         # A failed refinement ranks below every successful one; ties keep the csm order.
         overlaps = [scorer.score(f.pose) if f.ok else -1.0 for f in fines]
-    best = int(np.argmax(overlaps)) if len(fines) > 1 else 0
+    best = pick_hypothesis(overlaps, switch_margin) if len(fines) > 1 else 0
     fine = fines[best]
     return replace(
         fine,
