@@ -28,6 +28,8 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 IMAGE = os.environ.get("SCANFLOW_IMAGE", "scanflow:latest")
+# The deployment's compose file plus the tests' override (health checks every second).
+COMPOSE_FILES = ("docker-compose.yml", "tests/docker/compose.test.yml")
 
 
 class DockerError(RuntimeError):
@@ -121,7 +123,7 @@ def free_port() -> int:
 class ComposeProject:
     """One compose project (unique name) over the repo's compose files."""
 
-    def __init__(self, name: str, files: Sequence[str] = ("docker-compose.yml",),
+    def __init__(self, name: str, files: Sequence[str] = COMPOSE_FILES,
                  env: dict[str, str] | None = None) -> None:
         command = compose_command()
         if command is None:
@@ -285,7 +287,7 @@ def compose_projects(scanflow_image: str) -> Iterator[Callable[..., ComposeProje
     whatever happened, and nothing labelled with it may remain."""
     made: list[ComposeProject] = []
 
-    def make(prefix: str, files: Sequence[str] = ("docker-compose.yml",),
+    def make(prefix: str, files: Sequence[str] = COMPOSE_FILES,
              env: dict[str, str] | None = None) -> ComposeProject:
         project = ComposeProject(f"{prefix}{os.getpid()}", files, env)
         project.down()  # a leftover of an aborted run with the same name
