@@ -8,7 +8,9 @@
 #                   missing; pass python:3.11-slim-bookworm where a registry is reachable)
 # --tag TAG         image tag (default scanflow:latest)
 # --no-base-build   never run build-base.sh (the base must exist or be pullable)
-# Environment: PYTHON (host interpreter with pip; default .venv/bin/python, else python3).
+# Environment: PYTHON (host interpreter with pip; default .venv/bin/python, else python3),
+#              SCANFLOW_WHEEL_STORE (host wheel store; default
+#              ~/.cache/scanflow/docker-wheels/cp311-<arch>).
 set -euo pipefail
 
 repo="$(cd "$(dirname "$0")/.." && pwd)"
@@ -20,7 +22,7 @@ while [ $# -gt 0 ]; do
     --base) base="${2:?--base needs an image name}"; shift 2 ;;
     --tag) tag="${2:?--tag needs an image tag}"; shift 2 ;;
     --no-base-build) build_base=0; shift ;;
-    -h|--help) sed -n '2,12p' "$0"; exit 0 ;;
+    -h|--help) sed -n '2,14p' "$0"; exit 0 ;;
     *) echo "build.sh: unknown argument '$1'" >&2; exit 2 ;;
   esac
 done
@@ -43,8 +45,12 @@ deps="$repo/docker/wheels/deps"
 app="$repo/docker/wheels/app"
 mkdir -p "$deps" "$app"
 
-# 1. Runtime dependency wheels for CPython 3.11 on glibc 2.36 (bookworm), kept in a stable
-#    directory so unchanged dependencies leave the docker layer cache valid.
+# 1. Runtime dependency wheels for CPython 3.11 on glibc 2.36 (bookworm), downloaded into a
+#    wheel store shared by every checkout on this host (pip keeps no cache here, and a fresh
+#    clone would fetch ~140 MB again), then linked into a stable directory of the build context
+#    so unchanged dependencies leave the docker layer cache valid.
+store="${SCANFLOW_WHEEL_STORE:-${XDG_CACHE_HOME:-$HOME/.cache}/scanflow/docker-wheels/cp311-$arch}"
+mkdir -p "$store"
 "$py" - "$repo/pyproject.toml" "$deps/requirements.txt" <<'PY'
 import sys, tomllib
 from pathlib import Path
@@ -54,7 +60,7 @@ out = Path(sys.argv[2])
 if not out.exists() or out.read_text() != text:
     out.write_text(text)
 PY
-echo "build.sh: downloading dependency wheels into docker/wheels/deps"
+echo "build.sh: downloading dependency wheels into $store"
 log="$(mktemp)"
 trap 'rm -f "$log"' EXIT
 # pip does not widen a --platform to older glibc tags itself: list every tag bookworm runs.
@@ -63,14 +69,19 @@ for minor in $(seq 36 -1 5); do platforms+=(--platform "manylinux_2_${minor}_$ar
 for legacy in manylinux2014 manylinux2010 manylinux1; do platforms+=(--platform "${legacy}_$arch"); done
 "$py" -m pip download --progress-bar off --disable-pip-version-check \
   --only-binary=:all: --implementation cp --python-version 3.11 "${platforms[@]}" \
-  --dest "$deps" -r "$deps/requirements.txt" >"$log" 2>&1 \
+  --dest "$store" -r "$deps/requirements.txt" >"$log" 2>&1 \
   || { tail -n 30 "$log" >&2; exit 1; }
-# Drop wheels of versions no longer resolved (the image installs what the directory holds).
+# The context holds exactly the resolved wheels (the image installs what the directory holds):
+# stale versions dropped, the others hard-linked (copied across file systems) from the store.
 mapfile -t keep < <(grep -oE '(Saved|File was already downloaded) [^ ]+\.whl' "$log" \
                       | awk '{print $NF}' | xargs -r -n1 basename | sort -u)
 for whl in "$deps"/*.whl; do
+  [ -e "$whl" ] || continue
   name="$(basename "$whl")"
   printf '%s\n' "${keep[@]}" | grep -qxF "$name" || { echo "build.sh: removing stale $name"; rm -f "$whl"; }
+done
+for name in "${keep[@]}"; do
+  [ -e "$deps/$name" ] || ln "$store/$name" "$deps/$name" 2>/dev/null || cp "$store/$name" "$deps/$name"
 done
 
 # 2. The scanflow wheel, built from the files git knows (tracked and untracked, not ignored)
