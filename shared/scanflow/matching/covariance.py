@@ -13,6 +13,7 @@ it ignores the target points' noise shared by many residuals; icp and plicp use
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from scanflow.matching.correspondence import MAD_TO_SIGMA
@@ -82,25 +83,15 @@ def line_fit_covariance(
     m = len(moved)
     if m <= POSE_DOF:
         return unknown_covariance()
-    tangents = np.column_stack((normals[:, 1], -normals[:, 0]))
-    jac = np.column_stack((normals, normals[:, 1] * moved[:, 0] - normals[:, 0] * moved[:, 1]))
-    wj = jac * weights[:, None]
-    hessian = wj.T @ jac
-    # Residual derivative w.r.t. each neighbour q of the line: through the centroid (-n / k)
-    # and through the normal's angle (first-order eigenvector perturbation of the scatter).
-    used = neighbours >= 0
-    count = used.sum(axis=1)
-    q = target[np.where(used, neighbours, 0)] - centres[:, None, :]
-    along = np.sum((moved - centres) * tangents, axis=1)
-    dphi = (np.sum(q * tangents[:, None, :], axis=2)[..., None] * normals[:, None, :]
-            + np.sum(q * normals[:, None, :], axis=2)[..., None] * tangents[:, None, :])
-    d = -normals[:, None, :] / count[:, None, None] - (along / spread_m2)[:, None, None] * dphi
-    d[~used] = 0.0
-    rows, slots = np.nonzero(used)
-    g_target = np.zeros((len(target), POSE_DOF, 2))
-    np.add.at(g_target, neighbours[rows, slots], wj[rows][:, :, None] * d[rows, slots][:, None, :])
-    noise_gain = wj.T @ wj + np.einsum("mab,mcb->ac", g_target, g_target)
-    s = 1.0 + np.sum(d * d, axis=(1, 2))
+    hessian, noise_gain, s = _censi_terms(
+        np.ascontiguousarray(moved, dtype=np.float64),
+        np.ascontiguousarray(weights, dtype=np.float64),
+        np.ascontiguousarray(normals, dtype=np.float64),
+        np.ascontiguousarray(centres, dtype=np.float64),
+        np.ascontiguousarray(neighbours, dtype=np.int64),
+        np.ascontiguousarray(spread_m2, dtype=np.float64),
+        np.ascontiguousarray(target, dtype=np.float64),
+    )
     # Robust (MAD) spread of the residuals normalised by their noise gain: a weighted mean of
     # r^2 would be biased low by the Cauchy weights, a plain one inflated by the outliers.
     sigma2 = (MAD_TO_SIGMA * float(np.median(np.abs(residuals) / np.sqrt(s)))) ** 2
@@ -115,3 +106,57 @@ def line_fit_covariance(
     if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) < 0.0):
         return unknown_covariance()
     return cov
+
+
+@njit(cache=True)
+def _censi_terms(moved, weights, normals, centres, neighbours, spread_m2, target):
+    """One pass over the residuals: Hessian J^T W J, noise gain sum_z g_z g_z^T, and each
+    residual's noise scale s_i = 1 + |dr_i/d(target points)|^2 (see `line_fit_covariance`).
+
+    A residual's derivative w.r.t. a neighbour q of its line goes through the centroid
+    (-n / k) and through the normal's angle (first-order eigenvector perturbation)."""
+    m = moved.shape[0]
+    hessian = np.zeros((3, 3))
+    gain = np.zeros((3, 3))
+    g_target = np.zeros((target.shape[0], 3, 2))
+    s = np.ones(m)
+    for i in range(m):
+        n0, n1 = normals[i, 0], normals[i, 1]
+        t0, t1 = n1, -n0
+        px, py = moved[i, 0], moved[i, 1]
+        jac = (n0, n1, n1 * px - n0 * py)
+        w = weights[i]
+        for a in range(3):
+            for b in range(3):
+                hessian[a, b] += w * jac[a] * jac[b]
+                gain[a, b] += w * w * jac[a] * jac[b]
+        count = 0
+        for k in range(neighbours.shape[1]):
+            if neighbours[i, k] >= 0:
+                count += 1
+        if count == 0:
+            continue
+        cx, cy = centres[i, 0], centres[i, 1]
+        along = ((px - cx) * t0 + (py - cy) * t1) / spread_m2[i]
+        acc = 0.0
+        for k in range(neighbours.shape[1]):
+            j = neighbours[i, k]
+            if j < 0:
+                continue
+            qx, qy = target[j, 0] - cx, target[j, 1] - cy
+            qt = qx * t0 + qy * t1
+            qn = qx * n0 + qy * n1
+            d0 = -n0 / count - along * (qt * n0 + qn * t0)
+            d1 = -n1 / count - along * (qt * n1 + qn * t1)
+            acc += d0 * d0 + d1 * d1
+            for a in range(3):
+                g_target[j, a, 0] += w * jac[a] * d0
+                g_target[j, a, 1] += w * jac[a] * d1
+        s[i] = 1.0 + acc
+    for j in range(target.shape[0]):
+        for a in range(3):
+            for c in range(3):
+                gain[a, c] += (
+                    g_target[j, a, 0] * g_target[j, c, 0] + g_target[j, a, 1] * g_target[j, c, 1]
+                )
+    return hessian, gain, s
