@@ -147,31 +147,54 @@ def transport(count: int = 3000, latency_count: int = 500) -> dict[str, Any]:
 
 def throughput(log: Path, limit: int | None) -> dict[str, Any]:
     """Scans/s through ingest -> deskew -> matcher (-> map server) as fast as backpressure
-    allows, against the in-process pipeline on the same events."""
+    allows, against the in-process pipeline on the same events; per service and scan: CPU
+    (Linux /proc), worker busy time and time blocked in puts, in ms."""
     events = list(source_events(str(log), "robot", 1.0, 0, limit))
     scans = sum(isinstance(e, LaserScan) for e in events)
     pipeline = Pipeline()
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     for event in events:
         if isinstance(event, LaserScan):
             pipeline.process(event)
         else:
             pipeline.add_odometry(event)
     in_process_s = time.perf_counter() - t0
+    in_process_cpu_s = time.process_time() - cpu0
     settings = {"SCANFLOW_INGEST_LOG": str(log), "SCANFLOW_INGEST_RATE": "0"}
     if limit is not None:
         settings["SCANFLOW_INGEST_LIMIT"] = str(limit)
     with running(SERVICES) as (launcher, session):
         observer = Observer(session)
+        before = {name: _load(launcher, session, name) for name in SERVICES}
         launcher.start("ingest", **settings)
         observer.wait_poses(scans, timeout_s=20 * in_process_s + 120)
         services_s = max(observer.pose_s.values()) - min(observer.raw_s.values())
+        after = {name: _load(launcher, session, name) for name in SERVICES}
+    per_scan_ms = {
+        name: {k: round(1e3 * (after[name][k] - before[name][k]) / scans, 3) for k in after[name]}
+        for name in SERVICES
+    }
     return {
         "log": log.name,
         "scans": scans,
         "in_process_scans_per_s": scans / in_process_s,
+        "in_process_cpu_ms_per_scan": 1e3 * in_process_cpu_s / scans,
         "services_scans_per_s": scans / services_s,
         "services_vs_in_process": in_process_s / services_s,
+        "per_scan_ms": per_scan_ms,
+    }
+
+
+def _load(launcher: Launcher, session: Any, name: str) -> dict[str, float]:
+    """A service's CPU seconds so far (all threads), its worker's busy seconds and the
+    seconds its puts took (blocked by a slow subscriber)."""
+    with open(f"/proc/{launcher.processes[name].pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    gauges = stats(session, name).gauges
+    return {
+        "cpu": (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK"),
+        "worker_busy": gauges["worker_busy_s"],
+        "put": gauges["put_s"],
     }
 
 

@@ -52,6 +52,8 @@ class ServiceShell:
         self._queries: queue.Queue[tuple[QueryHandler, zenoh.Query]] = queue.Queue(queue_size)
         self._query_thread = threading.Thread(target=self._serve_queries, daemon=True)
         self._started_s = time.monotonic()
+        self._busy_s = 0.0  # worker time in `handle` (and `idle`): how loaded the service is
+        self._put_s = 0.0  # time spent in puts, mostly blocked by a slow subscriber
 
     # -- declarations -------------------------------------------------------------------
     def publisher(self, key: str) -> zenoh.Publisher:
@@ -66,7 +68,9 @@ class ServiceShell:
 
     def put(self, key: str, payload: bytes) -> None:
         """Publish on `key` through a cached reliable, blocking publisher."""
+        t0 = time.perf_counter()
         self._cached_publisher(key).put(payload)
+        self._put_s += time.perf_counter() - t0
 
     def wait_for_subscribers(self, key: str, timeout_s: float) -> bool:
         """Wait until something subscribes to `key` (True), or `timeout_s` passes (False)."""
@@ -164,9 +168,11 @@ class ServiceShell:
         """Feed inbox items to `handle` until stopped; `idle()` runs after `poll_s` of quiet."""
         while not self.stop_event.is_set():
             item = self.inbox.get(poll_s)
+            t0 = time.perf_counter()
             if item is None:
                 if idle is not None:
                     idle()
+                self._busy_s += time.perf_counter() - t0
                 continue
             kind, message = item
             try:
@@ -174,6 +180,7 @@ class ServiceShell:
             except Exception:  # a bad message must not stop the service
                 self.counters.add(f"errors.{kind}")
                 self.log.exception("failed to handle a %s message", kind)
+            self._busy_s += time.perf_counter() - t0
 
     def stop(self) -> None:
         self.stop_event.set()
@@ -202,6 +209,8 @@ class ServiceShell:
             "rss_bytes": rss_bytes(),
             "inbox_depth": self.inbox.depth(),
             "inbox_high_water": self.inbox.high_water,
+            "worker_busy_s": self._busy_s,
+            "put_s": self._put_s,
         }
         for stream, figures in self.seqs.snapshot().items():
             gauges[f"seq.{stream}.last"] = figures.pop("last_seq")

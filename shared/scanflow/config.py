@@ -45,7 +45,9 @@ class ServiceSettings(BaseSettings):
     model_config = SettingsConfigDict(extra="ignore")
 
     instance: str = "0"
-    queue_size: int = Field(64, ge=1, description="bounded inbox between Zenoh and the worker")
+    queue_size: int = Field(
+        256, ge=1, description="bounded inbox between Zenoh and the worker (> 3 x ingest window)"
+    )
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
 
 

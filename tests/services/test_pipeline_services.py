@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from scanflow import keys
+from scanflow.config import ServiceSettings
 from scanflow.frontend import FrontendOutput
 from scanflow.maps.export import load_npz
 from scanflow.maps.occupancy import OccupancyGrid
@@ -78,12 +79,18 @@ def run_ingest(launcher, bus, timeout_s: float = 120.0, **settings: str) -> None
 
 
 def assert_every_scan_processed(bus, scans: int) -> None:
-    """Deskew and matcher each took every scan, and no stream reports a missed seq."""
+    """Deskew and matcher each took every scan, no stream reports a missed seq, and the
+    credit window alone held ingest back: no inbox filled (a full inbox stops its session's
+    link, and deskew and matcher publish to each other), the workers report their load."""
     deskew, matcher = bus.stats("deskew"), bus.stats("matcher")
     assert deskew.counters["received.scan"] == scans
     assert matcher.counters["received.scan"] == scans
+    queue_size = ServiceSettings.model_fields["queue_size"].default
     for stats in (deskew, matcher):
         assert all(v == 0 for k, v in stats.counters.items() if k.endswith(".missed")), stats
+        assert stats.gauges["inbox_high_water"] < queue_size, stats.gauges
+        assert stats.gauges["worker_busy_s"] > 0.0
+        assert 0.0 < stats.gauges["put_s"] <= stats.gauges["worker_busy_s"]
 
 
 def assert_served_map(bus, grid: OccupancyGrid, scans: int) -> None:
