@@ -34,6 +34,7 @@ class Peer:
             ZenohSettings(mode="peer", connect=[], listen=[f"tcp/127.0.0.1:{port}"])
         )
         self._declared: list = []
+        self.gateway_session: zenoh.Session | None = None  # set by the `backend` fixture
 
     def put(self, key: str, payload: bytes) -> None:
         self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
@@ -54,6 +55,10 @@ class Peer:
                 query.reply(query.key_expr, payload)
 
         self._declared.append(self.session.declare_queryable(key, on_query))
+        if self.gateway_session is not None:  # don't race the declaration to the gateway
+            querier = self.gateway_session.declare_querier(key)
+            eventually(lambda: querier.matching_status.matching, f"the gateway to see {key}")
+            querier.undeclare()
 
     def token(self, key: str) -> None:
         self._declared.append(self.session.liveliness().declare_token(key))
@@ -110,6 +115,7 @@ def backend(peer: Peer, zenoh_port: int, settings: GatewaySettings) -> Iterator[
     z = ZenohSettings(mode="peer", connect=[f"tcp/127.0.0.1:{zenoh_port}"])
     b = ZenohBackend.open(settings, z)
     eventually(lambda: b.session_info()["peers"], "the gateway to join the test peer")
+    peer.gateway_session = b.session
     yield b
     b.close()
 
