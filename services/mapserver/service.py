@@ -45,7 +45,10 @@ class MapServer:
         )
         self.robots: dict[str, RobotMap] = {}
         self.lock = threading.Lock()  # the worker inserts while the query thread reads
-        for snap in load_snapshots(self.data_dir):
+        snapshots, skipped = load_snapshots(self.data_dir)
+        for reason in skipped:
+            self.shell.log.warning("%s; starting that robot afresh", reason)
+        for snap in snapshots:
             self.robots[snap.robot_id] = RobotMap(snap.robot_id, settings.pending_limit, snap)
             self.shell.seqs.resume(f"{snap.robot_id}/pose", snap.last_seq)
             self.shell.log.info("robot %s: resumed at seq %d", snap.robot_id, snap.last_seq)

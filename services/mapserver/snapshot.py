@@ -50,13 +50,21 @@ def save_snapshot(data_dir: Path, snap: Snapshot) -> None:
         Path(tmp).unlink(missing_ok=True)
 
 
-def load_snapshots(data_dir: Path) -> list[Snapshot]:
-    """Every robot snapshot in `data_dir` (none if the directory does not exist)."""
-    snaps = []
+def load_snapshots(data_dir: Path) -> tuple[list[Snapshot], list[str]]:
+    """Every complete robot snapshot in `data_dir` (none if the directory does not exist), and
+    why any other was skipped: a crash between the two writes of a robot's first snapshot
+    leaves a map without a trajectory, which must not stop the service from starting."""
+    snaps, skipped = [], []
     for map_path in sorted(data_dir.glob("*.map.npz")):
         robot_id = map_path.name.removesuffix(".map.npz")
         _, trajectory_path = _paths(data_dir, robot_id)
-        with np.load(trajectory_path, allow_pickle=False) as data:
-            stamps_s, poses, last_seq = data["stamps_s"], data["poses"], int(data["last_seq"])
-        snaps.append(Snapshot(robot_id, load_npz(map_path), stamps_s, poses, last_seq))
-    return snaps
+        try:
+            with np.load(trajectory_path, allow_pickle=False) as data:
+                stamps_s, poses = data["stamps_s"], data["poses"]
+                last_seq = int(data["last_seq"])
+            grid = load_npz(map_path)
+        except (OSError, KeyError, ValueError) as exc:
+            skipped.append(f"robot {robot_id}: snapshot not loaded ({type(exc).__name__}: {exc})")
+            continue
+        snaps.append(Snapshot(robot_id, grid, stamps_s, poses, last_seq))
+    return snaps, skipped

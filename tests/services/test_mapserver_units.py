@@ -67,12 +67,22 @@ def test_snapshot_round_trip(tmp_path):
         robot.pairing.add_scan(scan(seq))
         robot.apply(pose(seq, Pose2D(0.1 * seq, 0.0, 0.0)))
     save_snapshot(tmp_path, robot.snapshot())
-    (snap,) = load_snapshots(tmp_path)
+    (snap,), skipped = load_snapshots(tmp_path)
     again = RobotMap("r", 10, snap)
-    assert again.last_seq == 2 and again.state == robot.state
+    assert again.last_seq == 2 and again.state == robot.state and skipped == []
     np.testing.assert_array_equal(again.map.grid.log_odds, robot.map.grid.log_odds)
     np.testing.assert_array_equal(again.trajectory.poses, robot.trajectory.poses)
     assert not list(tmp_path.glob(".*"))  # no temporary files left behind
+
+
+def test_a_map_without_its_trajectory_is_skipped_and_named_not_a_crash(tmp_path):
+    robot = RobotMap("r", pending_limit=10)
+    robot.pairing.add_scan(scan(0))
+    robot.apply(pose(0))
+    save_snapshot(tmp_path, robot.snapshot())
+    (tmp_path / "r.trajectory.npz").unlink()  # killed between the map and the trajectory write
+    snaps, skipped = load_snapshots(tmp_path)
+    assert snaps == [] and len(skipped) == 1 and "robot r" in skipped[0]
 
 
 def test_shards_split_robots_and_a_robot_list_wins():

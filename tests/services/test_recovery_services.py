@@ -65,10 +65,20 @@ def test_map_server_crash_resumes_from_its_snapshot(pipeline, tmp_path):
     poses = bus.record(keys.pose())
     ingest = launcher.start("ingest", **{**SIM, "SCANFLOW_INGEST_RATE": "1"})  # 8 s
     bus.wait_until(lambda: len(poses) >= 20, 60.0, "20 poses before the crash")
-    bus.wait_until(lambda: (tmp_path / "data" / "robot.map.npz").exists(), 10.0, "a snapshot")
+    data = tmp_path / "data"
+    bus.wait_until(
+        lambda: (data / "robot.map.npz").exists() and (data / "robot.trajectory.npz").exists(),
+        10.0,
+        "a complete snapshot",
+    )
     launcher.kill("mapserver")
     start("mapserver", SCANFLOW_MAPSERVER_SNAPSHOT_INTERVAL_S="0.5")
-    resumed_at = int(launcher.log_text("mapserver").split("resumed at seq ")[1].split()[0])
+    log = bus.wait_until(
+        lambda: "resumed at seq " in (text := launcher.log_text("mapserver")) and text,
+        10.0,
+        "the restarted map server to log where it resumed",
+    )
+    resumed_at = int(log.split("resumed at seq ")[1].split()[0])
     assert resumed_at >= 0
     ingest.wait(120.0)
     assert ingest.returncode == 0
