@@ -236,11 +236,12 @@ def test_metrics_count_every_scan(stack, expected):
 # -- faults ----------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def fault_run(stack):
-    """A second robot published in real time with no backpressure while the faults happen."""
+    """A second robot published in real time with no backpressure while the faults happen
+    (900 simulated seconds: it must outlast every fault test, however slow the machine)."""
     project, client, _ = stack
     project.compose("run", "-d", "--no-deps", "-e", f"SCANFLOW_INGEST_ROBOT_ID={FAULT_ROBOT}",
                     "-e", "SCANFLOW_INGEST_RATE=1", "-e", "SCANFLOW_INGEST_WINDOW=0",
-                    "-e", "SCANFLOW_INGEST_SIM_DURATION_S=120", "ingest")
+                    "-e", "SCANFLOW_INGEST_SIM_DURATION_S=900", "ingest")
     poll(lambda: client.get(f"/api/v1/robots/{FAULT_ROBOT}/pose").status_code == 200, 60.0,
          f"first pose of {FAULT_ROBOT}")
     return project, client
