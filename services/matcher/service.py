@@ -122,18 +122,7 @@ class MatcherService:
         prefix = self.shell.prefix
         if out.inserted:
             self.shell.put(keys.map_key(robot_id, "insert", prefix), scan.encode())
-        estimate = PoseEstimateMessage(
-            robot_id=robot_id,
-            seq=out.seq,
-            stamp_s=out.stamp_s,
-            pose=out.pose,
-            covariance=out.covariance,
-            status=str(out.status),
-            method=out.method,
-            iterations=out.iterations,
-            score=out.score,
-            message=out.message,
-        )
+        estimate = PoseEstimateMessage.from_result(out, robot_id, out.seq, out.stamp_s)
         self.shell.put(keys.pose(robot_id, prefix), estimate.encode())
         self.shell.counters.add(f"status.{out.status}")
 

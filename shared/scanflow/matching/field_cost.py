@@ -54,6 +54,17 @@ class LevelOutcome:
     message: str = ""
 
 
+def out_of_iterations(pose: NDArray[np.float64], max_iterations: int, finest: bool) -> LevelOutcome:
+    """A level that used all its iterations: a failure on the finest level, fine on a coarse
+    one (the next level goes on from its pose)."""
+    if finest:
+        return LevelOutcome(
+            pose, max_iterations, MatchStatus.MAX_ITERATIONS,
+            f"no convergence in {max_iterations} iterations",
+        )
+    return LevelOutcome(pose, max_iterations, None)
+
+
 LevelSolver = Callable[
     [LikelihoodField, NDArray[np.float64], NDArray[np.float64], int], LevelOutcome
 ]

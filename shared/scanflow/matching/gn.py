@@ -22,6 +22,7 @@ from scanflow.matching.field_cost import (
     converged_step,
     level_tolerances,
     linearise,
+    out_of_iterations,
     run_coarse_to_fine,
     solve_well_determined,
 )
@@ -77,14 +78,7 @@ def match_gn(
                 pose, lin = pose + step, trial
             if converged_step(step, t_tol, r_tol):
                 return LevelOutcome(pose, it, None)
-        if finest:
-            return LevelOutcome(
-                pose,
-                max_iterations,
-                MatchStatus.MAX_ITERATIONS,
-                f"no convergence in {max_iterations} iterations",
-            )
-        return LevelOutcome(pose, max_iterations, None)
+        return out_of_iterations(pose, max_iterations, finest)
 
     return run_coarse_to_fine(
         "gn", source, target, guess, solve_level, levels, resolution_m, sigma_m

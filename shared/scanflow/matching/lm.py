@@ -22,6 +22,7 @@ from scanflow.matching.field_cost import (
     field_cost,
     level_tolerances,
     linearise,
+    out_of_iterations,
     run_coarse_to_fine,
     solve_well_determined,
 )
@@ -81,14 +82,7 @@ def match_lm(
             else:
                 mu *= nu
                 nu, rejected = 2.0 * nu, True
-        if finest:
-            return LevelOutcome(
-                pose,
-                max_iterations,
-                MatchStatus.MAX_ITERATIONS,
-                f"no convergence in {max_iterations} iterations",
-            )
-        return LevelOutcome(pose, max_iterations, None)
+        return out_of_iterations(pose, max_iterations, finest)
 
     return run_coarse_to_fine(
         "lm", source, target, guess, solve_level, levels, resolution_m, sigma_m

@@ -34,6 +34,7 @@ from scanflow.wire.schema import (
 )
 
 if TYPE_CHECKING:
+    from scanflow.frontend import FrontendOutput
     from scanflow.matching.api import MatchResult
 
 ERROR_STATUS = "error"
@@ -94,8 +95,11 @@ class PoseEstimateMessage(Message):
         check_text("message", self.message, allow_empty=True)
 
     @classmethod
-    def from_result(cls, result: MatchResult, robot_id: str, seq: int, stamp_s: float) -> Self:
-        """The estimate a tracker publishes after a match: the result's pose, covariance, status."""
+    def from_result(
+        cls, result: MatchResult | FrontendOutput, robot_id: str, seq: int, stamp_s: float
+    ) -> Self:
+        """The estimate a tracker publishes: a match result's or a front-end output's pose,
+        covariance, status, method, iterations, score and message."""
         return cls(
             robot_id=robot_id,
             seq=seq,
