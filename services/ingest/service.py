@@ -23,7 +23,7 @@ class Ingest:
 
     def __init__(self, settings: IngestSettings, zenoh_settings: ZenohSettings) -> None:
         self.settings = settings
-        keys.check_id(settings.robot_id)
+        keys.check_robot_id(settings.robot_id)
         self.shell = ServiceShell("ingest", settings.instance, zenoh_settings, settings.queue_size)
         stop = self.shell.stop_event
         window = settings.window if settings.rate == 0 else 0

@@ -13,7 +13,6 @@ from scanflow.deskew.compensate import (
     deskew,
 )
 from scanflow.deskew.source import DeskewError, PoseSource, choose_source
-from scanflow.deskew.twist import se2_exp, se2_log
 from scanflow.deskew.velocity import ConstantVelocityModel
 
 __all__ = [
@@ -27,6 +26,4 @@ __all__ = [
     "Reference",
     "choose_source",
     "deskew",
-    "se2_exp",
-    "se2_log",
 ]

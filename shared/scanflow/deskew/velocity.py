@@ -12,8 +12,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from scanflow.deskew.source import DeskewError, PoseArrays
-from scanflow.deskew.twist import se2_exp, se2_log
-from scanflow.geometry import Pose2D, compose_arrays
+from scanflow.geometry import Pose2D, compose_arrays, se2_exp, se2_log
 
 
 class ConstantVelocityModel:

@@ -5,8 +5,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from scanflow.deskew.twist import se2_exp, se2_log
-from scanflow.geometry import normalize_angles
+from scanflow.geometry import normalize_angles, relative_arrays, se2_exp, se2_log
 from scanflow.sim.trajectory import Trajectory
 
 
@@ -26,7 +25,7 @@ def odometry_poses(
     truth = trajectory.pose_at(stamps_s)
     if stamps_s.size < 2:
         return truth
-    steps = se2_log(_relative(truth[:-1], truth[1:]))
+    steps = se2_log(relative_arrays(truth[:-1], truth[1:]))
     dt_s = np.diff(stamps_s)
     bias_rps = np.cumsum(rng.normal(0.0, yaw_noise_rps, dt_s.shape) * np.sqrt(dt_s))
     steps[:, :2] *= 1.0 + scale_error
@@ -42,10 +41,3 @@ def odometry_poses(
     poses[1:, :2] = truth[0, :2] + np.cumsum(moves, axis=0)
     poses[:, 2] = normalize_angles(heading)
     return poses
-
-
-def _relative(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Row-wise a^-1 * b for (N, 3) pose arrays."""
-    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
-    dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
-    return np.column_stack((c * dx + s * dy, -s * dx + c * dy, b[:, 2] - a[:, 2]))

@@ -12,8 +12,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scanflow.deskew.twist import se2_exp
-from scanflow.geometry import Pose2D, compose_arrays, normalize_angle
+from scanflow.geometry import Pose2D, compose_arrays, normalize_angle, se2_exp
 from scanflow.sim.world import World
 
 

@@ -2,8 +2,8 @@ import math
 
 import numpy as np
 import pytest
-from scanflow.deskew import ConstantVelocityModel, DeskewError, OdometryBuffer, se2_exp, se2_log
-from scanflow.geometry import Pose2D
+from scanflow.deskew import ConstantVelocityModel, DeskewError, OdometryBuffer
+from scanflow.geometry import Pose2D, se2_exp, se2_log
 
 
 def _circle_pose(t):
