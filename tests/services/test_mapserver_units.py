@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 from scanflow.geometry import Pose2D
+from scanflow.maps.export import load_npz, save_npz
 from scanflow.maps.occupancy import OccupancyParams
 from scanflow.wire import DeskewedScanMessage, PoseEstimateMessage
 
@@ -75,14 +76,26 @@ def test_snapshot_round_trip(tmp_path):
     assert not list(tmp_path.glob(".*"))  # no temporary files left behind
 
 
-def test_a_map_without_its_trajectory_is_skipped_and_named_not_a_crash(tmp_path):
+def test_a_snapshot_is_one_file_that_loads_as_a_map(tmp_path):
     robot = RobotMap("r", pending_limit=10)
     robot.pairing.add_scan(scan(0))
     robot.apply(pose(0))
     save_snapshot(tmp_path, robot.snapshot())
-    (tmp_path / "r.trajectory.npz").unlink()  # killed between the map and the trajectory write
+    (path,) = tmp_path.iterdir()  # map and trajectory together: no crash can split them
+    assert path.name == "r.snapshot.npz"
+    np.testing.assert_array_equal(load_npz(path).log_odds, robot.map.grid.log_odds)
+
+
+def test_an_unreadable_snapshot_is_skipped_and_named_not_a_crash(tmp_path):
+    robot = RobotMap("r", pending_limit=10)
+    robot.pairing.add_scan(scan(0))
+    robot.apply(pose(0))
+    save_snapshot(tmp_path, robot.snapshot())
+    (tmp_path / "s.snapshot.npz").write_bytes(b"not a zip file")
+    save_npz(robot.map.grid, tmp_path / "m.snapshot.npz")  # a map without a trajectory
     snaps, skipped = load_snapshots(tmp_path)
-    assert snaps == [] and len(skipped) == 1 and "robot r" in skipped[0]
+    assert [s.robot_id for s in snaps] == ["r"]
+    assert len(skipped) == 2 and "robot m" in skipped[0] and "robot s" in skipped[1]
 
 
 def test_shards_split_robots_and_a_robot_list_wins():

@@ -67,7 +67,7 @@ def test_map_server_crash_resumes_from_its_snapshot(pipeline, tmp_path):
     bus.wait_until(lambda: len(poses) >= 20, 60.0, "20 poses before the crash")
     data = tmp_path / "data"
     bus.wait_until(
-        lambda: (data / "robot.map.npz").exists() and (data / "robot.trajectory.npz").exists(),
+        lambda: (data / "robot.snapshot.npz").exists(),
         10.0,
         "a complete snapshot",
     )

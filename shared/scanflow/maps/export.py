@@ -13,6 +13,7 @@ from __future__ import annotations
 import io
 import json
 import os
+from collections.abc import Mapping
 from dataclasses import asdict, replace
 from pathlib import Path
 
@@ -165,9 +166,10 @@ def load_map_server(yaml_path: Path | str, params: OccupancyParams | None = None
     return OccupancyGrid.from_int8(data, origin[0], origin[1], grid_params)
 
 
-def save_npz(grid: OccupancyGrid, path: Path | str) -> Path:
-    """Lossless native format: log-odds, observed mask, hit sums, lattice placement, params,
-    revision."""
+def npz_arrays(grid: OccupancyGrid) -> dict[str, NDArray]:
+    """The native format's arrays: log-odds, observed mask, hit sums and a JSON `meta` with the
+    lattice placement, params and revision. Callers may add arrays of their own beside them
+    (a map server snapshot adds the trajectory) and the result still loads as a map."""
     box = grid.extent or CellBox(0, 0, 0, 0)
     meta = {
         "format": NPZ_FORMAT,
@@ -178,38 +180,51 @@ def save_npz(grid: OccupancyGrid, path: Path | str) -> Path:
         "params": asdict(grid.params),
         "revision": grid.revision,
     }
+    return {
+        "log_odds": grid.log_odds,
+        "observed": grid.observed,
+        "hit_sums": grid.hit_sums,
+        "meta": np.array(json.dumps(meta)),
+    }
+
+
+def write_npz(path: Path | str, arrays: dict[str, NDArray]) -> Path:
+    """Compress `arrays` into one .npz that replaces `path` atomically."""
     buffer = io.BytesIO()
-    np.savez_compressed(
-        buffer,
-        log_odds=grid.log_odds,
-        observed=grid.observed,
-        hit_sums=grid.hit_sums,
-        meta=np.array(json.dumps(meta)),
-    )
+    np.savez_compressed(buffer, **arrays)
     return _write_atomic(Path(path), buffer.getvalue())
 
 
-def load_npz(path: Path | str) -> OccupancyGrid:
-    """Read a map written by `save_npz` exactly as it was saved (a v1 file has no hit sums:
-    its matching fields use cell centres)."""
-    path = Path(path)
-    with np.load(path, allow_pickle=False) as data:
-        meta = json.loads(str(data["meta"]))
-        if meta.get("format") != NPZ_FORMAT or meta.get("version") not in NPZ_READABLE_VERSIONS:
-            raise ValueError(
-                f"{path}: not a {NPZ_FORMAT} file of version {NPZ_READABLE_VERSIONS} "
-                f"(format {meta.get('format')!r}, version {meta.get('version')!r})"
-            )
-        return OccupancyGrid.from_arrays(
-            data["log_odds"],
-            data["observed"],
-            CellBox(*meta["box"]),
-            meta["anchor_x_m"],
-            meta["anchor_y_m"],
-            OccupancyParams(**meta["params"]),
-            meta["revision"],
-            data["hit_sums"] if "hit_sums" in data.files else None,
+def save_npz(grid: OccupancyGrid, path: Path | str) -> Path:
+    """Lossless native format (`npz_arrays`), written atomically."""
+    return write_npz(path, npz_arrays(grid))
+
+
+def grid_from_npz(data: Mapping[str, NDArray], source: Path | str) -> OccupancyGrid:
+    """The map in an opened native .npz (`np.load`), exactly as it was saved (a v1 file has
+    no hit sums: its matching fields use cell centres); `source` names it in errors."""
+    meta = json.loads(str(data["meta"]))
+    if meta.get("format") != NPZ_FORMAT or meta.get("version") not in NPZ_READABLE_VERSIONS:
+        raise ValueError(
+            f"{source}: not a {NPZ_FORMAT} file of version {NPZ_READABLE_VERSIONS} "
+            f"(format {meta.get('format')!r}, version {meta.get('version')!r})"
         )
+    return OccupancyGrid.from_arrays(
+        data["log_odds"],
+        data["observed"],
+        CellBox(*meta["box"]),
+        meta["anchor_x_m"],
+        meta["anchor_y_m"],
+        OccupancyParams(**meta["params"]),
+        meta["revision"],
+        data.get("hit_sums"),
+    )
+
+
+def load_npz(path: Path | str) -> OccupancyGrid:
+    """Read a map written by `save_npz` (or any file of `npz_arrays` plus other arrays)."""
+    with np.load(path, allow_pickle=False) as data:
+        return grid_from_npz(data, path)
 
 
 def save_map(grid: OccupancyGrid, path: Path | str) -> Path:
