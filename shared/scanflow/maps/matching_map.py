@@ -3,10 +3,12 @@
 The likelihood fields (one per pyramid level) measure distances to each occupied cell's mean
 hit point (sub-cell accurate walls; cell centres for maps imported without hit sums). They are
 refreshed lazily, on first access after an update, and only around where the scan flipped cells
-between free/unknown and occupied or added hits to occupied cells, so keeping them current costs
-in proportion to the region a scan touched. Occupied points, the
-max-pool stack and NDT cells are rebuilt whole (their constructors take the whole map) on first
-access after a change of the occupied cells.
+between free/unknown and occupied or added hits to occupied cells. The views derived from them
+follow the same way: a max-pool stack re-pools only where its level's field values changed
+(`FieldLayer.take_changes`), and NDT cells recompute only the cells overlapping the box where
+cells flipped. So keeping every view current costs in proportion to the region a scan touched,
+not to the map; their arrays grow amortised with the map (O(log size) re-layouts). Only the
+occupied points are rebuilt whole (on first access after the occupied cells changed).
 
 The default field sigma is 2 cells of the grid (0.10 m at 5 cm): wide enough for a smooth
 gradient across a wall and a basin of a few cells, narrow enough to keep walls distinct; level k
@@ -16,15 +18,12 @@ of the pyramid scales it by 2**k with its cells. Fields are cut off at `cutoff_s
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import Any
-
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from scanflow.maps.field import LikelihoodField
-from scanflow.maps.maxpool import MaxPoolStack
-from scanflow.maps.ndt_cells import NDTCells
+from scanflow.maps.maxpool import MaxPoolStack, MaxPoolStore
+from scanflow.maps.ndt_cells import GridNDTCells, NDTCells
 from scanflow.maps.occupancy import InsertResult, OccupancyGrid
 from scanflow.maps.pyramid import FieldLayer
 
@@ -48,9 +47,9 @@ class MatchingMap:
         self.cutoff_sigmas = cutoff_sigmas
         self._layers: dict[int, FieldLayer] = {}
         self._occupied_points: NDArray[np.float64] | None = None
-        self._rebuilt: dict[tuple[object, ...], tuple[int, Any]] = {}
+        self._pools: dict[tuple[int, int], MaxPoolStore] = {}
+        self._ndt: dict[float, GridNDTCells] = {}
         self._seen_revision = self.grid.revision
-        self._occupied_version = 0
 
     @property
     def resolution_m(self) -> float:
@@ -64,8 +63,8 @@ class MatchingMap:
     def nbytes(self) -> int:
         """Memory held by the grid and every view built so far."""
         views = sum(layer.nbytes for layer in self._layers.values())
-        for _, view in self._rebuilt.values():
-            views += _nbytes(view)
+        views += sum(pool.nbytes for pool in self._pools.values())
+        views += sum(cells.nbytes for cells in self._ndt.values())
         if self._occupied_points is not None:
             views += self._occupied_points.nbytes
         return self.grid.nbytes + views
@@ -79,10 +78,10 @@ class MatchingMap:
         """Drop every view if the grid was written to other than through `update`."""
         if self.grid.revision != self._seen_revision:
             self._layers.clear()
-            self._rebuilt.clear()
+            self._pools.clear()
+            self._ndt.clear()
             self._occupied_points = None
             self._seen_revision = self.grid.revision
-            self._occupied_version += 1
 
     def update(
         self,
@@ -101,7 +100,8 @@ class MatchingMap:
                 layer.mark_dirty(dirty)
         if result.occupied_changed is not None:
             self._occupied_points = None
-            self._occupied_version += 1
+            for cells in self._ndt.values():
+                cells.mark_dirty(result.occupied_changed)
         return result
 
     def _layer(self, level: int) -> FieldLayer:
@@ -139,40 +139,29 @@ class MatchingMap:
             self._occupied_points = points
         return self._occupied_points
 
-    def _per_occupancy(self, key: tuple[object, ...], build: Callable[[], Any]) -> Any:
-        """A view rebuilt whole when the occupied cells changed, cached otherwise."""
-        self._sync()
-        cached = self._rebuilt.get(key)
-        if cached is None or cached[0] != self._occupied_version:
-            cached = (self._occupied_version, build())
-            self._rebuilt[key] = cached
-        return cached[1]
-
     def maxpool_stack(self, depth: int, level: int = 0) -> MaxPoolStack:
-        """Branch-and-bound max-pooled scores of the level's likelihood field, 2**depth deep.
-
-        Rebuilt over the whole field when the occupied cells changed (not when only mean hit
-        points moved: the search works on whole cells anyway).
-        """
-
-        def build() -> MaxPoolStack:
-            field = self.likelihood_field(level)
+        """Branch-and-bound max-pooled scores of the level's likelihood field, 2**depth deep:
+        equal to `MaxPoolStack.from_values` of `likelihood_field(level)`, re-pooled only where
+        the field changed. A read-only view valid until the next update."""
+        layer = self._layer(level)
+        field = layer.field()
+        pool = self._pools.get((depth, level))
+        if pool is None:
+            pool = self._pools[(depth, level)] = MaxPoolStore(depth)
+        changed = layer.take_changes(pool)
+        held, values = layer.stored()
+        padded = layer.padded_extent()
+        if held is None or padded is None:
             return MaxPoolStack.from_values(field.spec, field.values, depth)
-
-        return self._per_occupancy(("maxpool", depth, level), build)
+        pool.follow(held, values, changed)
+        return pool.stack(field.spec, padded)
 
     def ndt_cells(self, cell_size_m: float) -> NDTCells:
         """NDT distributions of the occupied cell centres, cells aligned to the map lattice
-        anchor so they do not shift as the map grows. Rebuilt when the occupied cells changed."""
-        return self._per_occupancy(
-            ("ndt", cell_size_m),
-            lambda: NDTCells.from_points(
-                self.occupied_points(), cell_size_m, (self.grid.anchor_x_m, self.grid.anchor_y_m)
-            ),
-        )
-
-
-def _nbytes(view: MaxPoolStack | NDTCells) -> int:
-    if isinstance(view, MaxPoolStack):
-        return sum(level.nbytes for level in view.levels)
-    return view.index.nbytes + view.means.nbytes + view.inv_covs.nbytes + view.counts.nbytes
+        anchor so they do not shift as the map grows; refreshed where occupied cells changed
+        (see GridNDTCells). A read-only view valid until the next update."""
+        self._sync()
+        cells = self._ndt.get(cell_size_m)
+        if cells is None:
+            cells = self._ndt[cell_size_m] = GridNDTCells(self.grid, cell_size_m)
+        return cells.cells()

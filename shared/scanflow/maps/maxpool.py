@@ -5,6 +5,10 @@ starting there: cells r..r+2**h-1, c..c+2**h-1. A search node covering 2**h x 2*
 offsets therefore scores at least as high at level h as any of its leaves at level 0: an upper
 bound. Values are integers (probabilities quantised once) so sums are exact and the bound and
 the leaf scores are compared without rounding.
+
+A change of level 0 inside a box changes level h only inside that box grown by 2**h - 1 cells
+towards lower rows and columns, which is what lets `MaxPoolStore` follow a changing grid (a
+map's likelihood field) by re-pooling just that neighbourhood.
 """
 
 from __future__ import annotations
@@ -15,7 +19,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from scanflow.maps.grid import GridSpec
+from scanflow.maps.grid import CellBox, GridSpec
 
 SCORE_SCALE = 1000  # probability 1.0 -> 1000 (int16 levels)
 
@@ -30,6 +34,29 @@ def _quantise_into(out, values):  # type: ignore[no-untyped-def]
                 return False
             out[r, c] = np.rint(v * SCORE_SCALE)
     return True
+
+
+def _pool(levels: NDArray[np.int16], changed: CellBox) -> None:
+    """Recompute levels 1.. of `levels` where level 0 changed inside `changed` (array indices).
+
+    Block max doubles per level: level h + 1 at (r, c) is the max of level h at (r, c),
+    (r + s, c), (r, c + s), (r + s, c + s) with s = 2**h, so the changed box grows by s towards
+    lower indices per level. `changed` must keep 2**depth - 1 cells from the low edges of the
+    array and 2**(depth - 1) from the high ones (the zero padding does).
+    """
+    box = changed
+    for h in range(len(levels) - 1):
+        s = 2**h
+        box = CellBox(box.row0 - s, box.col0 - s, box.row1, box.col1)
+        rows, cols = slice(box.row0, box.row1), slice(box.col0, box.col1 + s)
+        prev = levels[h]
+        pair = np.maximum(prev[rows, cols], prev[box.row0 + s : box.row1 + s, cols])
+        levels[h + 1, rows, box.col0 : box.col1] = np.maximum(pair[:, :-s], pair[:, s:])
+
+
+def _check_depth(depth: int) -> None:
+    if depth < 0:
+        raise ValueError(f"depth must be >= 0, got {depth}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -50,18 +77,11 @@ class MaxPoolStack:
             v = v.astype(np.float64)
         if v.shape != spec.shape:
             raise ValueError(f"values shape {v.shape} != grid shape {spec.shape}")
-        if depth < 0:
-            raise ValueError(f"depth must be >= 0, got {depth}")
+        _check_depth(depth)
         pad = 2**depth
         levels = np.zeros((depth + 1, spec.rows + 2 * pad, spec.cols + 2 * pad), dtype=np.int16)
-        if not _quantise_into(levels[0, pad : pad + spec.rows, pad : pad + spec.cols], v):
-            raise ValueError("values must be probabilities in [0, 1]")
-        for h in range(depth):
-            prev, nxt, s = levels[h], levels[h + 1], 2**h
-            # Block max doubles per level: max over the four blocks of size 2**h starting at
-            # (r, c), (r + s, c), (r, c + s), (r + s, c + s). Rows past the end stay 0 (padding).
-            np.maximum(prev[:-s, :], prev[s:, :], out=nxt[:-s, :])
-            np.maximum(nxt[:, :-s], nxt[:, s:], out=nxt[:, :-s])
+        _quantised(levels[0, pad : pad + spec.rows, pad : pad + spec.cols], v)
+        _pool(levels, CellBox(pad, pad, pad + spec.rows, pad + spec.cols))
         return MaxPoolStack(spec, levels, pad)
 
     @property
@@ -76,3 +96,77 @@ class MaxPoolStack:
         r = np.clip(rows + self.pad_cells, 0, grid.shape[0] - 1)
         c = np.clip(cols + self.pad_cells, 0, grid.shape[1] - 1)
         return grid[r, c]
+
+
+def _quantised(out: NDArray[np.int16], values: NDArray[np.floating]) -> None:
+    if not _quantise_into(out, values):
+        raise ValueError("values must be probabilities in [0, 1]")
+
+
+class MaxPoolStore:
+    """The levels of a grid that changes in places, re-pooled only where it changed.
+
+    `follow` tracks probabilities stored over a box of a lattice (a map's field level, whose box
+    grows amortised): it re-lays the levels out when that box moves, which copies the kept cells
+    (a growth adds zeros, whose pooled values are zero too), and re-pools the box of values
+    changed since the previous call. `stack` then serves any box inside as a view equal to
+    `MaxPoolStack.from_values` over it, when the values around that box are 0.
+    """
+
+    def __init__(self, depth: int) -> None:
+        _check_depth(depth)
+        self.depth = depth
+        self.pad = 2**depth
+        self._box: CellBox | None = None  # the box of values followed; levels hold it + pad
+        self._levels = np.zeros((depth + 1, 0, 0), dtype=np.int16)
+        self._stack: MaxPoolStack | None = None
+
+    @property
+    def nbytes(self) -> int:
+        return int(self._levels.nbytes)
+
+    def _storage(self, box: CellBox) -> CellBox:
+        return box.expanded(self.pad)
+
+    def follow(self, box: CellBox, values: NDArray[np.floating], changed: CellBox | None) -> None:
+        """Track `values` (probabilities in [0, 1] over `box`) that changed only inside
+        `changed` since the previous call (None: nowhere; pass `box` the first time). Cells
+        that `box` no longer holds must have been 0."""
+        if values.shape != box.shape:
+            raise ValueError(f"values shape {values.shape} != box shape {box.shape}")
+        if box != self._box:
+            self._relayout(box)
+        if changed is None:
+            return
+        changed = changed.intersection(box)
+        if changed.is_empty:
+            return
+        storage = self._storage(box)
+        _quantised(self._levels[0][changed.slices_in(storage)], values[changed.slices_in(box)])
+        _pool(self._levels, changed.shifted(-storage.row0, -storage.col0))
+        self._stack = None
+
+    def _relayout(self, box: CellBox) -> None:
+        new = self._storage(box)
+        levels = np.zeros((self.depth + 1, *new.shape), dtype=np.int16)
+        if self._box is not None:
+            old = self._storage(self._box)
+            kept = old.intersection(new)
+            levels[(slice(None), *kept.slices_in(new))] = self._levels[
+                (slice(None), *kept.slices_in(old))
+            ]
+        self._box, self._levels, self._stack = box, levels, None
+
+    def stack(self, spec: GridSpec, box: CellBox) -> MaxPoolStack:
+        """The stack of the values over `box` (inside the followed box; `spec` its geometry): a
+        read-only view, the same object while nothing changed, valid until the next `follow`."""
+        if self._box is None or not self._box.contains_box(box):
+            raise ValueError(f"{box} is not inside the followed box {self._box}")
+        if spec.shape != box.shape:
+            raise ValueError(f"spec shape {spec.shape} != box shape {box.shape}")
+        if self._stack is None or self._stack.spec != spec:
+            outer = self._storage(box).slices_in(self._storage(self._box))
+            view = self._levels[(slice(None), *outer)]
+            view.flags.writeable = False
+            self._stack = MaxPoolStack(spec, view, self.pad)
+        return self._stack

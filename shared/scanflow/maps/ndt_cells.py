@@ -4,6 +4,10 @@ Points are binned into square cells; each cell with enough points keeps its mean
 inverse of its covariance, whose eigenvalues are floored (a wall's points are nearly collinear,
 so the raw covariance is close to singular). The paper's four overlapping grids are the same
 construction shifted by half a cell in x, y and both (`OverlappingCells`, all four at once).
+
+`GridNDTCells` keeps the cells of a growing occupancy grid's occupied cell centres current:
+after a scan it recomputes only the cells overlapping the box where cells flipped between free
+and occupied, from the occupied centres inside them.
 """
 
 from __future__ import annotations
@@ -15,16 +19,21 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from scanflow.maps.grid import GridSpec
+from scanflow.maps.grid import CellBox, GridSpec, grown_box
+from scanflow.maps.occupancy import OccupancyGrid
 
 MIN_CELL_POINTS = 3
 EIGEN_FLOOR_RATIO = 0.1  # smallest eigenvalue >= this fraction of the largest
 EIGEN_FLOOR_M2 = 1e-4  # and >= (1 cm)^2
 
 
-def _checked_points(points: NDArray[np.float64], cell_size_m: float) -> NDArray[np.float64]:
+def _check_cell_size(cell_size_m: float) -> None:
     if not (math.isfinite(cell_size_m) and cell_size_m > 0):
         raise ValueError(f"cell_size_m must be positive, got {cell_size_m}")
+
+
+def _checked_points(points: NDArray[np.float64], cell_size_m: float) -> NDArray[np.float64]:
+    _check_cell_size(cell_size_m)
     return np.asarray(points, dtype=np.float64).reshape(-1, 2)
 
 
@@ -72,6 +81,177 @@ class NDTCells:
         out = np.full(len(cells), -1, dtype=np.int64)
         out[inside] = self.index[cells[inside, 0], cells[inside, 1]]
         return out
+
+
+class GridNDTCells:
+    """NDTCells of an OccupancyGrid's occupied cell centres, kept current cell by cell.
+
+    Cells of `cell_size_m` sit on the lattice anchored at the grid's anchor; a fine cell belongs
+    to the cell holding its centre, so a cell's distribution depends only on the occupied fine
+    cells inside it. `mark_dirty(box)` notes where the occupied mask changed; the next `cells()`
+    recomputes the cells overlapping that box (moments about each cell's corner: small sums),
+    adds or drops them as they reach or fall below `min_points`, and keeps the distributions
+    packed (a dropped cell's slot takes the last one's). The index grid grows like the grid's
+    storage (`grown_box`). Per cell location the result equals `NDTCells.from_points` of
+    `occupied centres` with the same size and anchor, up to summation order; the numbering of
+    the cells differs.
+    """
+
+    def __init__(
+        self, grid: OccupancyGrid, cell_size_m: float, min_points: int = MIN_CELL_POINTS
+    ) -> None:
+        _check_cell_size(cell_size_m)
+        self.grid = grid
+        self.cell_size_m = cell_size_m
+        self.min_points = min_points
+        self._box: CellBox | None = None  # the cells `_index` covers
+        self._index = np.zeros((0, 0), dtype=np.int64)
+        self._means = np.zeros((0, 2))
+        self._inv_covs = np.zeros((0, 2, 2))
+        self._counts = np.zeros(0, dtype=np.int64)
+        self._cell_of = np.zeros((0, 2), dtype=np.int64)  # (row, col) of each slot's cell
+        self._used = 0
+        self._pending: CellBox | None = grid.extent  # fine cells; everything to start with
+        self._view: NDTCells | None = None
+
+    @property
+    def nbytes(self) -> int:
+        return int(self._index.nbytes + sum(a.nbytes for a in self._slot_arrays()))
+
+    def mark_dirty(self, fine_box: CellBox) -> None:
+        """Note that the grid's occupied mask changed inside `fine_box` (grid cells)."""
+        self._pending = fine_box.union(self._pending)
+
+    def _bins(self, fine: NDArray[np.int64]) -> NDArray[np.int64]:
+        """The cell (row or col) holding the centre of each fine row or col."""
+        scale = self.grid.resolution_m / self.cell_size_m
+        return np.floor((np.asarray(fine) + 0.5) * scale).astype(np.int64)
+
+    def _cells_over(self, fine: CellBox) -> CellBox:
+        """The cells holding the centres of a (non-empty) box of fine cells."""
+        lo = self._bins(np.array([fine.row0, fine.col0]))
+        hi = self._bins(np.array([fine.row1 - 1, fine.col1 - 1])) + 1
+        return CellBox(int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1]))
+
+    def cells(self) -> NDTCells:
+        """The current cells: read-only views, the same object while the occupied cells did
+        not change, valid until the next grid update."""
+        extent = self.grid.extent
+        if self._pending is not None and extent is not None:
+            self._hold(self._cells_over(extent))
+            self._refresh(self._cells_over(self._pending))
+            self._pending, self._view = None, None
+        if self._view is None:
+            box = self._box or CellBox(0, 0, 0, 0)
+            spec = box.spec(self.grid.anchor_x_m, self.grid.anchor_y_m, self.cell_size_m)
+            arrays = [self._index[:, :]] + [
+                a[: self._used] for a in (self._means, self._inv_covs, self._counts)
+            ]
+            for a in arrays:
+                a.flags.writeable = False
+            self._view = NDTCells(spec, *arrays)
+        return self._view
+
+    def _hold(self, need: CellBox) -> None:
+        """Grow the index grid to hold `need` (every cell with occupied centres)."""
+        if self._box is not None and self._box.contains_box(need):
+            return
+        new = grown_box(self._box, need)
+        index = np.full(new.shape, -1, dtype=np.int64)
+        if self._box is not None:
+            kept = self._box.intersection(new)
+            index[kept.slices_in(new)] = self._index[kept.slices_in(self._box)]
+        self._box, self._index = new, index
+
+    def _refresh(self, box: CellBox) -> None:
+        """Recompute every cell of `box` from the occupied fine cells whose centres it holds."""
+        res, size = self.grid.resolution_m, self.cell_size_m
+        scale = size / res
+        fine = CellBox(
+            math.floor(box.row0 * scale) - 1,
+            math.floor(box.col0 * scale) - 1,
+            math.ceil(box.row1 * scale) + 1,
+            math.ceil(box.col1 * scale) + 1,
+        )
+        rows, cols = np.nonzero(self.grid.occupied_in(fine))
+        rows, cols = rows + fine.row0, cols + fine.col0
+        cell_r, cell_c = self._bins(rows), self._bins(cols)
+        inside = (
+            (cell_r >= box.row0) & (cell_r < box.row1) & (cell_c >= box.col0) & (cell_c < box.col1)
+        )
+        rows, cols, cell_r, cell_c = rows[inside], cols[inside], cell_r[inside], cell_c[inside]
+        flat = (cell_r - box.row0) * box.shape[1] + (cell_c - box.col0)
+        dx = (cols + 0.5) * res - cell_c * size  # offsets from the cell's corner
+        dy = (rows + 0.5) * res - cell_r * size
+        n_cells = box.shape[0] * box.shape[1]
+        moments = np.column_stack(
+            [
+                np.bincount(flat, w, minlength=n_cells)
+                for w in (None, dx, dy, dx * dx, dx * dy, dy * dy)
+            ]
+        )
+        live = moments[:, 0] >= self.min_points
+        row_in_box, col_in_box = np.divmod(np.flatnonzero(live), box.shape[1])
+        cell_rc = np.column_stack((row_in_box + box.row0, col_in_box + box.col0))
+        means, inv_covs, counts = cell_distributions(moments[live], np.zeros(2))
+        means += cell_rc[:, ::-1] * size + (self.grid.anchor_x_m, self.grid.anchor_y_m)
+        self._apply(box, live, (means, inv_covs, counts, cell_rc))
+
+    def _apply(
+        self,
+        box: CellBox,
+        live: NDArray[np.bool_],
+        new: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64], NDArray[np.int64]],
+    ) -> None:
+        """Store the recomputed cells of `box` (`new` holds the live ones, in box order)."""
+        assert self._box is not None
+        region = box.slices_in(self._box)
+        index = self._index[region].reshape(-1)
+        was = index >= 0
+        order = np.cumsum(live) - 1  # row of `new` for each live cell of the box
+        added = live & ~was
+        slots = self._used + np.arange(np.count_nonzero(added))
+        self._reserve(self._used + len(slots))
+        kept = was & live
+        for array, values in zip(self._slot_arrays(), new, strict=True):
+            array[index[kept]] = values[order[kept]]
+            array[slots] = values[order[added]]
+        dropped = index[was & ~live]
+        index[added] = slots
+        index[was & ~live] = -1
+        self._index[region] = index.reshape(box.shape)
+        self._used += len(slots)
+        self._drop(dropped)
+
+    def _slot_arrays(self) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+        return self._means, self._inv_covs, self._counts, self._cell_of
+
+    def _reserve(self, slots: int) -> None:
+        if slots <= len(self._counts):
+            return
+        capacity = max(slots, 2 * len(self._counts), 64)
+        grown = []
+        for array in self._slot_arrays():
+            bigger = np.zeros((capacity, *array.shape[1:]), dtype=array.dtype)
+            bigger[: self._used] = array[: self._used]
+            grown.append(bigger)
+        self._means, self._inv_covs, self._counts, self._cell_of = grown
+
+    def _drop(self, slots: NDArray[np.int64]) -> None:
+        """Free `slots`, moving the last used slots into the ones below the new end."""
+        if len(slots) == 0:
+            return
+        assert self._box is not None
+        end = self._used - len(slots)
+        holes = np.sort(slots[slots < end])
+        tail_dropped = np.zeros(self._used - end, dtype=bool)
+        tail_dropped[slots[slots >= end] - end] = True
+        movers = end + np.flatnonzero(~tail_dropped)
+        for array in self._slot_arrays():
+            array[holes] = array[movers]
+        moved = self._cell_of[holes]
+        self._index[moved[:, 0] - self._box.row0, moved[:, 1] - self._box.col0] = holes
+        self._used = end
 
 
 @njit(cache=True)

@@ -17,6 +17,7 @@ obstacles within twice the cut-off: a refresh recomputes exactly that neighbourh
 from __future__ import annotations
 
 import math
+from collections.abc import Hashable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -35,7 +36,8 @@ class FieldLayer:
     are float32 (plenty for a field in [0, 1]) in an array that grows like the grid's storage
     (`grown_box`) but follows the extent, not the grid's spare capacity. `mark_dirty` records
     where the grid's occupied mask or mean hit points changed; `field()` refreshes just the
-    affected neighbourhood.
+    affected neighbourhood. Views derived from the values (max-pool stacks) follow them through
+    `stored()` and `take_changes()`: where values changed since they last looked.
     """
 
     def __init__(self, grid: OccupancyGrid, factor: int, sigma_m: float, cutoff_m: float) -> None:
@@ -50,6 +52,7 @@ class FieldLayer:
         self._values = np.zeros((0, 0), dtype=np.float32)
         self._box: CellBox | None = None
         self._pending: CellBox | None = None
+        self._changes: dict[Hashable, CellBox | None] = {}
 
     @property
     def nbytes(self) -> int:
@@ -64,6 +67,32 @@ class FieldLayer:
         cut-off margin (None while the grid is empty)."""
         extent = self.grid.extent
         return None if extent is None else extent.coarsened(self.factor).expanded(self.margin_cells)
+
+    def stored(self) -> tuple[CellBox | None, NDArray[np.float32]]:
+        """The box the values array holds (None before the first `field()`) and a read-only view
+        of it: 0 outside the padded extent. Valid until the next update."""
+        view = self._values[:, :]
+        view.flags.writeable = False
+        return self._box, view
+
+    def take_changes(self, consumer: Hashable) -> CellBox | None:
+        """The box holding every stored value that `field()` changed since `consumer` last asked
+        (None: none did); a consumer asking for the first time gets the whole stored box.
+
+        Growing the storage changes no value (added cells are 0): consumers notice the new box
+        through `stored()`.
+        """
+        if consumer not in self._changes:
+            self._changes[consumer] = None
+            return self._box
+        changed, self._changes[consumer] = self._changes[consumer], None
+        return changed
+
+    def _changed(self, box: CellBox) -> None:
+        if box.is_empty:
+            return
+        for consumer, changed in self._changes.items():
+            self._changes[consumer] = box.union(changed)
 
     def _values_over(self, box: CellBox) -> NDArray[np.float32]:
         """This level's field over a box of its lattice, from the obstacles inside the box."""
@@ -80,6 +109,7 @@ class FieldLayer:
             self._box = grown_box(None, need)
             self._values = self._values_over(self._box)
             self._pending = None
+            self._changed(self._box)
         elif not self._box.contains_box(need):
             new = grown_box(self._box, need)
             values = np.zeros(new.shape, dtype=np.float32)
@@ -93,6 +123,7 @@ class FieldLayer:
         target = dirty.expanded(self.margin_cells).intersection(box)
         values = self._values_over(source)
         self._values[target.slices_in(box)] = values[target.slices_in(source)]
+        self._changed(target)
 
     def field(self) -> LikelihoodField:
         """The field over the padded extent at this level; a read-only view valid until the next

@@ -7,10 +7,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scanflow.geometry import Pose2D
-from scanflow.maps import pyramid
+from scanflow.maps import maxpool, pyramid
 from scanflow.maps.field import LikelihoodField
 from scanflow.maps.grid import CellBox
 from scanflow.maps.matching_map import MatchingMap
+from scanflow.maps.maxpool import MaxPoolStack
+from scanflow.maps.ndt_cells import NDTCells, regularised_inverse
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
 from scanflow.matching import MatchStatus, match
 from scipy.spatial import cKDTree
@@ -280,3 +282,129 @@ def test_view_memory_follows_the_extent_not_the_storage():
     assert [f.values.shape for f in fields] == padded
     assert world.nbytes - world.grid.nbytes == sum(4 * r * c for r, c in padded)  # float32
     assert world.grid.nbytes >= 2000 * 2000 * 10
+
+
+def assert_maxpool_matches_scratch(world: MatchingMap, depth: int, level: int) -> None:
+    """The incrementally kept stack is exactly a rebuild from the level's field."""
+    got = world.maxpool_stack(depth, level)
+    field = world.likelihood_field(level)
+    want = MaxPoolStack.from_values(field.spec, field.values, depth)
+    assert got.spec == want.spec and got.pad_cells == want.pad_cells
+    np.testing.assert_array_equal(got.levels, want.levels)
+
+
+def assert_ndt_matches_scratch(world: MatchingMap, size: float) -> None:
+    """Same cells, counts and means as binning the occupied centres from scratch (numbering
+    aside). Covariances: within 1e-12 of a two-pass computation per cell; the scratch build sums
+    squares about one far point and is itself only good to ~1e-10 (of each matrix's scale)."""
+    got = world.ndt_cells(size)
+    anchor = (world.grid.anchor_x_m, world.grid.anchor_y_m)
+    points = world.occupied_points()
+    want = NDTCells.from_points(points, size, anchor)
+    assert len(got) == len(want)
+    np.testing.assert_array_equal(np.sort(got.index[got.index >= 0]), np.arange(len(got)))
+    cells = np.argwhere(want.index >= 0)
+    k_want = want.index[cells[:, 0], cells[:, 1]]
+    k_got = got.lookup(want.spec.cell_centers(cells))
+    assert (k_got >= 0).all()
+    np.testing.assert_array_equal(got.counts[k_got], want.counts[k_want])
+    np.testing.assert_allclose(got.means[k_got], want.means[k_want], rtol=0, atol=1e-12)
+
+    def assert_close(a, b, relative):
+        scale = np.abs(b).max(axis=(1, 2))
+        assert (np.abs(a - b).max(axis=(1, 2)) <= relative * scale).all()
+
+    assert_close(got.inv_covs[k_got], want.inv_covs[k_want], 1e-9)
+    k = got.lookup(points)
+    inside = k >= 0
+    k, p = k[inside], points[inside]
+    n = np.bincount(k, minlength=len(got))
+    mean = np.column_stack([np.bincount(k, p[:, i], len(got)) for i in (0, 1)]) / n[:, None]
+    d = p - mean[k]
+    cov = np.empty((len(got), 2, 2))
+    for i, j in ((0, 0), (0, 1), (1, 0), (1, 1)):
+        cov[:, i, j] = np.bincount(k, d[:, i] * d[:, j], len(got)) / (n - 1)
+    np.testing.assert_array_equal(n, got.counts)
+    assert_close(got.inv_covs, regularised_inverse(cov), 1e-12)
+    origin_cells = np.array([got.spec.origin_x_m, got.spec.origin_y_m]) - anchor
+    np.testing.assert_allclose(origin_cells / size, np.round(origin_cells / size), atol=1e-9)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    scans=st.lists(
+        st.tuples(
+            st.floats(-4, 4),
+            st.floats(-4, 4),
+            st.floats(0.3, 3.0),
+            st.integers(1, 4),  # repeats: walls firm up, and a bigger room clears old ones
+            st.integers(0, 7),  # which views to read after the scan (bits)
+        ),
+        min_size=1,
+        max_size=8,
+    )
+)
+def test_stacks_and_ndt_cells_equal_a_rebuild_property(scans):
+    """Scans grow the map in every direction and flip cells both ways; views read at random
+    points in between (refreshes interleave with re-layouts) still equal a rebuild. One hit
+    makes a cell occupied and one miss frees it again, so NDT cells come and go often."""
+    params = OccupancyParams(p_hit=0.7, p_miss=0.3)
+    world = MatchingMap(OccupancyGrid(params, initial_capacity_cells=4))
+    for x, y, half, repeats, read in scans:
+        for _ in range(repeats):
+            world.update(room_scan((x, y), half, beams=60), (x, y))
+        if read & 1:
+            world.maxpool_stack(2, 0)
+        if read & 2:
+            world.maxpool_stack(3, 1)
+        if read & 4:
+            world.ndt_cells(0.3)
+            world.ndt_cells(0.5)
+    assert_maxpool_matches_scratch(world, 2, 0)
+    assert_maxpool_matches_scratch(world, 3, 1)
+    assert_ndt_matches_scratch(world, 0.3)
+    assert_ndt_matches_scratch(world, 0.5)
+
+
+def test_ndt_cells_disappear_when_their_walls_are_cleared():
+    world = MatchingMap(OccupancyGrid(initial_capacity_cells=8))
+    for _ in range(2):
+        world.update(room_scan((0.0, 0.0), 1.0, beams=360), (0.0, 0.0))
+    old_wall = np.array([[1.0, 0.3]])
+    cells = world.ndt_cells(0.5)
+    assert cells.lookup(old_wall)[0] >= 0
+    before = len(cells)
+    for _ in range(12):  # beams of a bigger room pass through the old walls: they turn free
+        world.update(room_scan((0.0, 0.0), 4.0, beams=720), (0.0, 0.0))
+    cells = world.ndt_cells(0.5)
+    assert cells.lookup(old_wall)[0] == -1
+    assert len(cells) > before  # the bigger room's walls, after the old ones were dropped
+    assert_ndt_matches_scratch(world, 0.5)
+    assert_maxpool_matches_scratch(world, 4, 0)
+
+
+def test_stack_and_ndt_refresh_only_the_changed_neighbourhood(monkeypatch):
+    world = MatchingMap(OccupancyGrid(initial_capacity_cells=1200))
+    for x in np.arange(-20.0, 21.0, 2.0):
+        world.update(room_scan((x, 0.0), 3.0, beams=90), (x, 0.0))
+    world.maxpool_stack(4)
+    world.ndt_cells(0.5)
+    pooled, fetched = [], []
+    real_pool, real_occupied_in = maxpool._pool, world.grid.occupied_in
+    monkeypatch.setattr(
+        maxpool, "_pool", lambda levels, box: pooled.append(box.shape) or real_pool(levels, box)
+    )
+    monkeypatch.setattr(
+        world.grid, "occupied_in", lambda box: fetched.append(box.shape) or real_occupied_in(box)
+    )
+    result = world.update([[0.5, 0.0]], (0.0, 0.0))  # a new obstacle in a big map
+    world.maxpool_stack(4)
+    world.ndt_cells(0.5)
+    margin = math.ceil(world.cutoff_sigmas * world.sigma_m / world.resolution_m) + 1
+    assert pooled == [result.occupied_changed.expanded(margin).shape]
+    assert pooled[0][0] * pooled[0][1] < world.likelihood_field(0).values.size / 50
+    # The NDT cells holding the changed cells' centres: one or two 0.5 m cells per axis.
+    assert len(fetched) == 1 and max(fetched[0]) <= 2 * 10 + 4
+    assert_maxpool_matches_scratch(world, 4, 0)
+    assert_ndt_matches_scratch(world, 0.5)
+

@@ -1,11 +1,13 @@
-"""MaxPoolStack: every level is the block maximum it claims to be, on and off the grid."""
+"""MaxPoolStack: every level is the block maximum it claims to be, on and off the grid;
+MaxPoolStore: followed incrementally, it equals a rebuild."""
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from scanflow.maps.grid import GridSpec
-from scanflow.maps.maxpool import SCORE_SCALE, MaxPoolStack
+from scanflow.maps import maxpool
+from scanflow.maps.grid import CellBox, GridSpec
+from scanflow.maps.maxpool import SCORE_SCALE, MaxPoolStack, MaxPoolStore
 
 
 def brute_block_max(q: np.ndarray, r: int, c: int, size: int) -> int:
@@ -68,3 +70,86 @@ def test_float32_views_pool_like_float64() -> None:
     got = MaxPoolStack.from_values(spec, view, 3)
     want = MaxPoolStack.from_values(spec, view.astype(np.float64), 3)
     np.testing.assert_array_equal(got.levels, want.levels)
+
+
+def _stack_of(store: MaxPoolStore, box: CellBox) -> MaxPoolStack:
+    return store.stack(GridSpec(0.1 * box.col0, 0.1 * box.row0, 0.1, *box.shape), box)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    depth=st.integers(0, 3),
+    steps=st.lists(
+        st.tuples(
+            st.integers(-6, 6),  # shift of the support box's low corner
+            st.integers(-6, 6),
+            st.integers(1, 9),  # support box shape
+            st.integers(1, 9),
+            st.integers(0, 4),  # spare cells around the support in the followed box
+            st.integers(0, 2**31 - 1),
+        ),
+        min_size=1,
+        max_size=6,
+    ),
+)
+def test_store_follows_changes_like_a_rebuild(depth: int, steps: list) -> None:
+    """Values change in random boxes while the followed box grows, moves and shrinks (keeping
+    every non-zero value): the store's stack equals a rebuild over the followed box and over the
+    support inside it."""
+    store = MaxPoolStore(depth)
+    values: dict[tuple[int, int], float] = {}  # lattice cell -> non-zero value
+    support = None
+    for dr, dc, rows, cols, spare, seed in steps:
+        rng = np.random.default_rng(seed)
+        changed = CellBox(dr, dc, dr + rows, dc + cols)
+        new = rng.random(changed.shape) * (rng.random(changed.shape) < 0.5)
+        for (r, c), v in np.ndenumerate(new):
+            values[(changed.row0 + r, changed.col0 + c)] = v
+        support = changed.union(support)
+        box = support.expanded(spare)
+        dense = np.zeros(box.shape)
+        for (r, c), v in values.items():
+            dense[r - box.row0, c - box.col0] = v
+        store.follow(box, dense, changed)
+        for inner, inner_values in ((box, dense), (support, dense[support.slices_in(box)])):
+            spec = GridSpec(0.1 * inner.col0, 0.1 * inner.row0, 0.1, *inner.shape)
+            got = store.stack(spec, inner)
+            want = MaxPoolStack.from_values(spec, inner_values, depth)
+            np.testing.assert_array_equal(got.levels, want.levels)
+            assert got.pad_cells == want.pad_cells and got.spec == spec
+    assert not _stack_of(store, support).levels.flags.writeable
+
+
+def test_store_repools_only_around_the_change(monkeypatch) -> None:
+    store = MaxPoolStore(3)
+    big = CellBox(0, 0, 200, 300)
+    values = np.zeros(big.shape)
+    store.follow(big, values, big)
+    stack = _stack_of(store, big)
+    assert _stack_of(store, big) is stack
+    pooled = []
+    real = maxpool._pool
+    monkeypatch.setattr(
+        maxpool, "_pool", lambda levels, box: pooled.append(box.shape) or real(levels, box)
+    )
+    values[50:53, 60:62] = 0.5
+    store.follow(big, values, CellBox(50, 60, 53, 62))
+    assert pooled == [(3, 2)]
+    assert _stack_of(store, big) is not stack
+    np.testing.assert_array_equal(
+        _stack_of(store, big).levels,
+        MaxPoolStack.from_values(_stack_of(store, big).spec, values, 3).levels,
+    )
+
+
+def test_store_rejects_boxes_it_does_not_hold() -> None:
+    store = MaxPoolStore(1)
+    with pytest.raises(ValueError, match="followed box"):
+        _stack_of(store, CellBox(0, 0, 2, 2))
+    store.follow(CellBox(0, 0, 4, 4), np.zeros((4, 4)), CellBox(0, 0, 4, 4))
+    with pytest.raises(ValueError, match="followed box"):
+        _stack_of(store, CellBox(0, 0, 5, 4))
+    with pytest.raises(ValueError, match="box shape"):
+        store.follow(CellBox(0, 0, 4, 4), np.zeros((3, 4)), None)
+    with pytest.raises(ValueError, match="probabilities"):
+        store.follow(CellBox(0, 0, 4, 4), np.full((4, 4), 2.0), CellBox(1, 1, 2, 2))
