@@ -319,7 +319,12 @@ def correlative_match(
     )
     step_rad = angular_resolution_rad or default_angular_step_rad(source, field.spec.resolution_m)
     depth = stack_depth(math.floor(linear_m / field.spec.resolution_m + 1e-9))
-    stack = MaxPoolStack.from_values(field.spec, field.values, depth)
+    # A map keeps its stack current incrementally (the same levels as a rebuild from its field).
+    stack = (
+        target.maxpool_stack(depth)
+        if hasattr(target, "maxpool_stack")
+        else MaxPoolStack.from_values(field.spec, field.values, depth)
+    )
     cand = build_candidates(source, stack, guess, linear_m, angular_rad, step_rad)
     res = field.spec.resolution_m
     found = search_top(

@@ -408,3 +408,36 @@ def test_stack_and_ndt_refresh_only_the_changed_neighbourhood(monkeypatch):
     assert_maxpool_matches_scratch(world, 4, 0)
     assert_ndt_matches_scratch(world, 0.5)
 
+class FieldOnly:
+    """A map target without its own stack: csm pools the field from scratch."""
+
+    def __init__(self, world: MatchingMap) -> None:
+        self.world = world
+
+    def likelihood_field(self, level: int = 0) -> LikelihoodField:
+        return self.world.likelihood_field(level)
+
+
+def test_csm_on_a_map_uses_its_stack_and_finds_what_a_rebuilt_stack_finds(monkeypatch):
+    """The map grows scan by scan (half-room scans facing four ways); after each, csm against
+    the map's incremental stack returns exactly what exhaustive search and a stack pooled from
+    scratch return."""
+    world = MatchingMap(OccupancyGrid(initial_capacity_cells=8))
+    window = {"linear_m": 0.4, "angular_rad": math.radians(6)}
+    used = []
+    real = MatchingMap.maxpool_stack
+    monkeypatch.setattr(
+        MatchingMap, "maxpool_stack", lambda self, *a: used.append(a) or real(self, *a)
+    )
+    for i, heading in enumerate((0.0, 1.6, 3.1, -1.5)):
+        pose = Pose2D(0.2 * i - 0.3, 0.1 * i - 0.2, heading)
+        world.update(pose.transform_points(half_room_scan(pose)), (pose.x, pose.y))
+        truth = Pose2D(pose.x + 0.1, pose.y - 0.15, heading + 0.05)
+        source = half_room_scan(truth)
+        fast = match(source, world, pose, method="csm", **window)
+        full = match(source, world, pose, method="csm_exhaustive", **window)
+        rebuilt = match(source, FieldOnly(world), pose, method="csm", **window)
+        assert fast.ok and fast.pose == full.pose == rebuilt.pose
+        assert fast.score == full.score == rebuilt.score
+        assert math.hypot(fast.pose.x - truth.x, fast.pose.y - truth.y) < 0.05
+    assert len(used) == 8  # csm and csm_exhaustive on the map, after each scan
