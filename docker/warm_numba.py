@@ -2,31 +2,19 @@
 
 Without it every fresh container compiles them at its first scan or match request: seconds
 of CPU (measured: a first scan-to-scan ICP request took 3.1 s, then 0.02 s), longer than the
-gateway's query deadline on a busy machine. Runs a short simulated pipeline (deskew, tracking,
-fallback search, map insertion) and every registered matching method on two scans.
+gateway's query deadline on a busy machine. `scanflow.warmup.warm_up` runs a short simulated
+pipeline (deskew, tracking, fallback search, map insertion) and every registered matching method.
 """
 
 from __future__ import annotations
 
-from scanflow.matching import available_methods, match
-from scanflow.pipeline import Pipeline
-from scanflow.scan import LaserScan
-
-from services.ingest.sources import source_events
+from scanflow.matching import available_methods
+from scanflow.warmup import warm_up
 
 
 def main() -> None:
-    pipeline = Pipeline()
-    scans: list[LaserScan] = []
-    for event in source_events(None, "warmup", 2.0, 0, None):
-        if isinstance(event, LaserScan):
-            pipeline.process(event)
-            scans.append(event)
-        else:
-            pipeline.add_odometry(event)
-    for method in available_methods():
-        match(scans[1], scans[0], None, method=method)
-    print(f"numba kernels compiled: {len(scans)} scans, methods {available_methods()}")
+    scans = warm_up(methods=True)
+    print(f"numba kernels compiled: {scans} scans, methods {available_methods()}")
 
 
 if __name__ == "__main__":
