@@ -4,7 +4,13 @@ A simulated 40 m x 40 m building (4 x 4 rooms of 10 m with 1.2 m doors) is mappe
 a robot driving a serpentine through every row of rooms with a 360-beam, 10 m lidar, one scan
 every 0.25 m; then it drives the same path again over the mapped area (steady state).
 
+With --data LOG, also the matching views that csm and NDT read, on a real log's map (every
+keyframe inserted at its corrected pose): the per-scan refresh of the max-pool stack and of the
+NDT cells while the map is small (after --small-scans scans) and at the end, each next to the
+full rebuild it replaces. The refresh should not grow with the map; the rebuild does.
+
     python -m bench.maps [--json] [--step-m 0.25] [--rebuilds 5]
+    python -m bench.maps --data ../shared/data/intel-corrected.log.gz --views-only [--json]
 """
 
 from __future__ import annotations
@@ -16,11 +22,15 @@ import math
 import resource
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
+from scanflow.io.carmen import load_keyframes
 from scanflow.maps.field import LikelihoodField
 from scanflow.maps.matching_map import MatchingMap
+from scanflow.maps.maxpool import MaxPoolStack
+from scanflow.maps.ndt_cells import NDTCells
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
 from scanflow.sim import cast_rays
 
@@ -31,6 +41,8 @@ BEAMS = 360
 RANGE_MAX_M = 10.0
 RANGE_NOISE_M = 0.01
 PYRAMID_LEVELS = 3
+STACK_DEPTH = 4  # csm's stack at the front end's +-1 m fallback window on 5 cm cells
+NDT_CELL_M = 0.5  # the ndt matcher's finest cell size
 
 
 def building_walls() -> NDArray[np.float64]:
@@ -161,6 +173,73 @@ def run(step_m: float, rebuilds: int) -> dict[str, object]:
     }
 
 
+def rebuild_views(world: MatchingMap, rebuilds: int) -> dict[str, dict[str, float]]:
+    """Times of rebuilding the stack and NDT cells whole, as MatchingMap did after every change
+    of the occupied cells (the NDT cells from freshly listed occupied cell centres)."""
+    field = world.likelihood_field(0)
+    spec, occupied = world.grid.spec, world.grid.occupied_mask()
+    anchor = (world.grid.anchor_x_m, world.grid.anchor_y_m)
+
+    def rebuild_stack() -> None:
+        MaxPoolStack.from_values(field.spec, field.values, STACK_DEPTH)
+
+    def rebuild_ndt() -> None:
+        NDTCells.from_points(spec.cell_centers(np.argwhere(occupied)), NDT_CELL_M, anchor)
+
+    rebuild_stack()  # compiled kernels loaded outside the timings
+    rebuild_ndt()
+    return {
+        "maxpool_rebuild_ms": summary_ms([timed(rebuild_stack) for _ in range(rebuilds)]),
+        "ndt_rebuild_ms": summary_ms([timed(rebuild_ndt) for _ in range(rebuilds)]),
+    }
+
+
+def view_refresh(
+    log: Path, small_scans: int, samples: int, rebuilds: int, limit: int | None
+) -> dict[str, object]:
+    """Per-scan refresh of the max-pool stack and NDT cells on a real log's map, while it is
+    small and at the end, next to rebuilding them whole (what MatchingMap did before)."""
+    frames = load_keyframes(log)[:limit]
+    if small_scans + 2 * samples > len(frames):
+        need = small_scans + 2 * samples
+        raise SystemExit(f"{log.name}: {len(frames)} keyframes, need >= {need}")
+    windows = {
+        "small": range(small_scans, small_scans + samples),
+        "large": range(len(frames) - samples, len(frames)),
+    }
+    world = MatchingMap()
+    out: dict[str, object] = {"log": log.name, "scans": len(frames)}
+    samples_ms: dict[str, list[float]] = {"field0": [], "maxpool": [], "ndt": []}
+    for i, frame in enumerate(frames):
+        pose = frame.true_pose
+        world.update(pose.transform_points(frame.scan.points()), (pose.x, pose.y))
+        # Views read after every scan, as a front end would: each refresh covers one scan.
+        times = {
+            "field0": timed(lambda: world.likelihood_field(0)),
+            "maxpool": timed(lambda: world.maxpool_stack(STACK_DEPTH)),
+            "ndt": timed(lambda: world.ndt_cells(NDT_CELL_M)),
+        }
+        name = next((n for n, w in windows.items() if i in w), None)
+        if name is None:
+            continue
+        for key, t in times.items():
+            samples_ms[key].append(t)
+        if i != windows[name][-1]:
+            continue
+        spec = world.grid.spec
+        out[name] = {
+            "after_scans": i + 1,
+            "extent_cells": [spec.rows, spec.cols],
+            "mapped_area_m2": round(spec.width_m * spec.height_m, 1),
+            "occupied_cells": len(world.occupied_points()),
+            "ndt_cells": len(world.ndt_cells(NDT_CELL_M)),
+            **{f"{key}_refresh_ms": summary_ms(t) for key, t in samples_ms.items()},
+            **rebuild_views(world, rebuilds),
+        }
+        samples_ms = {key: [] for key in samples_ms}
+    return out
+
+
 def print_table(r: dict[str, object]) -> None:
     print(f"{r['world']}, {r['resolution_m']} m cells, one scan every {r['step_m']} m")
     print(
@@ -188,17 +267,48 @@ def print_table(r: dict[str, object]) -> None:
     )
 
 
+def print_views(v: dict[str, object]) -> None:
+    print(f"matching views on {v['log']} ({v['scans']} scans at the corrected poses):")
+    for name in ("small", "large"):
+        w = v[name]  # type: ignore[index]
+        print(
+            f"{name:6s} after {w['after_scans']} scans: extent {w['extent_cells']} cells "
+            f"({w['mapped_area_m2']} m^2), {w['occupied_cells']} occupied, "
+            f"{w['ndt_cells']} NDT cells"
+        )
+        for view in ("maxpool", "ndt"):
+            fresh, full = w[f"{view}_refresh_ms"], w[f"{view}_rebuild_ms"]
+            print(
+                f"  {view:8s} refresh after one scan mean {fresh['mean']} p95 {fresh['p95']} "
+                f"max {fresh['max']} ms | full rebuild mean {full['mean']} ms"
+            )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--step-m", type=float, default=0.25, help="distance between scans")
     parser.add_argument("--rebuilds", type=int, default=5, help="full rebuilds to time")
+    parser.add_argument("--data", type=Path, help="CARMEN log: also time the matching views")
+    parser.add_argument("--views-only", action="store_true", help="skip the simulated building")
+    parser.add_argument("--small-scans", type=int, default=100, help="scans in the small map")
+    parser.add_argument("--samples", type=int, default=50, help="scans timed per map size")
+    parser.add_argument("--limit", type=int, help="use only the log's first LIMIT keyframes")
     args = parser.parse_args()
-    result = run(args.step_m, args.rebuilds)
+    if args.views_only and args.data is None:
+        parser.error("--views-only needs --data")
+    result = {} if args.views_only else run(args.step_m, args.rebuilds)
+    if args.data is not None:
+        result["views"] = view_refresh(
+            args.data, args.small_scans, args.samples, args.rebuilds, args.limit
+        )
     if args.json:
         print(json.dumps(result, indent=2))
-    else:
+        return
+    if not args.views_only:
         print_table(result)
+    if args.data is not None:
+        print_views(result["views"])  # type: ignore[arg-type]
 
 
 if __name__ == "__main__":

@@ -1,9 +1,13 @@
-"""bench.maps runs end to end on a coarse path and reports what BENCHMARKS.md quotes."""
+"""bench.maps runs end to end on a coarse path (and a short real log) and reports what
+BENCHMARKS.md quotes."""
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -26,3 +30,30 @@ def test_bench_maps_reports_times_and_memory():
     # Revisiting a mapped area grows neither the grid nor the views.
     assert revisit["storage_generation"] == mapping["storage_generation"]
     assert revisit["map_bytes"] == mapping["map_bytes"]
+
+
+DATA = Path(os.environ.get("SCANFLOW_DATA_DIR", REPO / ".." / "shared" / "data"))
+LOG = DATA / "intel-corrected.log.gz"
+
+
+@pytest.mark.skipif(not LOG.exists(), reason=f"real log {LOG} not available")
+def test_bench_maps_times_view_refresh_and_rebuild_on_a_small_and_a_large_map():
+    args = ["--json", "--views-only", "--data", str(LOG), "--limit", "60"]
+    out = subprocess.run(
+        [sys.executable, "-m", "bench.maps", *args, "--small-scans", "10", "--samples", "5"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=120,
+    )
+    views = json.loads(out.stdout)["views"]
+    assert views["scans"] == 60 and "phases" not in views
+    small, large = views["small"], views["large"]
+    assert (small["after_scans"], large["after_scans"]) == (15, 60)
+    assert 0 < small["occupied_cells"] <= large["occupied_cells"]
+    for window in (small, large):
+        assert window["ndt_cells"] > 0
+        for key in ("field0_refresh_ms", "maxpool_refresh_ms", "ndt_refresh_ms"):
+            assert window[key]["p50"] <= window[key]["max"]
+        assert window["maxpool_rebuild_ms"]["mean"] > 0 and window["ndt_rebuild_ms"]["mean"] > 0
