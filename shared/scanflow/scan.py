@@ -7,8 +7,13 @@ Conventions (the same as ROS sensor_msgs/LaserScan):
   `stamp_s + beam_time_offsets_s[i]`.
   When a driver gives no per-beam times, offsets are assumed uniform over `scan_duration_s`
   (and `beam_times_assumed` tells so);
-- a beam is valid when its range is finite, positive, >= `range_min_m` and < `range_max_m`.
-  Drivers report "no return" as the maximum range, NaN, inf or 0: all are masked, never used.
+- every beam is exactly one of (REP 117):
+  valid: finite, positive, >= `range_min_m` and < `range_max_m`: a return, matched and mapped;
+  no return: >= `range_max_m`, +inf included: the beam saw nothing in range, so it clears
+  free space along its direction (up to the map's clear distance) but is never matched;
+  error: NaN, -inf, zero or negative, below `range_min_m`: nothing is known, never used.
+  Readers map their driver's conventions onto these (e.g. CARMEN's no-return sentinel lies
+  at or above the `range_max_m` its reader sets, so those beams come out as no return).
 """
 
 from __future__ import annotations
@@ -107,18 +112,33 @@ class LaserScan:
     @cached_property
     def valid_mask(self) -> NDArray[np.bool_]:
         """True for beams with a usable return (see the module docstring)."""
-        # Comparisons with NaN are False, so NaN and +-inf fall out without an isfinite pass.
+        # Comparisons with NaN are False, so NaN and -inf fail the first test without an isfinite
+        # pass; +inf is a no return (+inf >= range_max_m), as is every reading past the range.
         r = self.ranges_m
-        above_min = (r >= self.range_min_m) if self.range_min_m > 0 else (r > 0)
-        return above_min & (r < self.range_max_m) & (r < np.inf)
+        valid = (r >= self.range_min_m) if self.range_min_m > 0 else (r > 0)
+        valid &= ~self.no_return_mask
+        return valid
+
+    @cached_property
+    def no_return_mask(self) -> NDArray[np.bool_]:
+        """True for beams that saw nothing in range: range >= range_max_m, +inf included.
+
+        Disjoint from `valid_mask` (which excludes it); NaN, -inf, 0 and readings below
+        range_min_m are errors, in neither mask (see the module docstring).
+        """
+        return self.ranges_m >= self.range_max_m
 
     @property
     def valid_count(self) -> int:
         return int(np.count_nonzero(self.valid_mask))
 
     @property
+    def no_return_count(self) -> int:
+        return int(np.count_nonzero(self.no_return_mask))
+
+    @property
     def dropped_count(self) -> int:
-        """Beams masked out as invalid (no return, NaN, out of range)."""
+        """Beams that are not valid returns (no return and errors alike)."""
         return self.beam_count - self.valid_count
 
     @property

@@ -37,6 +37,33 @@ def test_mask_agrees_with_the_rule(ranges: np.ndarray) -> None:
     assert scan.valid_count + scan.dropped_count == ranges.size
 
 
+def test_no_return_beams_follow_rep_117() -> None:
+    ranges = [1.0, math.nan, math.inf, -math.inf, -1.0, 0.0, 0.05, 10.0, 12.0, 9.99]
+    scan = make_scan(ranges, range_min_m=0.1, range_max_m=10.0)
+    expected = [False, False, True, False, False, False, False, True, True, False]
+    np.testing.assert_array_equal(scan.no_return_mask, expected)
+    assert scan.no_return_count == 3 and scan.dropped_count == 8
+    unbounded = make_scan(ranges, range_min_m=0.1)  # range_max_m = +inf: only +inf is no return
+    np.testing.assert_array_equal(unbounded.no_return_mask, np.isposinf(ranges))
+    assert unbounded.valid_count == 4
+
+
+SPECIAL_RANGES = st.sampled_from([math.nan, math.inf, -math.inf, 0.0, 0.2, 30.0])
+
+
+@given(
+    arrays(np.float32, st.integers(1, 200), elements=st.floats(-5, 50, width=32) | SPECIAL_RANGES),
+    st.sampled_from([30.0, math.inf]),
+)
+def test_every_beam_is_valid_no_return_or_error(ranges: np.ndarray, range_max_m: float) -> None:
+    scan = make_scan(ranges, range_min_m=0.2, range_max_m=range_max_m)
+    no_return = [r >= range_max_m for r in ranges.tolist()]  # NaN compares False
+    np.testing.assert_array_equal(scan.no_return_mask, no_return)
+    assert not (scan.valid_mask & scan.no_return_mask).any()
+    error = ~(scan.valid_mask | scan.no_return_mask)
+    assert all(math.isnan(r) or r < 0.2 for r in ranges[error].tolist())
+
+
 @pytest.mark.parametrize(
     ("fields", "field_name"),
     [

@@ -75,7 +75,7 @@ def test_real_logs_match_independent_counts(real_log, name: str) -> None:
     lasers, odoms, no_return = independent_counts(path)
     assert lasers == expected_scans
     reader = CarmenReader(path)
-    scans = odom_count = dropped = 0
+    scans = odom_count = dropped = no_returns = 0
     for rec in reader:
         if isinstance(rec, CarmenLaser):
             scan = rec.scan
@@ -83,11 +83,12 @@ def test_real_logs_match_independent_counts(real_log, name: str) -> None:
             assert rec.pose is not None and rec.odom_pose is not None
             assert scan.seq == scans
             dropped += scan.dropped_count
+            no_returns += scan.no_return_count
             scans += 1
         else:
             odom_count += 1
     assert (scans, odom_count) == (lasers, odoms)
-    assert dropped == no_return
+    assert dropped == no_returns == no_return  # the sentinel readings come out as no return
     assert reader.error_count == 0
     assert reader.skipped["NEFF"] == lasers
 
