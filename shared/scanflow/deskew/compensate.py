@@ -8,10 +8,14 @@ p_ref = (x_i + r_i cos(alpha_i + theta_i), y_i + r_i sin(alpha_i + theta_i)).
 Default reference: "start", the pose at `scan.stamp_s` (the first beam). It is the stamp every
 other module already sees (ROS header convention), so the matcher and the frontend attach the
 deskewed points to that stamp without re-stamping, and the simulator's ground truth uses it too.
+
+No-return beams (`LaserScan.no_return_mask`) are moved the same way, as endpoints at the scan's
+`range_max_m` (or NO_RETURN_RANGE_M when that is +inf): the map clears free space along them.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
 from typing import Literal, get_args
@@ -27,13 +31,19 @@ Reference = Literal["start", "middle", "end"]
 REFERENCES: tuple[str, ...] = get_args(Reference)
 DEFAULT_REFERENCE: Reference = "start"
 SourceUsed = Literal["odometry", "constant_velocity", "none"]
+NO_RETURN_RANGE_M = 1000.0
+"""Range of a no-return endpoint when the scan's range_max_m is +inf: far beyond any clear
+distance (the map clips no-return beams to its own `no_return_clear_m`), yet small enough that
+float64 keeps the beam's direction to ~1e-13 m."""
 
 
 @dataclass(frozen=True, eq=False)
 class DeskewResult:
-    """A motion-compensated scan: valid beams as points in the frame of the reference pose."""
+    """A motion-compensated scan: valid beams as points in the frame of the reference pose,
+    and no-return beams as `no_return_points` (at range_max_m, or NO_RETURN_RANGE_M) there."""
 
     points: NDArray[np.float64]
+    no_return_points: NDArray[np.float64]
     reference: Reference
     reference_stamp_s: float
     source_used: str
@@ -71,14 +81,11 @@ def deskew(
     end_s = scan.stamp_s + (float(offsets_s[-1]) if offsets_s.size else 0.0)
     reference_s = {"start": start_s, "middle": 0.5 * (start_s + end_s), "end": end_s}[reference]
     valid = scan.valid_mask
-    layout = (scan.beam_count, scan.angle_min_rad, scan.angle_increment_rad)
 
     def uncorrected(message: str) -> DeskewResult:
         zeros = np.zeros(scan.beam_count)
-        points = kernels.beams_in_reference(
-            scan.ranges_m, _beam_angles(*layout), valid, zeros, zeros, zeros
-        )
-        return _result(scan, points, reference, reference_s, "none", message)
+        moved = _moved(scan, zeros, zeros, zeros)
+        return _result(scan, moved, reference, reference_s, "none", message)
 
     if not valid.any():
         return uncorrected(f"scan has no valid beams ({scan.beam_count} beams, all invalid)")
@@ -90,20 +97,35 @@ def deskew(
     if source is None:
         return uncorrected(f"no pose source covers the sweep: {reasons}")
     x, y, theta = source.relative_poses(scan.stamp_s + offsets_s, reference_s)
-    points = kernels.beams_in_reference(scan.ranges_m, _beam_angles(*layout), valid, x, y, theta)
-    return _result(scan, points, reference, reference_s, source.name, reasons)
+    return _result(scan, _moved(scan, x, y, theta), reference, reference_s, source.name, reasons)
+
+
+Moved = tuple[NDArray[np.float64], NDArray[np.float64]]
+
+
+def _moved(
+    scan: LaserScan, x: NDArray[np.float64], y: NDArray[np.float64], theta: NDArray[np.float64]
+) -> Moved:
+    """(valid endpoints, no-return endpoints), each beam moved by its pose (x, y, theta)."""
+    angles = _beam_angles(scan.beam_count, scan.angle_min_rad, scan.angle_increment_rad)
+    far_m = scan.range_max_m if math.isfinite(scan.range_max_m) else NO_RETURN_RANGE_M
+    return kernels.beams_in_reference(
+        scan.ranges_m, angles, scan.valid_mask, scan.no_return_mask, far_m, x, y, theta
+    )
 
 
 def _result(
     scan: LaserScan,
-    points: NDArray[np.float64],
+    moved: Moved,
     reference: Reference,
     reference_s: float,
     source_used: str,
     message: str,
 ) -> DeskewResult:
+    points, no_return_points = moved
     return DeskewResult(
         points=points,
+        no_return_points=no_return_points,
         reference=reference,
         reference_stamp_s=reference_s,
         source_used=source_used,

@@ -93,19 +93,39 @@ def interpolate_poses(
 
 @njit(cache=True)
 def beams_in_reference(
-    ranges_m: NDArray, angles_rad: NDArray, valid: NDArray, x: NDArray, y: NDArray, theta: NDArray
-) -> NDArray:
-    """Valid beam endpoints (M, 2) moved by their own relative pose: p = t_i + r R(theta_i) u_i."""
-    count = 0
+    ranges_m: NDArray,
+    angles_rad: NDArray,
+    valid: NDArray,
+    no_return: NDArray,
+    no_return_range_m: float,
+    x: NDArray,
+    y: NDArray,
+    theta: NDArray,
+) -> tuple[NDArray, NDArray]:
+    """Endpoints (M, 2) of the valid beams and (K, 2) of the no-return beams (placed at
+    `no_return_range_m`), each moved by its own relative pose: p = t_i + r R(theta_i) u_i.
+
+    One pass for both: a second call for the no-return beams cost ~4 us per 360-beam scan.
+    """
+    n_valid = 0
+    n_missed = 0
     for i in range(ranges_m.size):
-        count += valid[i]
-    out = np.empty((count, 2))
+        n_valid += valid[i]
+        n_missed += no_return[i]
+    points = np.empty((n_valid, 2))
+    missed = np.empty((n_missed, 2))
     j = 0
+    k = 0
     for i in range(ranges_m.size):
         if valid[i]:
             bearing = theta[i] + angles_rad[i]
             r = float(ranges_m[i])
-            out[j, 0] = x[i] + r * math.cos(bearing)
-            out[j, 1] = y[i] + r * math.sin(bearing)
+            points[j, 0] = x[i] + r * math.cos(bearing)
+            points[j, 1] = y[i] + r * math.sin(bearing)
             j += 1
-    return out
+        elif no_return[i]:
+            bearing = theta[i] + angles_rad[i]
+            missed[k, 0] = x[i] + no_return_range_m * math.cos(bearing)
+            missed[k, 1] = y[i] + no_return_range_m * math.sin(bearing)
+            k += 1
+    return points, missed

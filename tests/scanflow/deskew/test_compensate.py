@@ -7,6 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scanflow.deskew import (
     DEFAULT_REFERENCE,
+    NO_RETURN_RANGE_M,
     ConstantVelocityModel,
     DeskewError,
     OdometryBuffer,
@@ -19,12 +20,12 @@ from scanflow.sim import ConstantVelocityTrajectory, SimConfig, simulate
 QUIET = {"range_noise_m": 0.0, "dropout_prob": 0.0, "odom_scale_error": 0.0, "odom_yaw_noise": 0.0}
 
 
-def _scan(n=8, duration_s=0.1, stamp_s=1.0, offsets=None, ranges=None):
+def _scan(n=8, duration_s=0.1, stamp_s=1.0, offsets=None, ranges=None, range_max_m=30.0):
     return LaserScan(
         ranges_m=np.full(n, 4.0) if ranges is None else ranges,
         angle_min_rad=-math.pi,
         angle_increment_rad=2 * math.pi / max(n, 1),
-        range_max_m=30.0,
+        range_max_m=range_max_m,
         stamp_s=stamp_s,
         scan_duration_s=duration_s,
         beam_time_offsets_s=offsets,
@@ -128,6 +129,10 @@ def test_zero_duration_empty_and_all_invalid_scans_are_reported_not_raised():
     np.testing.assert_allclose(zero.points, _scan(duration_s=0.0).points())
     invalid = deskew(_scan(ranges=np.full(8, np.nan)), buffer)
     assert invalid.points.shape == (0, 2) and "no valid beams" in invalid.message
+    assert invalid.no_return_points.shape == (0, 2)
+    open_space = deskew(_scan(ranges=np.full(8, np.inf)), buffer)
+    assert open_space.points.shape == (0, 2) and "no valid beams" in open_space.message
+    np.testing.assert_allclose(np.hypot(*open_space.no_return_points.T), 30.0)
     empty = deskew(_scan(n=0, ranges=np.zeros(0)), buffer)
     assert empty.beam_count == 0 and empty.source_used == "none"
 
@@ -177,6 +182,42 @@ def test_zero_motion_is_the_identity(pose, n, duration_s):
         result = deskew(scan, buffer, reference)
         assert result.source_used == "odometry"
         np.testing.assert_allclose(result.points, scan.points(), atol=1e-9)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    poses,
+    st.lists(st.sampled_from([1.0, 7.5, 30.0, 45.0, np.inf, np.nan]), min_size=1, max_size=300),
+    st.sampled_from([30.0, np.inf]),
+)
+def test_zero_motion_puts_no_return_beams_along_their_directions(pose, ranges, range_max_m):
+    buffer = OdometryBuffer()
+    for t in np.arange(0.9, 1.4, 0.02):
+        buffer.add(t, pose)
+    scan = _scan(n=len(ranges), ranges=np.array(ranges), range_max_m=range_max_m)
+    far_m = 30.0 if math.isfinite(range_max_m) else NO_RETURN_RANGE_M
+    angles = scan.angles_rad[scan.no_return_mask]
+    expected = far_m * np.column_stack((np.cos(angles), np.sin(angles)))
+    for reference in ("start", "middle", "end"):
+        result = deskew(scan, buffer, reference)
+        np.testing.assert_allclose(result.no_return_points, expected, atol=1e-9)
+        np.testing.assert_allclose(result.points, scan.points(), atol=1e-9)
+
+
+@settings(max_examples=60, deadline=None)
+@given(poses, twists, st.integers(2, 400))
+def test_no_return_beams_move_like_valid_beams_at_range_max(start, twist, n):
+    trajectory = ConstantVelocityTrajectory(start, twist[0], twist[2], vy_mps=twist[1])
+    buffer = _buffer_from(trajectory, 0.9, 1.3)
+    no_return = np.arange(n) % 3 == 0
+    ranges = np.where(no_return, np.inf, np.linspace(0.5, 20.0, n))
+    misses = deskew(_scan(n=n, ranges=ranges), buffer)
+    # The same beams as valid returns at exactly range_max_m (30 m) land where they did.
+    at_max = _scan(n=n, ranges=np.where(no_return, 30.0, ranges), range_max_m=np.inf)
+    hits = deskew(at_max, buffer)
+    assert misses.source_used == hits.source_used == "odometry"
+    np.testing.assert_array_equal(misses.no_return_points, hits.points[no_return])
+    np.testing.assert_array_equal(misses.points, hits.points[~no_return])
 
 
 @settings(max_examples=60, deadline=None)
