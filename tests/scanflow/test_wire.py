@@ -89,7 +89,8 @@ odometry_messages = st.builds(
 @st.composite
 def deskewed_messages(draw: st.DrawFn) -> wire.DeskewedScanMessage:
     n = draw(small_n)
-    beams = draw(st.integers(n, n + 50))
+    misses = draw(small_n)
+    beams = draw(st.integers(n + misses, n + misses + 50))
     return wire.DeskewedScanMessage(
         robot_id=draw(ids),
         seq=draw(counts),
@@ -98,7 +99,8 @@ def deskewed_messages(draw: st.DrawFn) -> wire.DeskewedScanMessage:
         source_used=draw(texts),
         times_assumed=draw(st.booleans()),
         beam_count=beams,
-        dropped_count=draw(st.integers(0, beams)),
+        dropped_count=draw(st.integers(misses, beams)),
+        no_return_points=draw(f64_points(misses)),
     )
 
 
@@ -284,7 +286,7 @@ def test_decoded_arrays_are_read_only() -> None:
 def test_every_payload_carries_type_and_version() -> None:
     data = wire.MapImageMessage("r", 1, "png", b"x").encode()
     assert msgpack.unpackb(data)["type"] == "map_image"
-    assert msgpack.unpackb(data)["v"] == wire.SCHEMA_VERSION == 1
+    assert msgpack.unpackb(data)["v"] == wire.SCHEMA_VERSION == 2
 
 
 def test_message_helpers_carry_match_results() -> None:
@@ -342,8 +344,9 @@ SCAN = wire.ScanMessage(LaserScan(np.array([1.0, np.nan, 3.0]), 0.0, 0.1, robot_
 
 
 def test_wrong_version_is_a_version_error() -> None:
-    with pytest.raises(wire.VersionError, match=r"\.v: schema version 2"):
-        wire.decode_any(_payload(SCAN, v=2))
+    for version in (1, 3):  # 1: before DeskewedScanMessage.no_return_points
+        with pytest.raises(wire.VersionError, match=rf"\.v: schema version {version}"):
+            wire.decode_any(_payload(SCAN, v=version))
 
 
 def test_unknown_and_mismatched_types_are_schema_errors() -> None:
@@ -382,13 +385,23 @@ def test_bad_scan_fields_name_the_field(changes: dict[str, Any], pattern: str) -
 
 def test_deskewed_points_keep_every_float64_bit_and_refuse_float32() -> None:
     points = np.array([[0.1, 1.0 / 3.0], [math.pi, -2.0 / 7.0]])  # not representable in float32
-    msg = wire.DeskewedScanMessage("r", 0, 0.0, points, "odometry", False, 2, 0)
+    misses = points[::-1] * 300.0
+    msg = wire.DeskewedScanMessage("r", 0, 0.0, points, "odometry", False, 4, 2, misses)
     decoded = wire.DeskewedScanMessage.decode(msg.encode())
-    assert decoded.points.dtype == np.float64
-    assert decoded.points.tobytes() == points.tobytes()
-    narrow = {"points": wire.codec.encode_array(points, "<f4")}
-    with pytest.raises(wire.SchemaError, match=r"points\.d: expected dtype '<f8', got '<f4'"):
-        wire.decode_any(_payload(msg, **narrow))
+    for sent, got in ((points, decoded.points), (misses, decoded.no_return_points)):
+        assert got.dtype == np.float64
+        assert got.tobytes() == sent.tobytes()
+    for name in ("points", "no_return_points"):
+        narrow = {name: wire.codec.encode_array(points, "<f4")}
+        with pytest.raises(wire.SchemaError, match=rf"{name}\.d: expected dtype '<f8', got '<f4'"):
+            wire.decode_any(_payload(msg, **narrow))
+
+
+def test_deskewed_no_return_points_default_to_none_and_fit_the_beam_count() -> None:
+    msg = wire.DeskewedScanMessage("r", 0, 0.0, np.zeros((2, 2)), "none", True, 3, 1)
+    assert msg.no_return_points.shape == (0, 2)
+    full = wire.DeskewedScanMessage("r", 0, 0.0, np.zeros((2, 2)), "none", True, 3, 1, [[9, 0]])
+    assert wire.DeskewedScanMessage.decode(full.encode()).no_return_points.tolist() == [[9, 0]]
 
 
 def test_zero_sized_arrays_with_huge_dimensions_are_refused() -> None:
@@ -411,6 +424,16 @@ def test_scan_errors_surface_as_chained_decode_errors() -> None:
             wire.DeskewedScanMessage("r", 0, 0.0, np.zeros((1, 2)), "none", True, 1, 0),
             {"points": wire.codec.encode_array(np.full((1, 2), np.nan), "<f8")},
             "points contains non-finite",
+        ),
+        (
+            wire.DeskewedScanMessage("r", 0, 0.0, np.zeros((1, 2)), "none", True, 2, 1),
+            {"no_return_points": wire.codec.encode_array(np.full((1, 2), np.inf), "<f8")},
+            "no_return_points contains non-finite",
+        ),
+        (
+            wire.DeskewedScanMessage("r", 0, 0.0, np.zeros((1, 2)), "none", True, 1, 0),
+            {"no_return_points": wire.codec.encode_array(np.zeros((1, 2)), "<f8")},
+            r"exceed beam_count \(1\)",
         ),
         (
             wire.PoseEstimateMessage("r", 0, 0.0, Pose2D(), np.eye(3), "ok", "icp", 1, 0.0),
@@ -475,7 +498,8 @@ def test_bad_message_fields_name_the_field(
         (b"\x91" * 100_000, wire.DecodeError),  # nesting deeper than the unpacker stack
         (b"\xd7\xff" + bytes(8), wire.DecodeError),  # extension type (timestamp)
         (b"\x81\x01\x02", wire.DecodeError),  # integer map key
-        (msgpack.packb({"v": 1, "type": "scan"}) + b"\x00", wire.DecodeError),  # trailing data
+        # trailing data
+        (msgpack.packb({"v": wire.SCHEMA_VERSION, "type": "scan"}) + b"\x00", wire.DecodeError),
         (msgpack.packb({"type": "scan"}), wire.SchemaError),  # no version
         (msgpack.packb({"v": "1", "type": "scan"}), wire.SchemaError),
     ],
@@ -523,6 +547,24 @@ def test_encoding_over_the_limit_is_refused() -> None:
         (
             lambda: wire.DeskewedScanMessage("r", 0, 0.0, np.zeros((0, 2)), "", False, 1, 2),
             "dropped",
+        ),
+        (
+            lambda: wire.DeskewedScanMessage(
+                "r", 0, 0.0, np.zeros((0, 2)), "", False, 3, 1, np.zeros((2,))
+            ),
+            "no_return_points must have shape",
+        ),
+        (
+            lambda: wire.DeskewedScanMessage(
+                "r", 0, 0.0, np.zeros((2, 2)), "", False, 3, 1, np.zeros((2, 2))
+            ),
+            r"exceed beam_count \(3\)",
+        ),
+        (
+            lambda: wire.DeskewedScanMessage(
+                "r", 0, 0.0, np.zeros((1, 2)), "", False, 4, 1, np.zeros((2, 2))
+            ),
+            r"more than dropped_count \(1\)",
         ),
         (
             lambda: wire.PoseEstimateMessage("", 0, 0.0, Pose2D(), np.eye(3), "ok", "", 0, 0),
@@ -575,7 +617,9 @@ def _examples() -> list[wire.Message]:
     meta = wire.MapMetaMessage("r", 0.05, -1.0, -2.0, 6, 8, 3, 1.0)
     return [
         wire.ScanMessage(scan),
-        wire.DeskewedScanMessage("r", 1, 2.0, scan.points(), "odometry", False, 24, 1),
+        wire.DeskewedScanMessage(
+            "r", 1, 2.0, scan.points()[1:], "odometry", False, 24, 1, scan.points()[:1] * 2
+        ),
         wire.OdometryMessage(Odometry(1.0, Pose2D(1, 2, 3), (0.5, 0.0, 0.1))),
         wire.PoseEstimateMessage("r", 1, 2.0, Pose2D(1, 2, 3), np.eye(3), "ok", "icp", 4, 0.5),
         wire.MatchRequest("icp", scan, wire.MapRef("r"), Pose2D(1, 0, 0), {"a": 1, "b": 2.5}),

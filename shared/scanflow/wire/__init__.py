@@ -6,6 +6,10 @@ schema version `v` (SCHEMA_VERSION); numpy arrays travel as raw little-endian by
 and shape. Anything wrong with a payload raises a `DecodeError` (subclasses `VersionError`,
 `SchemaError`, `PayloadTooLarge`) naming the field; building a message with bad fields raises
 `MessageError`. Decoded arrays are read-only views of the payload.
+
+Changing any message's fields bumps SCHEMA_VERSION (2: `DeskewedScanMessage.no_return_points`):
+readers refuse other versions with a VersionError, so services of two versions fail loudly
+instead of dropping or missing a field.
 """
 
 from scanflow.wire.base import Message, decode_any, message_types

@@ -25,7 +25,7 @@ from scanflow.wire.errors import (
     VersionError,
 )
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: DeskewedScanMessage.no_return_points
 MAX_PAYLOAD_BYTES = 16 * 1024 * 1024
 MAX_STR_BYTES = 64 * 1024
 MAX_MAP_LEN = 4096

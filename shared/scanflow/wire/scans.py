@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, ClassVar, Self
 
 import numpy as np
@@ -95,8 +95,11 @@ class DeskewedScanMessage(Message):
 
     `points` travel as float64, bit for bit what the deskewer computed, so a front end fed
     from the bus sees exactly the input of the in-process pipeline (360 beams: 5.8 kB).
+    `no_return_points` (float64 too, schema version 2) are the endpoints of the beams that saw
+    nothing in range (`DeskewResult.no_return_points`): the map clears free space along them.
 
-    `beam_count` is the raw scan's beam count and `dropped_count` its masked beams;
+    `beam_count` is the raw scan's beam count and `dropped_count` its beams not in `points`
+    (no-return and erroneous ones);
     `source_used` names the motion source the deskewer used (e.g. "odometry", "none"),
     `times_assumed` is True when beam times came from the scan duration, not the driver.
     """
@@ -111,6 +114,7 @@ class DeskewedScanMessage(Message):
         "times_assumed": FLAG,
         "beam_count": INT,
         "dropped_count": INT,
+        "no_return_points": array("<f8"),
     }
     robot_id: str
     seq: int
@@ -120,6 +124,7 @@ class DeskewedScanMessage(Message):
     times_assumed: bool
     beam_count: int
     dropped_count: int
+    no_return_points: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
 
     def __post_init__(self) -> None:
         check_text("robot_id", self.robot_id)
@@ -133,8 +138,17 @@ class DeskewedScanMessage(Message):
         dropped = check_count("dropped_count", self.dropped_count)
         if dropped > beams:
             raise MessageError(f"dropped_count ({dropped}) exceeds beam_count ({beams})")
-        if len(points) > beams:
-            raise MessageError(f"points has {len(points)} rows, more than beam_count ({beams})")
+        misses = check_array("no_return_points", self.no_return_points, np.float64, (None, 2))
+        object.__setattr__(self, "no_return_points", misses)
+        if len(points) + len(misses) > beams:
+            raise MessageError(
+                f"points ({len(points)} rows) and no_return_points ({len(misses)} rows) "
+                f"exceed beam_count ({beams})"
+            )
+        if len(misses) > dropped:
+            raise MessageError(
+                f"no_return_points has {len(misses)} rows, more than dropped_count ({dropped})"
+            )
         object.__setattr__(self, "beam_count", beams)
         object.__setattr__(self, "dropped_count", dropped)
 

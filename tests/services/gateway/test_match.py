@@ -10,7 +10,7 @@ import pytest
 from scanflow import keys
 from scanflow.geometry import Pose2D
 from scanflow.scan import LaserScan
-from scanflow.wire import MapRef, MatchRequest, MatchResponse
+from scanflow.wire import SCHEMA_VERSION, MapRef, MatchRequest, MatchResponse
 
 SCAN = {
     "ranges_m": [2.0, 2.1, None, 2.3, 2.2, 2.0, 1.9, 2.0],
@@ -108,8 +108,8 @@ def test_nan_in_json_is_refused(client, auth):
 
 
 def test_bad_msgpack_gets_422(client, auth):
-    r = client.post("/api/v1/match", content=msgpack.packb({"type": "match_request", "v": 1}),
-                    headers={**auth, **MSGPACK})
+    payload = msgpack.packb({"type": "match_request", "v": SCHEMA_VERSION})
+    r = client.post("/api/v1/match", content=payload, headers={**auth, **MSGPACK})
     assert r.status_code == 422 and "method" in r.json()["detail"]
 
 
