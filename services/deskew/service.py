@@ -102,6 +102,7 @@ class DeskewService:
             times_assumed=result.times_assumed,
             beam_count=result.beam_count,
             dropped_count=result.beam_count - result.valid_count,
+            no_return_points=result.no_return_points,
         )
         self.shell.put(keys.deskewed_scan(robot_id, self.shell.prefix), message.encode())
 

@@ -60,8 +60,9 @@ class RobotMap:
         return True
 
     def insert(self, scan: DeskewedScanMessage, pose: Pose2D) -> None:
-        """The front end's own insertion of `scan` at `pose`; remembers the touched cells."""
-        result = insert_scan(self.map, scan.points, pose)
+        """The front end's own insertion of `scan` (hits and no-return beams) at `pose`;
+        remembers the touched cells."""
+        result = insert_scan(self.map, scan.points, pose, scan.no_return_points)
         if result.touched is not None:
             self.dirty = result.touched.union(self.dirty)
 

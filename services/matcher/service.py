@@ -1,10 +1,11 @@
 """Matcher service: one `Frontend` per robot of this shard, fed deskewed scans and odometry.
 
 Per scan it publishes the pose estimate; for each scan the front end put into its map it first
-publishes that scan on `map/insert`, so the map server inserts exactly the same scans. A robot
-first seen mid-stream (this matcher restarted) resumes from the map server: its map snapshot
-and last pose seed the front end. Match requests are answered on `<prefix>/match` (any scans)
-and `<prefix>/<robot>/match` (also against that robot's current map).
+publishes that scan (no-return beams included) on `map/insert`, so the map server inserts
+exactly the same scans. A robot first seen mid-stream (this matcher restarted) resumes from
+the map server: its map snapshot and last pose seed the front end. Match requests are answered
+on `<prefix>/match` (any scans) and `<prefix>/<robot>/match` (also against that robot's
+current map).
 """
 
 from __future__ import annotations
@@ -114,7 +115,11 @@ class MatcherService:
         track = self._track(robot_id, message.seq, fresh=restarted)
         with self.lock:
             out = track.frontend.process(
-                message.points, message.stamp_s, track.odom_pose(message.stamp_s), message.seq
+                message.points,
+                message.stamp_s,
+                track.odom_pose(message.stamp_s),
+                message.seq,
+                message.no_return_points,
             )
         self._publish(robot_id, message, out)
 

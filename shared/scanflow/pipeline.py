@@ -3,8 +3,10 @@
 It is what `scanflow run` and the benchmarks use, and the reference the distributed services
 equal bit for bit: the deskew service runs the same `DeskewStage` (points travel as float64),
 the matcher the same `Frontend` with odometry from `DeskewStage.odometry_pose_at`, the map
-server the front end's own `insert_scan`. (The deskew service may wait for odometry that
-arrives after a scan; in-process, a scan is deskewed with the odometry that came before it.)
+server the front end's own `insert_scan`. No-return beams travel alongside the valid ones
+(`DeskewResult.no_return_points`) and clear free space wherever the scan is inserted.
+(The deskew service may wait for odometry that arrives after a scan; in-process, a scan is
+deskewed with the odometry that came before it.)
 
     pipeline = Pipeline(settings)              # FrontendSettings; deskew on by default
     pipeline.add_odometry(sample)              # every Odometry sample, in any order
@@ -64,7 +66,8 @@ class DeskewStage:
         self.velocity.update(stamp_s, pose)
 
     def process(self, scan: LaserScan) -> DeskewResult:
-        """The scan's valid endpoints in the frame of the reference pose (see scanflow.deskew)."""
+        """The scan's valid and no-return endpoints in the frame of the reference pose
+        (see scanflow.deskew)."""
         sources: list[PoseSource] = [self.odometry, self.velocity] if self.enabled else []
         return deskew(scan, sources, self.reference)
 
@@ -117,7 +120,9 @@ class Pipeline:
         stamp_s = result.reference_stamp_s
         if odom_pose is None:
             odom_pose = self.deskew_stage.odometry_pose_at(stamp_s)
-        estimate = self.frontend.process(result.points, stamp_s, odom_pose, scan.seq)
+        estimate = self.frontend.process(
+            result.points, stamp_s, odom_pose, scan.seq, result.no_return_points
+        )
         if estimate.accepted:
             self.deskew_stage.observe_pose(stamp_s, estimate.pose)
         return PipelineOutput(result, estimate, deskew_time_s)

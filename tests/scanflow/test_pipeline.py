@@ -63,6 +63,32 @@ def test_keyframes_use_the_given_odometry_and_skip_deskewing() -> None:
     assert second.estimate.pose.translation_norm() < 0.02
 
 
+def test_no_return_beams_reach_the_map_through_the_pipeline() -> None:
+    angles = -math.pi / 2 + np.arange(181) * math.pi / 180
+    ranges = cast_rays(np.tile([7.32, 2.07], (181, 1)), angles + 0.3, get_world("rooms").segments,
+                       20.0)
+    gone = (np.arange(181) % 9 == 0) | np.isinf(ranges)  # and the beams out of the door
+    maps, misses = {}, {}
+    for name, lost in (("no_return", np.inf), ("error", np.nan)):
+        pipeline = Pipeline()
+        out = pipeline.process(keyframe(np.where(gone, lost, ranges), 10.0, 0), Pose2D())
+        assert out.estimate.inserted
+        maps[name], misses[name] = pipeline.frontend.map.grid, out.deskew.no_return_points
+    assert (len(misses["no_return"]), len(misses["error"])) == (np.count_nonzero(gone), 0)
+    grid, other = maps["no_return"], maps["error"]
+    # Cells the no-return beams cleared: free, within no_return_clear_m of the sensor.
+    observed = np.zeros(grid.extent.shape, dtype=bool)
+    observed[other.extent.slices_in(grid.extent)] = other.observed
+    extra = grid.observed & ~observed
+    assert np.count_nonzero(extra) > 100
+    assert (grid.log_odds[extra] < 0).all()
+    rows, cols = np.nonzero(extra)
+    spec = grid.spec
+    x = spec.origin_x_m + (cols + 0.5) * spec.resolution_m
+    y = spec.origin_y_m + (rows + 0.5) * spec.resolution_m
+    assert np.hypot(x, y).max() <= grid.params.no_return_clear_m + spec.resolution_m
+
+
 def test_deskew_stage_odometry_pose_at() -> None:
     stage = DeskewStage()
     assert stage.odometry_pose_at(1.0) is None

@@ -1,9 +1,11 @@
 """Scan-to-map tracking for one robot: predict, match against the robot's own map, check, insert.
 
-`Frontend(settings).process(points_m, stamp_s, odom_pose, seq) -> FrontendOutput`, once per
-deskewed scan, in stamp order. `points_m` are the scan's valid endpoints in the sensor frame at
-`stamp_s` (a `DeskewResult.points`); `odom_pose` is the wheel-odometry pose at `stamp_s` in the
-odometry frame, or None. Output poses are T_map_sensor.
+`Frontend(settings).process(points_m, stamp_s, odom_pose, seq, no_return_m) -> FrontendOutput`,
+once per deskewed scan, in stamp order. `points_m` are the scan's valid endpoints in the sensor
+frame at `stamp_s` (a `DeskewResult.points`); `no_return_m` its no-return beams' endpoints there
+(`DeskewResult.no_return_points`), which only clear free space when the scan is inserted (up to
+the map's `no_return_clear_m`) and are never matched; `odom_pose` is the wheel-odometry pose at
+`stamp_s` in the odometry frame, or None. Output poses are T_map_sensor.
 
 Per scan:
 1. predict: the odometry increment since the last scan composed onto the last estimate
@@ -83,6 +85,7 @@ class _Step:
 
     prediction: Prediction
     points: NDArray[np.float64]
+    no_return: NDArray[np.float64]
     stamp_s: float
     odom_pose: Pose2D | None
     seq: int
@@ -90,13 +93,22 @@ class _Step:
 
 
 def insert_scan(
-    matching_map: MatchingMap, points_sensor_m: ArrayLike, pose: Pose2D
+    matching_map: MatchingMap,
+    points_sensor_m: ArrayLike,
+    pose: Pose2D,
+    no_return_sensor_m: ArrayLike | None = None,
 ) -> InsertResult:
-    """Insert a scan's endpoints (sensor frame) within the grid's max range, seen from `pose`
-    (T_map_sensor): the one insertion the front end and the map server both use."""
+    """Insert a scan's endpoints (sensor frame) within the grid's max range, and clear along
+    its no-return beams (up to the grid's no_return_clear_m), seen from `pose` (T_map_sensor):
+    the one insertion the front end and the map server both use."""
     points = as_points(points_sensor_m, "points_sensor_m")
     in_range = np.hypot(points[:, 0], points[:, 1]) <= matching_map.grid.params.max_range_m
-    return matching_map.update(pose.transform_points(points[in_range]), (pose.x, pose.y))
+    misses = None
+    if no_return_sensor_m is not None:
+        misses = pose.transform_points(as_points(no_return_sensor_m, "no_return_sensor_m"))
+    return matching_map.update(
+        pose.transform_points(points[in_range]), (pose.x, pose.y), no_return_endpoints=misses
+    )
 
 
 def default_settings() -> FrontendSettings:
@@ -147,11 +159,13 @@ class Frontend:
         stamp_s: float,
         odom_pose: Pose2D | None = None,
         seq: int = 0,
+        no_return_m: ArrayLike | None = None,
     ) -> FrontendOutput:
         """Track one scan (see the module docstring); never raises for bad scan content."""
         points = as_points(points_m, "points_m")
+        misses = np.zeros((0, 2)) if no_return_m is None else as_points(no_return_m, "no_return_m")
         prediction = self._predict(stamp_s, odom_pose)
-        step = _Step(prediction, points, float(stamp_s), odom_pose, seq)
+        step = _Step(prediction, points, misses, float(stamp_s), odom_pose, seq)
         if len(points) < self.settings.min_points:
             reason = f"{len(points)} valid points, need min_points={self.settings.min_points}"
             return self._finish(step, FrontendStatus.TOO_FEW_POINTS, None, reason)
@@ -214,7 +228,7 @@ class Frontend:
         inserted, insert_time_s = False, 0.0
         if status in ACCEPTED and self._filter.should_insert(step.stamp_s, pose):
             t0 = time.perf_counter()
-            insert_scan(self.map, step.points, pose)
+            insert_scan(self.map, step.points, pose, step.no_return)
             insert_time_s = time.perf_counter() - t0
             self._filter.mark_inserted(step.stamp_s, pose)
             inserted = True

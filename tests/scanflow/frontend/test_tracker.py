@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 from scanflow.config import FrontendSettings
+from scanflow.deskew import NO_RETURN_RANGE_M
 from scanflow.frontend import Frontend, FrontendOutput, FrontendStatus, PredictionSource
 from scanflow.geometry import Pose2D
 
@@ -104,6 +105,54 @@ def test_too_few_points_keeps_map_and_reports(
     # Carries on: the next scan tracks again.
     after = frontend.process(scan_at(truth[4]), 0.4, odom[4], 4)
     assert after.status is FrontendStatus.TRACKED
+
+
+def _cleared_along_x(frontend: Frontend, origin: Pose2D, distances_m: NDArray) -> NDArray:
+    """Whether the map holds free cells at `distances_m` from `origin` along the map's x axis."""
+    grid = frontend.map.grid
+    box = grid.extent
+    assert box is not None
+    world = np.column_stack((origin.x + distances_m, np.full(len(distances_m), origin.y)))
+    cells = grid.world_to_cells(world) - (box.row0, box.col0)
+    rows, cols = cells[:, 0], cells[:, 1]
+    inside = (rows >= 0) & (rows < box.shape[0]) & (cols >= 0) & (cols < box.shape[1])
+    out = np.zeros(len(distances_m), dtype=bool)
+    out[inside] = grid.free_mask(0.5)[rows[inside], cols[inside]]
+    return out
+
+
+def test_no_return_beams_clear_up_to_the_clear_distance_only(settings: FrontendSettings) -> None:
+    """A wall behind the sensor, a beam ahead that saw nothing: its cells are free up to the
+    map's no_return_clear_m (5 m) and unknown beyond."""
+    behind = np.linspace(math.pi / 2, 3 * math.pi / 2, 181)
+    wall = 3.0 * np.column_stack((np.cos(behind), np.sin(behind)))
+    pose = MAP_FROM_WORLD * START
+    # The beam runs along the map's x axis, so its cells are one row of the grid.
+    beam = Pose2D(0.0, 0.0, -pose.theta).transform_points(np.array([[NO_RETURN_RANGE_M, 0.0]]))
+    frontend = Frontend(settings, initial_pose=pose)
+    out = frontend.process(wall, 0.0, None, 0, beam)
+    assert out.inserted
+    clear_m = frontend.map.grid.params.no_return_clear_m
+    assert clear_m == 5.0
+    assert _cleared_along_x(frontend, pose, np.arange(0.0, clear_m, 0.05)).all()
+    assert not _cleared_along_x(frontend, pose, np.arange(clear_m + 0.1, 9.0, 0.05)).any()
+    plain = Frontend(settings, initial_pose=pose)
+    plain.process(wall, 0.0, None, 0)
+    assert not _cleared_along_x(plain, pose, np.arange(0.5, 9.0, 0.05)).any()
+
+
+def test_no_return_beams_are_not_matched(settings: FrontendSettings, scan_at: Scanner) -> None:
+    truth = straight_path(START, 0.25, 4)  # each step beyond the motion filter's 0.2 m
+    odom = odometry_with_drift(truth)
+    with_misses, without = (Frontend(settings, initial_pose=START_IN_MAP) for _ in range(2))
+    run(with_misses, scan_at, truth[:3], odom[:3])
+    run(without, scan_at, truth[:3], odom[:3])
+    misses = 30.0 * np.column_stack((np.cos(np.arange(0, 6, 0.1)), np.sin(np.arange(0, 6, 0.1))))
+    a = with_misses.process(scan_at(truth[3]), 0.3, odom[3], 3, misses)
+    b = without.process(scan_at(truth[3]), 0.3, odom[3], 3)
+    assert a.accepted and a.pose == b.pose and a.iterations == b.iterations
+    assert a.inserted and b.inserted
+    assert not np.array_equal(with_misses.map.grid.log_odds, without.map.grid.log_odds)
 
 
 def test_rejected_prediction_covariance_grows(
