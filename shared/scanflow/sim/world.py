@@ -1,6 +1,7 @@
 """The built-in 2D worlds: walls as line segments plus a collision-free tour of waypoints.
 
-- `rooms`: six rooms (5 m x 4 m) joined by 1.2 m doors, a few pillars;
+- `rooms`: six rooms (5 m x 4 m) joined by 1.2 m doors, a few pillars, and an open door to
+  the outside in the east wall: beams through it hit nothing (no return, as in open space);
 - `corridor`: a long featureless 40 m x 2 m corridor, the degenerate case for matching;
 - `loop`: corridors around a central block, with alcoves, for loop closure.
 """
@@ -47,7 +48,8 @@ def _wall_with_doors(
 
 
 def rooms() -> World:
-    walls = _box(0.0, 0.0, 15.0, 8.0)
+    walls = [(0.0, 0.0, 15.0, 0.0), (15.0, 8.0, 0.0, 8.0), (0.0, 8.0, 0.0, 0.0)]
+    walls += _wall_with_doors((15.0, 0.0), (15.0, 8.0), [2.0])
     walls += _wall_with_doors((5.0, 0.0), (5.0, 8.0), [2.0, 6.0])
     walls += _wall_with_doors((10.0, 0.0), (10.0, 8.0), [2.0, 6.0])
     walls += _wall_with_doors((0.0, 4.0), (15.0, 4.0), [2.5, 12.5])
