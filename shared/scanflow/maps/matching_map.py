@@ -5,10 +5,11 @@ hit point (sub-cell accurate walls; cell centres for maps imported without hit s
 refreshed lazily, on first access after an update, and only around where the scan flipped cells
 between free/unknown and occupied or added hits to occupied cells. The views derived from them
 follow the same way: a max-pool stack re-pools only where its level's field values changed
-(`FieldLayer.take_changes`), and NDT cells recompute only the cells overlapping the box where
-cells flipped. So keeping every view current costs in proportion to the region a scan touched,
-not to the map; their arrays grow amortised with the map (O(log size) re-layouts). Only the
-occupied points are rebuilt whole (on first access after the occupied cells changed).
+(`FieldLayer.take_changes`), and NDT cells (plain, and the four overlapping grids the `ndt`
+matcher reads) recompute only the cells overlapping the box where cells flipped. So keeping
+every view current costs in proportion to the region a scan touched, not to the map; their
+arrays grow amortised with the map (O(log size) re-layouts). Only the occupied points are
+rebuilt whole (on first access after the occupied cells changed).
 
 The default field sigma is 2 cells of the grid (0.10 m at 5 cm): wide enough for a smooth
 gradient across a wall and a basin of a few cells, narrow enough to keep walls distinct; level k
@@ -23,7 +24,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from scanflow.maps.field import LikelihoodField
 from scanflow.maps.maxpool import MaxPoolStack, MaxPoolStore
-from scanflow.maps.ndt_cells import GridNDTCells, NDTCells
+from scanflow.maps.ndt_cells import GridNDTCells, GridOverlappingCells, NDTCells, OverlappingCells
 from scanflow.maps.occupancy import InsertResult, OccupancyGrid
 from scanflow.maps.pyramid import FieldLayer
 
@@ -49,6 +50,7 @@ class MatchingMap:
         self._occupied_points: NDArray[np.float64] | None = None
         self._pools: dict[tuple[int, int], MaxPoolStore] = {}
         self._ndt: dict[float, GridNDTCells] = {}
+        self._overlapping: dict[float, GridOverlappingCells] = {}
         self._seen_revision = self.grid.revision
 
     @property
@@ -65,6 +67,7 @@ class MatchingMap:
         views = sum(layer.nbytes for layer in self._layers.values())
         views += sum(pool.nbytes for pool in self._pools.values())
         views += sum(cells.nbytes for cells in self._ndt.values())
+        views += sum(cells.nbytes for cells in self._overlapping.values())
         if self._occupied_points is not None:
             views += self._occupied_points.nbytes
         return self.grid.nbytes + views
@@ -80,6 +83,7 @@ class MatchingMap:
             self._layers.clear()
             self._pools.clear()
             self._ndt.clear()
+            self._overlapping.clear()
             self._occupied_points = None
             self._seen_revision = self.grid.revision
 
@@ -100,7 +104,7 @@ class MatchingMap:
                 layer.mark_dirty(dirty)
         if result.occupied_changed is not None:
             self._occupied_points = None
-            for cells in self._ndt.values():
+            for cells in (*self._ndt.values(), *self._overlapping.values()):
                 cells.mark_dirty(result.occupied_changed)
         return result
 
@@ -164,4 +168,16 @@ class MatchingMap:
         cells = self._ndt.get(cell_size_m)
         if cells is None:
             cells = self._ndt[cell_size_m] = GridNDTCells(self.grid, cell_size_m)
+        return cells.cells()
+
+    def overlapping_ndt_cells(self, cell_size_m: float) -> OverlappingCells:
+        """The `ndt` matcher's four overlapping grids of the occupied cell centres, on the half-
+        cell lattice anchored at the map lattice anchor (cells do not shift as the map grows);
+        refreshed where occupied cells changed (see GridOverlappingCells). Equal, per block,
+        to `OverlappingCells.from_points(occupied_points(), cell_size_m, anchor)`. A read-only
+        view valid until the next update."""
+        self._sync()
+        cells = self._overlapping.get(cell_size_m)
+        if cells is None:
+            cells = self._overlapping[cell_size_m] = GridOverlappingCells(self.grid, cell_size_m)
         return cells.cells()

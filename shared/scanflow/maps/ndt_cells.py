@@ -5,15 +5,17 @@ inverse of its covariance, whose eigenvalues are floored (a wall's points are ne
 so the raw covariance is close to singular). The paper's four overlapping grids are the same
 construction shifted by half a cell in x, y and both (`OverlappingCells`, all four at once).
 
-`GridNDTCells` keeps the cells of a growing occupancy grid's occupied cell centres current:
-after a scan it recomputes only the cells overlapping the box where cells flipped between free
-and occupied, from the occupied centres inside them.
+`GridNDTCells` and `GridOverlappingCells` keep the cells of a growing occupancy grid's
+occupied cell centres current, on lattices anchored at the grid's anchor: after a scan they
+recompute only the cells (the 2 x 2 blocks of half-cells) holding the box where cells flipped
+between free and occupied, from the occupied centres inside them.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Generic, NamedTuple, TypeVar
 
 import numpy as np
 from numba import njit
@@ -83,36 +85,46 @@ class NDTCells:
         return out
 
 
-class GridNDTCells:
-    """NDTCells of an OccupancyGrid's occupied cell centres, kept current cell by cell.
+V = TypeVar("V")
 
-    Cells of `cell_size_m` sit on the lattice anchored at the grid's anchor; a fine cell belongs
-    to the cell holding its centre, so a cell's distribution depends only on the occupied fine
-    cells inside it. `mark_dirty(box)` notes where the occupied mask changed; the next `cells()`
-    recomputes the cells overlapping that box (moments about each cell's corner: small sums),
-    adds or drops them as they reach or fall below `min_points`, and keeps the distributions
-    packed (a dropped cell's slot takes the last one's). The index grid grows like the grid's
-    storage (`grown_box`). Per cell location the result equals `NDTCells.from_points` of
-    `occupied centres` with the same size and anchor, up to summation order; the numbering of
-    the cells differs.
+
+class BlockArrays(NamedTuple):
+    """Read-only views of a block store: index by block start, and per-block distributions."""
+
+    index: NDArray[np.int64]
+    means: NDArray[np.float64]
+    inv_covs: NDArray[np.float64]
+    counts: NDArray[np.int64]
+
+
+class _LatticeBlocks(Generic[V]):
+    """Distributions of an OccupancyGrid's occupied cell centres in span x span blocks of a
+    lattice anchored at the grid's anchor, kept current block by block.
+
+    A fine cell belongs to the lattice cell holding its centre, so a block's distribution
+    depends only on the occupied fine cells inside it. `mark_dirty(box)` notes where the
+    occupied mask changed; the next `cells()` recomputes the moments of the lattice cells
+    holding that box plus span - 1 cells around it (about each cell's corner: small sums), sums
+    them into every block holding a changed cell, adds or drops blocks as they reach or fall
+    below `min_points`, and keeps the distributions packed (a dropped block's slot takes the
+    last one's). The index grid, by block start, grows like the grid's storage (`grown_box`).
     """
 
-    def __init__(
-        self, grid: OccupancyGrid, cell_size_m: float, min_points: int = MIN_CELL_POINTS
-    ) -> None:
-        _check_cell_size(cell_size_m)
+    def __init__(self, grid: OccupancyGrid, lattice_m: float, span: int, min_points: int) -> None:
+        _check_cell_size(lattice_m)
         self.grid = grid
-        self.cell_size_m = cell_size_m
+        self.lattice_m = lattice_m
+        self.span = span
         self.min_points = min_points
-        self._box: CellBox | None = None  # the cells `_index` covers
+        self._box: CellBox | None = None  # the block starts `_index` covers
         self._index = np.zeros((0, 0), dtype=np.int64)
         self._means = np.zeros((0, 2))
         self._inv_covs = np.zeros((0, 2, 2))
         self._counts = np.zeros(0, dtype=np.int64)
-        self._cell_of = np.zeros((0, 2), dtype=np.int64)  # (row, col) of each slot's cell
+        self._cell_of = np.zeros((0, 2), dtype=np.int64)  # (row, col) of each slot's block
         self._used = 0
         self._pending: CellBox | None = grid.extent  # fine cells; everything to start with
-        self._view: NDTCells | None = None
+        self._view: V | None = None
 
     @property
     def nbytes(self) -> int:
@@ -123,37 +135,48 @@ class GridNDTCells:
         self._pending = fine_box.union(self._pending)
 
     def _bins(self, fine: NDArray[np.int64]) -> NDArray[np.int64]:
-        """The cell (row or col) holding the centre of each fine row or col."""
-        scale = self.grid.resolution_m / self.cell_size_m
+        """The lattice cell (row or col) holding the centre of each fine row or col."""
+        scale = self.grid.resolution_m / self.lattice_m
         return np.floor((np.asarray(fine) + 0.5) * scale).astype(np.int64)
 
     def _cells_over(self, fine: CellBox) -> CellBox:
-        """The cells holding the centres of a (non-empty) box of fine cells."""
+        """The lattice cells holding the centres of a (non-empty) box of fine cells."""
         lo = self._bins(np.array([fine.row0, fine.col0]))
         hi = self._bins(np.array([fine.row1 - 1, fine.col1 - 1])) + 1
         return CellBox(int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1]))
 
-    def cells(self) -> NDTCells:
-        """The current cells: read-only views, the same object while the occupied cells did
+    def _blocks_over(self, cells: CellBox) -> CellBox:
+        """The blocks holding some lattice cell of `cells` (by first cell)."""
+        lead = self.span - 1
+        return CellBox(cells.row0 - lead, cells.col0 - lead, cells.row1, cells.col1)
+
+    def cells(self) -> V:
+        """The current blocks: read-only views, the same object while the occupied cells did
         not change, valid until the next grid update."""
         extent = self.grid.extent
         if self._pending is not None and extent is not None:
-            self._hold(self._cells_over(extent))
+            self._hold(self._blocks_over(self._cells_over(extent)))
             self._refresh(self._cells_over(self._pending))
             self._pending, self._view = None, None
         if self._view is None:
-            box = self._box or CellBox(0, 0, 0, 0)
-            spec = box.spec(self.grid.anchor_x_m, self.grid.anchor_y_m, self.cell_size_m)
-            arrays = [self._index[:, :]] + [
-                a[: self._used] for a in (self._means, self._inv_covs, self._counts)
-            ]
+            arrays = BlockArrays(
+                self._index[:, :],
+                self._means[: self._used],
+                self._inv_covs[: self._used],
+                self._counts[: self._used],
+            )
             for a in arrays:
                 a.flags.writeable = False
-            self._view = NDTCells(spec, *arrays)
+            self._view = self._make_view(self._box or CellBox(0, 0, 0, 0), arrays)
         return self._view
 
+    def _make_view(self, box: CellBox, arrays: BlockArrays) -> V:
+        """The public cells object of the blocks `arrays` hold, numbered over `box` (by block
+        start)."""
+        raise NotImplementedError
+
     def _hold(self, need: CellBox) -> None:
-        """Grow the index grid to hold `need` (every cell with occupied centres)."""
+        """Grow the index grid to hold `need` (every block with occupied centres)."""
         if self._box is not None and self._box.contains_box(need):
             return
         new = grown_box(self._box, need)
@@ -163,9 +186,10 @@ class GridNDTCells:
             index[kept.slices_in(new)] = self._index[kept.slices_in(self._box)]
         self._box, self._index = new, index
 
-    def _refresh(self, box: CellBox) -> None:
-        """Recompute every cell of `box` from the occupied fine cells whose centres it holds."""
-        res, size = self.grid.resolution_m, self.cell_size_m
+    def _moments(self, box: CellBox) -> NDArray[np.float64]:
+        """(rows, cols, 6) moments (count, sum x, sum y, sum xx, sum xy, sum yy) of the occupied
+        fine-cell centres held by each lattice cell of `box`, about the cell's corner."""
+        res, size = self.grid.resolution_m, self.lattice_m
         scale = size / res
         fine = CellBox(
             math.floor(box.row0 * scale) - 1,
@@ -190,12 +214,29 @@ class GridNDTCells:
                 for w in (None, dx, dy, dx * dx, dx * dy, dy * dy)
             ]
         )
+        return moments.reshape(*box.shape, 6)
+
+    def _refresh(self, cells: CellBox) -> None:
+        """Recompute every block holding a lattice cell of `cells`."""
+        blocks = self._blocks_over(cells)
+        lead, size = self.span - 1, self.lattice_m
+        around = self._moments(
+            CellBox(blocks.row0, blocks.col0, cells.row1 + lead, cells.col1 + lead)
+        )
+        rows, cols = blocks.shape
+        moments = np.zeros((rows, cols, 6))
+        for dr in range(self.span):
+            for dc in range(self.span):
+                moments += _shifted_moments(
+                    around[dr : dr + rows, dc : dc + cols], dc * size, dr * size
+                )
+        moments = moments.reshape(-1, 6)
         live = moments[:, 0] >= self.min_points
-        row_in_box, col_in_box = np.divmod(np.flatnonzero(live), box.shape[1])
-        cell_rc = np.column_stack((row_in_box + box.row0, col_in_box + box.col0))
+        row_in_box, col_in_box = np.divmod(np.flatnonzero(live), cols)
+        block_rc = np.column_stack((row_in_box + blocks.row0, col_in_box + blocks.col0))
         means, inv_covs, counts = cell_distributions(moments[live], np.zeros(2))
-        means += cell_rc[:, ::-1] * size + (self.grid.anchor_x_m, self.grid.anchor_y_m)
-        self._apply(box, live, (means, inv_covs, counts, cell_rc))
+        means += block_rc[:, ::-1] * size + (self.grid.anchor_x_m, self.grid.anchor_y_m)
+        self._apply(blocks, live, (means, inv_covs, counts, block_rc))
 
     def _apply(
         self,
@@ -254,6 +295,26 @@ class GridNDTCells:
         self._used = end
 
 
+class GridNDTCells(_LatticeBlocks[NDTCells]):
+    """NDTCells of an OccupancyGrid's occupied cell centres, kept current cell by cell.
+
+    Cells of `cell_size_m` sit on the lattice anchored at the grid's anchor (blocks of one
+    lattice cell, see _LatticeBlocks). Per cell location the result equals
+    `NDTCells.from_points` of the occupied centres with the same size and anchor, up to
+    summation order; the numbering of the cells differs.
+    """
+
+    def __init__(
+        self, grid: OccupancyGrid, cell_size_m: float, min_points: int = MIN_CELL_POINTS
+    ) -> None:
+        super().__init__(grid, cell_size_m, 1, min_points)
+        self.cell_size_m = cell_size_m
+
+    def _make_view(self, box: CellBox, arrays: BlockArrays) -> NDTCells:
+        spec = box.spec(self.grid.anchor_x_m, self.grid.anchor_y_m, self.cell_size_m)
+        return NDTCells(spec, *arrays)
+
+
 @njit(cache=True)
 def _sparse_moments(points, origin_x, origin_y, size, rows, cols, span, min_points):  # type: ignore[no-untyped-def]
     """(flat index of kept cell numbers or -1, (K, 6) moments of the kept cells).
@@ -297,6 +358,23 @@ def _sparse_moments(points, origin_x, origin_y, size, rows, cols, span, min_poin
         else:
             index[touched[k]] = -1
     return index, moments[:kept]
+
+
+def _shifted_moments(moments: NDArray[np.float64], dx_m: float, dy_m: float) -> NDArray[np.float64]:
+    """(..., 6) moments about a point (dx_m, dy_m) before their reference point: every offset
+    grows by (dx_m, dy_m). Exact for a zero shift."""
+    n, sx, sy, sxx, sxy, syy = np.moveaxis(moments, -1, 0)
+    return np.stack(
+        (
+            n,
+            sx + n * dx_m,
+            sy + n * dy_m,
+            sxx + (2.0 * sx + n * dx_m) * dx_m,
+            sxy + dx_m * sy + dy_m * sx + n * dx_m * dy_m,
+            syy + (2.0 * sy + n * dy_m) * dy_m,
+        ),
+        axis=-1,
+    )
 
 
 def cell_distributions(
@@ -405,3 +483,31 @@ class OverlappingCells:
             inside = (r >= 0) & (c >= 0) & (r < rows) & (c < cols)
             out[inside, g] = self.index[r[inside], c[inside]]
         return out
+
+
+class GridOverlappingCells(_LatticeBlocks[OverlappingCells]):
+    """OverlappingCells of an OccupancyGrid's occupied cell centres, kept current block by block.
+
+    The half-size lattice is anchored at the grid's anchor, so the four grids do not shift as
+    the map grows; a change recomputes the half-cells it touches plus one around them and the
+    2 x 2 blocks holding a touched half-cell (see _LatticeBlocks). Per block location the
+    result equals `OverlappingCells.from_points` of the occupied centres with the same size and
+    anchor, up to summation order; the numbering of the blocks differs.
+    """
+
+    def __init__(
+        self, grid: OccupancyGrid, cell_size_m: float, min_points: int = MIN_CELL_POINTS
+    ) -> None:
+        _check_cell_size(cell_size_m)
+        super().__init__(grid, 0.5 * cell_size_m, 2, min_points)
+        self.cell_size_m = cell_size_m
+
+    def _make_view(self, box: CellBox, arrays: BlockArrays) -> OverlappingCells:
+        half = self.lattice_m
+        return OverlappingCells(
+            self.grid.anchor_x_m + box.col0 * half,
+            self.grid.anchor_y_m + box.row0 * half,
+            half,
+            (box.row0 % 2, box.col0 % 2),
+            *arrays,
+        )

@@ -12,7 +12,7 @@ from scanflow.maps.field import LikelihoodField
 from scanflow.maps.grid import CellBox
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.maxpool import MaxPoolStack
-from scanflow.maps.ndt_cells import NDTCells, regularised_inverse
+from scanflow.maps.ndt_cells import NDTCells, OverlappingCells, regularised_inverse
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
 from scanflow.matching import MatchStatus, match
 from scipy.spatial import cKDTree
@@ -220,8 +220,11 @@ def test_ndt_cells_follow_occupied_points_and_the_lattice():
     assert world.ndt_cells(0.5) is cells
     world.update(room_scan((0.0, 0.0), 2.0, beams=720), (0.0, 0.0))  # nothing flips
     assert world.ndt_cells(0.5) is cells
+    overlapping = world.overlapping_ndt_cells(0.5)
+    assert world.overlapping_ndt_cells(0.5) is overlapping
     world.update([[1.0, 1.0], [1.02, 1.0], [1.0, 1.02]], (0.0, 0.0))
     assert world.ndt_cells(0.5) is not cells
+    assert world.overlapping_ndt_cells(0.5) is not overlapping
     assert world.nbytes > world.grid.nbytes
 
 
@@ -293,6 +296,73 @@ def assert_maxpool_matches_scratch(world: MatchingMap, depth: int, level: int) -
     np.testing.assert_array_equal(got.levels, want.levels)
 
 
+def assert_close_matrices(a: np.ndarray, b: np.ndarray, relative: float) -> None:
+    """(K, 2, 2) matrices equal within `relative` of each of b's largest entries."""
+    scale = np.abs(b).max(axis=(1, 2))
+    assert (np.abs(a - b).max(axis=(1, 2)) <= relative * scale).all()
+
+
+def assert_two_pass_distributions(
+    counts: np.ndarray, inv_covs: np.ndarray, points: np.ndarray, k: np.ndarray
+) -> None:
+    """Cells 0..K-1 hold the counts and (within 1e-12) the regularised inverse covariances of
+    the points `k` puts in them (-1: none), computed in two passes (mean first)."""
+    inside = k >= 0
+    k, p, cells = k[inside], points[inside], len(counts)
+    n = np.bincount(k, minlength=cells)
+    mean = np.column_stack([np.bincount(k, p[:, i], cells) for i in (0, 1)]) / n[:, None]
+    d = p - mean[k]
+    cov = np.empty((cells, 2, 2))
+    for i, j in ((0, 0), (0, 1), (1, 0), (1, 1)):
+        cov[:, i, j] = np.bincount(k, d[:, i] * d[:, j], cells) / (n - 1)
+    np.testing.assert_array_equal(n, counts)
+    assert_close_matrices(inv_covs, regularised_inverse(cov), 1e-12)
+
+
+def assert_overlapping_matches_scratch(world: MatchingMap, size: float) -> None:
+    """The map's overlapping cells hold, at every block location of the anchored half-cell
+    lattice, what `OverlappingCells.from_points` of the occupied centres holds there (numbering
+    aside); lookups agree; each of the four grids passes the two-pass check."""
+    got = world.overlapping_ndt_cells(size)
+    anchor = np.array([world.grid.anchor_x_m, world.grid.anchor_y_m])
+    points = world.occupied_points()
+    want = OverlappingCells.from_points(points, size, tuple(anchor))
+    assert len(got) == len(want) and got.half_size_m == want.half_size_m
+    np.testing.assert_array_equal(np.sort(got.index[got.index >= 0]), np.arange(len(got)))
+
+    def blocks(cells: OverlappingCells) -> tuple[np.ndarray, np.ndarray]:
+        """(absolute half-cell (row, col) of each block, its number), sorted by location."""
+        start = (np.array([cells.origin_y_m, cells.origin_x_m]) - anchor[::-1]) / size * 2
+        np.testing.assert_allclose(start, np.round(start), atol=1e-9)
+        rc = np.argwhere(cells.index >= 0)
+        k = cells.index[rc[:, 0], rc[:, 1]]
+        rc += np.round(start).astype(np.int64)
+        order = np.lexsort((rc[:, 1], rc[:, 0]))
+        return rc[order], k[order]
+
+    rc_got, k_got = blocks(got)
+    rc_want, k_want = blocks(want)
+    np.testing.assert_array_equal(rc_got, rc_want)
+    np.testing.assert_array_equal(got.counts[k_got], want.counts[k_want])
+    np.testing.assert_allclose(got.means[k_got], want.means[k_want], rtol=0, atol=1e-12)
+    assert_close_matrices(got.inv_covs[k_got], want.inv_covs[k_want], 1e-9)
+    rng = np.random.default_rng(0)
+    lo, hi = (points.min(axis=0), points.max(axis=0)) if len(points) else (anchor, anchor)
+    queries = np.vstack((points, rng.uniform(lo - size, hi + size, (500, 2))))
+    found, expected = got.lookup(queries), want.lookup(queries)
+    np.testing.assert_array_equal(found >= 0, expected >= 0)
+    hit = found >= 0
+    np.testing.assert_allclose(got.means[found[hit]], want.means[expected[hit]], atol=1e-12)
+    in_grid = got.lookup(points)
+    for g in range(4):
+        k = in_grid[:, g]
+        grid_cells = np.unique(k[k >= 0])
+        renumbered = np.where(k >= 0, np.searchsorted(grid_cells, k), -1)
+        assert_two_pass_distributions(
+            got.counts[grid_cells], got.inv_covs[grid_cells], points, renumbered
+        )
+
+
 def assert_ndt_matches_scratch(world: MatchingMap, size: float) -> None:
     """Same cells, counts and means as binning the occupied centres from scratch (numbering
     aside). Covariances: within 1e-12 of a two-pass computation per cell; the scratch build sums
@@ -310,22 +380,8 @@ def assert_ndt_matches_scratch(world: MatchingMap, size: float) -> None:
     np.testing.assert_array_equal(got.counts[k_got], want.counts[k_want])
     np.testing.assert_allclose(got.means[k_got], want.means[k_want], rtol=0, atol=1e-12)
 
-    def assert_close(a, b, relative):
-        scale = np.abs(b).max(axis=(1, 2))
-        assert (np.abs(a - b).max(axis=(1, 2)) <= relative * scale).all()
-
-    assert_close(got.inv_covs[k_got], want.inv_covs[k_want], 1e-9)
-    k = got.lookup(points)
-    inside = k >= 0
-    k, p = k[inside], points[inside]
-    n = np.bincount(k, minlength=len(got))
-    mean = np.column_stack([np.bincount(k, p[:, i], len(got)) for i in (0, 1)]) / n[:, None]
-    d = p - mean[k]
-    cov = np.empty((len(got), 2, 2))
-    for i, j in ((0, 0), (0, 1), (1, 0), (1, 1)):
-        cov[:, i, j] = np.bincount(k, d[:, i] * d[:, j], len(got)) / (n - 1)
-    np.testing.assert_array_equal(n, got.counts)
-    assert_close(got.inv_covs, regularised_inverse(cov), 1e-12)
+    assert_close_matrices(got.inv_covs[k_got], want.inv_covs[k_want], 1e-9)
+    assert_two_pass_distributions(got.counts, got.inv_covs, points, got.lookup(points))
     origin_cells = np.array([got.spec.origin_x_m, got.spec.origin_y_m]) - anchor
     np.testing.assert_allclose(origin_cells / size, np.round(origin_cells / size), atol=1e-9)
 
@@ -338,18 +394,20 @@ def assert_ndt_matches_scratch(world: MatchingMap, size: float) -> None:
             st.floats(-4, 4),
             st.floats(0.3, 3.0),
             st.integers(1, 4),  # repeats: walls firm up, and a bigger room clears old ones
-            st.integers(0, 7),  # which views to read after the scan (bits)
+            st.integers(0, 15),  # which views to read after the scan (bits)
         ),
         min_size=1,
         max_size=8,
-    )
+    ),
+    anchor=st.tuples(st.floats(-1, 1), st.floats(-1, 1)),
 )
-def test_stacks_and_ndt_cells_equal_a_rebuild_property(scans):
+def test_stacks_and_ndt_cells_equal_a_rebuild_property(scans, anchor):
     """Scans grow the map in every direction and flip cells both ways; views read at random
-    points in between (refreshes interleave with re-layouts) still equal a rebuild. One hit
-    makes a cell occupied and one miss frees it again, so NDT cells come and go often."""
+    points in between (refreshes interleave with re-layouts) still equal a rebuild with the
+    map's lattice anchor. One hit makes a cell occupied and one miss frees it again, so NDT
+    cells come and go often."""
     params = OccupancyParams(p_hit=0.7, p_miss=0.3)
-    world = MatchingMap(OccupancyGrid(params, initial_capacity_cells=4))
+    world = MatchingMap(OccupancyGrid(params, *anchor, initial_capacity_cells=4))
     for x, y, half, repeats, read in scans:
         for _ in range(repeats):
             world.update(room_scan((x, y), half, beams=60), (x, y))
@@ -360,10 +418,15 @@ def test_stacks_and_ndt_cells_equal_a_rebuild_property(scans):
         if read & 4:
             world.ndt_cells(0.3)
             world.ndt_cells(0.5)
+        if read & 8:
+            world.overlapping_ndt_cells(0.3)
+            world.overlapping_ndt_cells(1.0)
     assert_maxpool_matches_scratch(world, 2, 0)
     assert_maxpool_matches_scratch(world, 3, 1)
     assert_ndt_matches_scratch(world, 0.3)
     assert_ndt_matches_scratch(world, 0.5)
+    assert_overlapping_matches_scratch(world, 0.3)
+    assert_overlapping_matches_scratch(world, 1.0)
 
 
 def test_ndt_cells_disappear_when_their_walls_are_cleared():
@@ -373,13 +436,16 @@ def test_ndt_cells_disappear_when_their_walls_are_cleared():
     old_wall = np.array([[1.0, 0.3]])
     cells = world.ndt_cells(0.5)
     assert cells.lookup(old_wall)[0] >= 0
+    assert (world.overlapping_ndt_cells(0.5).lookup(old_wall) >= 0).all()
     before = len(cells)
     for _ in range(12):  # beams of a bigger room pass through the old walls: they turn free
         world.update(room_scan((0.0, 0.0), 4.0, beams=720), (0.0, 0.0))
     cells = world.ndt_cells(0.5)
     assert cells.lookup(old_wall)[0] == -1
     assert len(cells) > before  # the bigger room's walls, after the old ones were dropped
+    assert (world.overlapping_ndt_cells(0.5).lookup(old_wall) == -1).all()
     assert_ndt_matches_scratch(world, 0.5)
+    assert_overlapping_matches_scratch(world, 0.5)
     assert_maxpool_matches_scratch(world, 4, 0)
 
 
@@ -389,6 +455,7 @@ def test_stack_and_ndt_refresh_only_the_changed_neighbourhood(monkeypatch):
         world.update(room_scan((x, 0.0), 3.0, beams=90), (x, 0.0))
     world.maxpool_stack(4)
     world.ndt_cells(0.5)
+    world.overlapping_ndt_cells(0.5)
     pooled, fetched = [], []
     real_pool, real_occupied_in = maxpool._pool, world.grid.occupied_in
     monkeypatch.setattr(
@@ -400,13 +467,19 @@ def test_stack_and_ndt_refresh_only_the_changed_neighbourhood(monkeypatch):
     result = world.update([[0.5, 0.0]], (0.0, 0.0))  # a new obstacle in a big map
     world.maxpool_stack(4)
     world.ndt_cells(0.5)
+    world.overlapping_ndt_cells(0.5)
     margin = math.ceil(world.cutoff_sigmas * world.sigma_m / world.resolution_m) + 1
     assert pooled == [result.occupied_changed.expanded(margin).shape]
     assert pooled[0][0] * pooled[0][1] < world.likelihood_field(0).values.size / 50
-    # The NDT cells holding the changed cells' centres: one or two 0.5 m cells per axis.
-    assert len(fetched) == 1 and max(fetched[0]) <= 2 * 10 + 4
+    # The NDT cells holding the changed cells' centres: one or two 0.5 m cells per axis (plus
+    # a fine cell each side); the overlapping ones: one or two 0.25 m half-cells, plus one
+    # half-cell each side (the blocks holding them reach that far).
+    assert len(fetched) == 2
+    assert max(fetched[0]) <= 2 * 10 + 2 and max(fetched[1]) <= 4 * 5 + 2
     assert_maxpool_matches_scratch(world, 4, 0)
     assert_ndt_matches_scratch(world, 0.5)
+    assert_overlapping_matches_scratch(world, 0.5)
+
 
 class FieldOnly:
     """A map target without its own stack: csm pools the field from scratch."""
