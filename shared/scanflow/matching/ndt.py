@@ -10,6 +10,7 @@ search.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -206,6 +207,21 @@ def newton_level(
     )
 
 
+def _target_cells(
+    target: object, coarsest_m: float
+) -> tuple[Callable[[float], OverlappingCells], NDArray[np.float64]]:
+    """(overlapping cells of a given size, points whose absence means an empty target).
+
+    A map's own cells (`overlapping_ndt_cells`) and, for emptiness, its coarsest cells' means
+    (so it need not list its occupied points); else cells built from the target's points.
+    """
+    kept = getattr(target, "overlapping_ndt_cells", None)
+    if kept is not None:
+        return kept, kept(coarsest_m).means
+    points = target_points(target)
+    return (lambda size: OverlappingCells.from_points(points, size)), points
+
+
 @register_method("ndt")
 def match_ndt(
     source: NDArray[np.float64],
@@ -218,14 +234,18 @@ def match_ndt(
     translation_tol_m: float = 1e-4,
     rotation_tol_rad: float = 1e-4,
 ) -> MatchResult:
-    """Newton's method with an Armijo line search, coarse to fine (cell size doubles per level)."""
-    tgt = target_points(target)
-    bad = check_inputs("ndt", source, tgt, guess)
+    """Newton's method with an Armijo line search, coarse to fine (cell size doubles per level).
+
+    A map target serves its cells kept current incrementally, on its lattice anchor; a point
+    set's are built per call, anchored at the origin.
+    """
+    cells_at, held = _target_cells(target, cell_size_m * 2 ** (levels - 1))
+    bad = check_inputs("ndt", source, held, guess)
     if bad is not None:
         return bad
     pose, total = guess.to_array(), 0
     for level in reversed(range(levels)):
-        cells = OverlappingCells.from_points(tgt, cell_size_m * 2**level)
+        cells = cells_at(cell_size_m * 2**level)
         if len(cells) == 0:
             return failed(
                 "ndt",

@@ -5,7 +5,9 @@ import math
 import numpy as np
 import pytest
 from scanflow.geometry import Pose2D
+from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.ndt_cells import OverlappingCells
+from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.matching import MatchStatus, match
 from scanflow.matching.ndt import ndt_cost, ndt_evaluate, positive_definite
 
@@ -69,3 +71,58 @@ def test_statuses(room, caster, corridor, corridor_map_points) -> None:
     source = caster(corridor, Pose2D(0.3, 0.05, 0.03), max_range_m=8.0)
     r = match(source, corridor_map_points, Pose2D(0.3, 0.0, 0.0), method="ndt")
     assert r.status is MatchStatus.DEGENERATE and abs(r.weak_direction[0]) > 0.95
+
+
+class RebuiltCells(MatchingMap):
+    """A map over the same grid whose overlapping cells are rebuilt from its occupied centres
+    on every call, on the map's lattice anchor."""
+
+    def overlapping_ndt_cells(self, cell_size_m: float) -> OverlappingCells:
+        anchor = (self.grid.anchor_x_m, self.grid.anchor_y_m)
+        return OverlappingCells.from_points(self.occupied_points(), cell_size_m, anchor)
+
+
+@pytest.mark.parametrize("anchor", [(0.0, 0.0), (0.37, -0.12)])
+def test_on_a_growing_map_equals_cells_rebuilt_on_its_anchor(
+    room, caster, anchor, monkeypatch
+) -> None:
+    """After each scan into a map, ndt against the map's incrementally kept cells returns what
+    it returns against cells rebuilt from scratch with the map's anchor (up to rounding). With
+    the map anchored at the origin that is also the point-set path; off the origin the cells
+    shift, and so does the result."""
+    rng = np.random.default_rng(5)
+    world = MatchingMap(OccupancyGrid(None, *anchor, initial_capacity_cells=8))
+    used = []
+    real = MatchingMap.overlapping_ndt_cells
+    monkeypatch.setattr(
+        MatchingMap,
+        "overlapping_ndt_cells",
+        lambda self, size: used.append(size) or real(self, size),
+    )
+    pose, shifted = Pose2D(-2.5, -1.5, 0.3), []
+    for _ in range(6):
+        scan = caster(room, pose, noise_m=0.01, rng=rng)
+        world.update(pose.transform_points(scan), (pose.x, pose.y))
+        truth = pose * Pose2D(0.25, 0.05, 0.1)
+        source = caster(room, truth, noise_m=0.01, rng=rng)
+        kept = match(source, world, pose, method="ndt")
+        rebuilt = match(source, RebuiltCells(world.grid), pose, method="ndt")
+        assert kept.ok and kept.status is rebuilt.status, kept.message
+        assert kept.iterations == rebuilt.iterations and kept.inliers == rebuilt.inliers
+        np.testing.assert_allclose(kept.pose.to_array(), rebuilt.pose.to_array(), atol=1e-9)
+        assert kept.score == pytest.approx(rebuilt.score, rel=1e-9)
+        np.testing.assert_allclose(kept.covariance, rebuilt.covariance, rtol=1e-6)
+        err = kept.pose.relative_to(truth)
+        assert err.translation_norm() < 0.03 and abs(err.theta) < math.radians(0.5)
+        points = match(source, world.occupied_points(), pose, method="ndt")
+        shifted.append(np.abs(points.pose.to_array() - kept.pose.to_array()).max() > 1e-9)
+        pose = truth
+    assert len(used) == 6 * 4  # the emptiness check, then 3 levels, per match
+    assert any(shifted) == (anchor != (0.0, 0.0))
+
+
+def test_an_empty_map_is_an_empty_target(room, caster) -> None:
+    world = MatchingMap()
+    world.update(np.zeros((0, 2)), (0.0, 0.0), no_return_endpoints=[[3.0, 0.0]])
+    r = match(caster(room, Pose2D()), world, method="ndt")
+    assert r.status is MatchStatus.EMPTY_MAP
