@@ -67,10 +67,9 @@ class NDTCells:
         cols = math.floor((hi[0] - lo[0]) / cell_size_m) + 1
         rows = math.floor((hi[1] - lo[1]) / cell_size_m) + 1
         spec = GridSpec(float(lo[0]), float(lo[1]), cell_size_m, rows, cols)
-        index, moments = _sparse_moments(
-            p, spec.origin_x_m, spec.origin_y_m, cell_size_m, rows, cols, 1, min_points
+        index, means, inv_covs, counts, _ = block_distributions(
+            p, (spec.origin_x_m, spec.origin_y_m), cell_size_m, spec.shape, 1, min_points
         )
-        means, inv_covs, counts = cell_distributions(moments, p[0] if len(p) else np.zeros(2))
         return NDTCells(spec, index.reshape(rows, cols), means, inv_covs, counts)
 
     def __len__(self) -> int:
@@ -186,57 +185,34 @@ class _LatticeBlocks(Generic[V]):
             index[kept.slices_in(new)] = self._index[kept.slices_in(self._box)]
         self._box, self._index = new, index
 
-    def _moments(self, box: CellBox) -> NDArray[np.float64]:
-        """(rows, cols, 6) moments (count, sum x, sum y, sum xx, sum xy, sum yy) of the occupied
-        fine-cell centres held by each lattice cell of `box`, about the cell's corner."""
+    def _refresh(self, cells: CellBox) -> None:
+        """Recompute every block holding a lattice cell of `cells`, from the occupied fine
+        cells whose centres lie in those blocks (coordinates from the anchor: small sums)."""
+        blocks = self._blocks_over(cells)
         res, size = self.grid.resolution_m, self.lattice_m
         scale = size / res
-        fine = CellBox(
-            math.floor(box.row0 * scale) - 1,
-            math.floor(box.col0 * scale) - 1,
-            math.ceil(box.row1 * scale) + 1,
-            math.ceil(box.col1 * scale) + 1,
+        fine = CellBox(  # the fine cells over the blocks, and one more each side
+            math.floor(blocks.row0 * scale) - 1,
+            math.floor(blocks.col0 * scale) - 1,
+            math.ceil((cells.row1 + self.span - 1) * scale) + 1,
+            math.ceil((cells.col1 + self.span - 1) * scale) + 1,
         )
         rows, cols = np.nonzero(self.grid.occupied_in(fine))
-        rows, cols = rows + fine.row0, cols + fine.col0
-        cell_r, cell_c = self._bins(rows), self._bins(cols)
-        inside = (
-            (cell_r >= box.row0) & (cell_r < box.row1) & (cell_c >= box.col0) & (cell_c < box.col1)
+        centres = np.column_stack((cols + fine.col0 + 0.5, rows + fine.row0 + 0.5)) * res
+        index, means, inv_covs, counts, _ = block_distributions(
+            centres,
+            (blocks.col0 * size, blocks.row0 * size),
+            size,
+            blocks.shape,
+            self.span,
+            self.min_points,
         )
-        rows, cols, cell_r, cell_c = rows[inside], cols[inside], cell_r[inside], cell_c[inside]
-        flat = (cell_r - box.row0) * box.shape[1] + (cell_c - box.col0)
-        dx = (cols + 0.5) * res - cell_c * size  # offsets from the cell's corner
-        dy = (rows + 0.5) * res - cell_r * size
-        n_cells = box.shape[0] * box.shape[1]
-        moments = np.column_stack(
-            [
-                np.bincount(flat, w, minlength=n_cells)
-                for w in (None, dx, dy, dx * dx, dx * dy, dy * dy)
-            ]
-        )
-        return moments.reshape(*box.shape, 6)
-
-    def _refresh(self, cells: CellBox) -> None:
-        """Recompute every block holding a lattice cell of `cells`."""
-        blocks = self._blocks_over(cells)
-        lead, size = self.span - 1, self.lattice_m
-        around = self._moments(
-            CellBox(blocks.row0, blocks.col0, cells.row1 + lead, cells.col1 + lead)
-        )
-        rows, cols = blocks.shape
-        moments = np.zeros((rows, cols, 6))
-        for dr in range(self.span):
-            for dc in range(self.span):
-                moments += _shifted_moments(
-                    around[dr : dr + rows, dc : dc + cols], dc * size, dr * size
-                )
-        moments = moments.reshape(-1, 6)
-        live = moments[:, 0] >= self.min_points
-        row_in_box, col_in_box = np.divmod(np.flatnonzero(live), cols)
+        live = index >= 0
+        order = index[live]  # box order
+        row_in_box, col_in_box = np.divmod(np.flatnonzero(live), blocks.shape[1])
         block_rc = np.column_stack((row_in_box + blocks.row0, col_in_box + blocks.col0))
-        means, inv_covs, counts = cell_distributions(moments[live], np.zeros(2))
-        means += block_rc[:, ::-1] * size + (self.grid.anchor_x_m, self.grid.anchor_y_m)
-        self._apply(blocks, live, (means, inv_covs, counts, block_rc))
+        means = means[order] + (self.grid.anchor_x_m, self.grid.anchor_y_m)
+        self._apply(blocks, live, (means, inv_covs[order], counts[order], block_rc))
 
     def _apply(
         self,
@@ -317,23 +293,23 @@ class GridNDTCells(_LatticeBlocks[NDTCells]):
 
 @njit(cache=True)
 def _sparse_moments(points, origin_x, origin_y, size, rows, cols, span, min_points):  # type: ignore[no-untyped-def]
-    """(flat index of kept cell numbers or -1, (K, 6) moments of the kept cells).
+    """(flat index of kept block numbers or -1, (K, 6) moments of the kept blocks, (K,) flat
+    position of each kept block).
 
-    Block (r, c) covers span x span cells of `size` from cell (r, c): span 1 gives plain
-    cells; span 2 the 2 x 2 blocks of OverlappingCells, each point added to the four blocks
-    holding it. Moments (count, sum x, sum y, sum xx, sum xy, sum yy) are accumulated only
-    for blocks holding points, about the first point (small sums, no cancellation far from
-    the origin); blocks with fewer than `min_points` points are dropped.
+    Block (r, c) covers span x span cells of `size` from cell (r, c) (corner at origin +
+    (c, r) * size): span 1 gives plain cells; span 2 the 2 x 2 blocks of OverlappingCells, each
+    point added to the four blocks holding it. Points outside every block are skipped. Moments
+    (count, sum x, sum y, sum xx, sum xy, sum yy) are accumulated only for blocks holding
+    points, about each block's corner (small sums, no cancellation far from the origin);
+    blocks with fewer than `min_points` points are dropped.
     """
     index = np.full(rows * cols, -1, dtype=np.int64)
     moments = np.zeros((points.shape[0] * span * span, 6))
     touched = np.empty(points.shape[0] * span * span, dtype=np.int64)
     n = 0
-    x0, y0 = (points[0, 0], points[0, 1]) if points.shape[0] else (0.0, 0.0)
     for i in range(points.shape[0]):
         col = math.floor((points[i, 0] - origin_x) / size)
         row = math.floor((points[i, 1] - origin_y) / size)
-        x, y = points[i, 0] - x0, points[i, 1] - y0
         for r in range(max(row - span + 1, 0), min(row, rows - 1) + 1):
             for c in range(max(col - span + 1, 0), min(col, cols - 1) + 1):
                 flat = r * cols + c
@@ -342,6 +318,8 @@ def _sparse_moments(points, origin_x, origin_y, size, rows, cols, span, min_poin
                     k = index[flat] = n
                     touched[n] = flat
                     n += 1
+                x = points[i, 0] - (origin_x + c * size)
+                y = points[i, 1] - (origin_y + r * size)
                 m = moments[k]
                 m[0] += 1.0
                 m[1] += x
@@ -353,34 +331,44 @@ def _sparse_moments(points, origin_x, origin_y, size, rows, cols, span, min_poin
     for k in range(n):
         if moments[k, 0] >= min_points:
             moments[kept] = moments[k]
+            touched[kept] = touched[k]
             index[touched[k]] = kept
             kept += 1
         else:
             index[touched[k]] = -1
-    return index, moments[:kept]
+    return index, moments[:kept], touched[:kept]
 
 
-def _shifted_moments(moments: NDArray[np.float64], dx_m: float, dy_m: float) -> NDArray[np.float64]:
-    """(..., 6) moments about a point (dx_m, dy_m) before their reference point: every offset
-    grows by (dx_m, dy_m). Exact for a zero shift."""
-    n, sx, sy, sxx, sxy, syy = np.moveaxis(moments, -1, 0)
-    return np.stack(
-        (
-            n,
-            sx + n * dx_m,
-            sy + n * dy_m,
-            sxx + (2.0 * sx + n * dx_m) * dx_m,
-            sxy + dx_m * sy + dy_m * sx + n * dx_m * dy_m,
-            syy + (2.0 * sy + n * dy_m) * dy_m,
-        ),
-        axis=-1,
+def block_distributions(
+    points: NDArray[np.float64],
+    origin: tuple[float, float],
+    size: float,
+    shape: tuple[int, int],
+    span: int,
+    min_points: int,
+) -> tuple[
+    NDArray[np.int64],
+    NDArray[np.float64],
+    NDArray[np.float64],
+    NDArray[np.int64],
+    NDArray[np.int64],
+]:
+    """(flat index of block numbers or -1, means, inverse covariances, counts, flat position
+    of each block) of the span x span blocks of a `shape` grid of `size` cells from `origin`
+    that hold >= `min_points` points (see _sparse_moments)."""
+    rows, cols = shape
+    index, moments, flat = _sparse_moments(
+        points, origin[0], origin[1], size, rows, cols, span, min_points
     )
+    corners = np.column_stack((flat % cols, flat // cols)) * size + origin
+    return (index, *cell_distributions(moments, corners), flat)
 
 
 def cell_distributions(
     moments: NDArray[np.float64], about: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
-    """(means, regularised inverse covariances, counts) from `_sparse_moments`' moments."""
+    """(means, regularised inverse covariances, counts) from `_sparse_moments`' moments
+    (taken about `about`: one point, or one per row)."""
     n, sx, sy, sxx, sxy, syy = moments.T
     mx, my = sx / n, sy / n
     dof = np.maximum(n - 1, 1)
@@ -452,10 +440,9 @@ class OverlappingCells:
             lo = hi = np.zeros(2, dtype=np.int64)
         cols, rows = (hi - lo + 1).tolist()
         origin = anchor + lo * half
-        index, moments = _sparse_moments(
-            p, origin[0], origin[1], half, rows - 1, cols - 1, 2, min_points
+        index, means, inv_covs, counts, _ = block_distributions(
+            p, (float(origin[0]), float(origin[1])), half, (rows - 1, cols - 1), 2, min_points
         )
-        means, inv_covs, counts = cell_distributions(moments, p[0] if len(p) else np.zeros(2))
         return OverlappingCells(
             float(origin[0]),
             float(origin[1]),

@@ -365,8 +365,8 @@ def assert_overlapping_matches_scratch(world: MatchingMap, size: float) -> None:
 
 def assert_ndt_matches_scratch(world: MatchingMap, size: float) -> None:
     """Same cells, counts and means as binning the occupied centres from scratch (numbering
-    aside). Covariances: within 1e-12 of a two-pass computation per cell; the scratch build sums
-    squares about one far point and is itself only good to ~1e-10 (of each matrix's scale)."""
+    aside). Inverse covariances: within 1e-9 of the scratch build's and 1e-12 of a two-pass
+    computation per cell (of each matrix's scale)."""
     got = world.ndt_cells(size)
     anchor = (world.grid.anchor_x_m, world.grid.anchor_y_m)
     points = world.occupied_points()
