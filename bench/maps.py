@@ -5,9 +5,10 @@ a robot driving a serpentine through every row of rooms with a 360-beam, 10 m li
 every 0.25 m; then it drives the same path again over the mapped area (steady state).
 
 With --data LOG, also the matching views that csm and NDT read, on a real log's map (every
-keyframe inserted at its corrected pose): the per-scan refresh of the max-pool stack and of the
-NDT cells while the map is small (after --small-scans scans) and at the end, each next to the
-full rebuild it replaces. The refresh should not grow with the map; the rebuild does.
+keyframe inserted at its corrected pose): the per-scan refresh of the max-pool stack, of the
+NDT cells and of the overlapping NDT cells the ndt matcher reads (its three cell sizes) while
+the map is small (after --small-scans scans) and at the end, each next to the full rebuild it
+replaces. The refresh should not grow with the map; the rebuild does.
 
     python -m bench.maps [--json] [--step-m 0.25] [--rebuilds 5]
     python -m bench.maps --data ../shared/data/intel-corrected.log.gz --views-only [--json]
@@ -30,7 +31,7 @@ from scanflow.io.carmen import load_keyframes
 from scanflow.maps.field import LikelihoodField
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.maxpool import MaxPoolStack
-from scanflow.maps.ndt_cells import NDTCells
+from scanflow.maps.ndt_cells import NDTCells, OverlappingCells
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
 from scanflow.sim import cast_rays
 
@@ -43,6 +44,7 @@ RANGE_NOISE_M = 0.01
 PYRAMID_LEVELS = 3
 STACK_DEPTH = 4  # csm's stack at the front end's +-1 m fallback window on 5 cm cells
 NDT_CELL_M = 0.5  # the ndt matcher's finest cell size
+NDT_SIZES_M = (2.0, 1.0, 0.5)  # the overlapping cells of its three levels
 
 
 def building_walls() -> NDArray[np.float64]:
@@ -175,7 +177,8 @@ def run(step_m: float, rebuilds: int) -> dict[str, object]:
 
 def rebuild_views(world: MatchingMap, rebuilds: int) -> dict[str, dict[str, float]]:
     """Times of rebuilding the stack and NDT cells whole, as MatchingMap did after every change
-    of the occupied cells (the NDT cells from freshly listed occupied cell centres)."""
+    of the occupied cells (the NDT cells from freshly listed occupied cell centres), and the
+    ndt matcher's overlapping cells as it built them on every match."""
     field = world.likelihood_field(0)
     spec, occupied = world.grid.spec, world.grid.occupied_mask()
     anchor = (world.grid.anchor_x_m, world.grid.anchor_y_m)
@@ -186,11 +189,17 @@ def rebuild_views(world: MatchingMap, rebuilds: int) -> dict[str, dict[str, floa
     def rebuild_ndt() -> None:
         NDTCells.from_points(spec.cell_centers(np.argwhere(occupied)), NDT_CELL_M, anchor)
 
-    rebuild_stack()  # compiled kernels loaded outside the timings
-    rebuild_ndt()
+    def rebuild_overlapping() -> None:
+        centres = spec.cell_centers(np.argwhere(occupied))
+        for size in NDT_SIZES_M:
+            OverlappingCells.from_points(centres, size, anchor)
+
+    builds = {"maxpool": rebuild_stack, "ndt": rebuild_ndt, "overlapping": rebuild_overlapping}
+    for build in builds.values():
+        build()  # compiled kernels loaded outside the timings
     return {
-        "maxpool_rebuild_ms": summary_ms([timed(rebuild_stack) for _ in range(rebuilds)]),
-        "ndt_rebuild_ms": summary_ms([timed(rebuild_ndt) for _ in range(rebuilds)]),
+        f"{view}_rebuild_ms": summary_ms([timed(build) for _ in range(rebuilds)])
+        for view, build in builds.items()
     }
 
 
@@ -209,7 +218,7 @@ def view_refresh(
     }
     world = MatchingMap()
     out: dict[str, object] = {"log": log.name, "scans": len(frames)}
-    samples_ms: dict[str, list[float]] = {"field0": [], "maxpool": [], "ndt": []}
+    samples_ms: dict[str, list[float]] = {"field0": [], "maxpool": [], "ndt": [], "overlapping": []}
     for i, frame in enumerate(frames):
         pose = frame.true_pose
         world.update(pose.transform_points(frame.scan.points()), (pose.x, pose.y))
@@ -218,6 +227,9 @@ def view_refresh(
             "field0": timed(lambda: world.likelihood_field(0)),
             "maxpool": timed(lambda: world.maxpool_stack(STACK_DEPTH)),
             "ndt": timed(lambda: world.ndt_cells(NDT_CELL_M)),
+            "overlapping": timed(
+                lambda: [world.overlapping_ndt_cells(size) for size in NDT_SIZES_M]
+            ),
         }
         name = next((n for n, w in windows.items() if i in w), None)
         if name is None:
@@ -233,6 +245,7 @@ def view_refresh(
             "mapped_area_m2": round(spec.width_m * spec.height_m, 1),
             "occupied_cells": len(world.occupied_points()),
             "ndt_cells": len(world.ndt_cells(NDT_CELL_M)),
+            "overlapping_blocks": [len(world.overlapping_ndt_cells(s)) for s in NDT_SIZES_M],
             **{f"{key}_refresh_ms": summary_ms(t) for key, t in samples_ms.items()},
             **rebuild_views(world, rebuilds),
         }
@@ -276,10 +289,10 @@ def print_views(v: dict[str, object]) -> None:
             f"({w['mapped_area_m2']} m^2), {w['occupied_cells']} occupied, "
             f"{w['ndt_cells']} NDT cells"
         )
-        for view in ("maxpool", "ndt"):
+        for view in ("maxpool", "ndt", "overlapping"):
             fresh, full = w[f"{view}_refresh_ms"], w[f"{view}_rebuild_ms"]
             print(
-                f"  {view:8s} refresh after one scan mean {fresh['mean']} p95 {fresh['p95']} "
+                f"  {view:11s} refresh after one scan mean {fresh['mean']} p95 {fresh['p95']} "
                 f"max {fresh['max']} ms | full rebuild mean {full['mean']} ms"
             )
 

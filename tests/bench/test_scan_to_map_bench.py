@@ -15,8 +15,9 @@ LOG = DATA / "intel-corrected.log.gz"
 
 
 @pytest.mark.skipif(not LOG.exists(), reason=f"real log {LOG} not available")
-def test_bench_scan_to_map_reports_every_method_and_both_map_fields():
-    args = ["--json", "--pairs", "3", "--sim-seconds", "1.5", "--data", str(LOG)]
+def test_bench_scan_to_map_reports_every_method_both_map_fields_and_ndt_on_a_map():
+    args = ["--json", "--pairs", "3", "--sim-seconds", "1.5", "--map-scans", "12"]
+    args += ["--data", str(LOG)]
     out = subprocess.run(
         [sys.executable, "-m", "bench.scan_to_map", *args],
         cwd=REPO,
@@ -36,3 +37,9 @@ def test_bench_scan_to_map_reports_every_method_and_both_map_fields():
     for fields in ("mean_hits", "cell_centres"):
         assert math.isfinite(sim[fields]["trans_mm_median"])
         assert sim[fields]["trans_mm_median"] <= sim[fields]["trans_mm_p95"]
+    on_map = result["map"]
+    assert on_map["matches"] == 11 and on_map["final_occupied_cells"] > 0
+    kept, rebuilt = on_map["ndt_kept_cells"], on_map["ndt_rebuilt_cells"]
+    assert kept["ms_median"] > 0 and rebuilt["ms_median"] > 0
+    assert kept["success_10cm_1deg"] == rebuilt["success_10cm_1deg"]
+    assert on_map["max_pose_difference"] < 1e-6
