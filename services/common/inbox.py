@@ -34,6 +34,15 @@ class Inbox:
             return True
         return False
 
+    def offer(self, kind: str, item: Any) -> bool:
+        """Enqueue without waiting; False when the inbox is full."""
+        try:
+            self._queue.put_nowait((kind, item))
+        except queue.Full:
+            return False
+        self.high_water = max(self.high_water, self._queue.qsize())
+        return True
+
     def get(self, timeout_s: float = _POLL_S) -> tuple[str, Any] | None:
         """The next item, or None after `timeout_s` without one."""
         try:

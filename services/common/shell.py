@@ -4,6 +4,11 @@ A service builds a `ServiceShell`, declares its publishers, subscribers and quer
 it, calls `start()` and then `run(handle)`: Zenoh callbacks only decode, count and enqueue;
 `handle(kind, message)` runs on the one worker thread; queries run on one query thread.
 SIGTERM or Ctrl-C ends `run`, then `close()` flushes, undeclares and closes the session.
+
+A full inbox blocks the Zenoh callback and with it the session's whole link (backpressure).
+Hints a service takes back from a service it feeds (deskew: the matcher's poses) must not wait
+behind that: `subscribe_feedback` takes them on a second session whose callback never blocks,
+else two services that publish to each other could each wait for the other forever.
 """
 
 from __future__ import annotations
@@ -14,6 +19,7 @@ import queue
 import signal
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from typing import Any
 
@@ -29,6 +35,7 @@ from services.common.zsession import open_session
 QueryHandler = Callable[[zenoh.Query], None]
 _LOG_FIRST = 10
 _LOG_EVERY = 100
+_WAKE = "_wake"  # an inbox item that only wakes the worker to take feedback
 
 
 class ServiceShell:
@@ -46,6 +53,11 @@ class ServiceShell:
         self.seqs = SeqTracker()
         self.inbox = Inbox(queue_size, self.stop_event)
         self.session = open_session(zenoh_settings)
+        self._zenoh_settings = zenoh_settings
+        self._feedback_session: zenoh.Session | None = None
+        self._feedback: deque[tuple[str, Any]] = deque()
+        self._feedback_lock = threading.Lock()
+        self._feedback_size = queue_size
         self._declared: list[Any] = []
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._stats_sources: list[Callable[[], dict[str, float]]] = []
@@ -110,7 +122,42 @@ class ServiceShell:
         """One subscriber on `key`, dispatching each sample to the first route whose key
         expression matches it: `(route_key, kind, decode)`. Samples of several topics then
         arrive in publication order, which separate subscribers do not guarantee."""
-        deliver = sink or self.inbox.put
+        callback = self._sample_callback(routes, sink or self.inbox.put)
+        self._declared.append(self.session.declare_subscriber(key, callback))
+
+    def subscribe_feedback(self, key: str, kind: str, decode: Callable[[bytes], Any]) -> None:
+        """Decode every sample on `key` on a second session whose callback never blocks; the
+        worker takes them (through `handle`) before its next inbox item. At most `queue_size`
+        wait: past that the oldest goes, counted as `feedback_overflow.<kind>` (hints only)."""
+        if self._feedback_session is None:
+            self._feedback_session = open_session(self._zenoh_settings)
+        callback = self._sample_callback([(key, kind, decode)], self._feed)
+        self._declared.append(self._feedback_session.declare_subscriber(key, callback))
+
+    def _feed(self, kind: str, message: Any) -> None:
+        with self._feedback_lock:
+            full = len(self._feedback) >= self._feedback_size
+            if full:
+                self._feedback.popleft()
+            self._feedback.append((kind, message))
+        if full:
+            n = self.counters.add(f"feedback_overflow.{kind}")
+            if n <= _LOG_FIRST or n % _LOG_EVERY == 0:
+                self.log.warning("feedback queue full: dropped the oldest %s (#%d)", kind, n)
+        self.inbox.offer(_WAKE, None)  # a full inbox wakes the worker anyway
+
+    def _take_feedback(self) -> list[tuple[str, Any]]:
+        with self._feedback_lock:
+            items = list(self._feedback)
+            self._feedback.clear()
+        return items
+
+    def _sample_callback(
+        self,
+        routes: list[tuple[str, str, Callable[[bytes], Any]]],
+        deliver: Callable[[str, Any], object],
+    ) -> Callable[[zenoh.Sample], None]:
+        """A subscriber callback: route by key, decode, count, deliver; malformed are counted."""
         compiled = [(zenoh.KeyExpr(k), kind, decode) for k, kind, decode in routes]
 
         def on_sample(sample: zenoh.Sample) -> None:
@@ -128,7 +175,7 @@ class ServiceShell:
             self.counters.add(f"received.{kind}")
             deliver(kind, message)
 
-        self._declared.append(self.session.declare_subscriber(key, on_sample))
+        return on_sample
 
     def serve(self, key: str, handler: QueryHandler) -> None:
         """Answer queries on `key` with `handler(query)` on the query thread (not Zenoh's)."""
@@ -169,18 +216,21 @@ class ServiceShell:
         while not self.stop_event.is_set():
             item = self.inbox.get(poll_s)
             t0 = time.perf_counter()
+            for kind, message in self._take_feedback():
+                self._handle(handle, kind, message)
             if item is None:
                 if idle is not None:
                     idle()
-                self._busy_s += time.perf_counter() - t0
-                continue
-            kind, message = item
-            try:
-                handle(kind, message)
-            except Exception:  # a bad message must not stop the service
-                self.counters.add(f"errors.{kind}")
-                self.log.exception("failed to handle a %s message", kind)
+            elif item[0] != _WAKE:
+                self._handle(handle, *item)
             self._busy_s += time.perf_counter() - t0
+
+    def _handle(self, handle: Callable[[str, Any], None], kind: str, message: Any) -> None:
+        try:
+            handle(kind, message)
+        except Exception:  # a bad message must not stop the service
+            self.counters.add(f"errors.{kind}")
+            self.log.exception("failed to handle a %s message", kind)
 
     def stop(self) -> None:
         self.stop_event.set()
@@ -196,6 +246,8 @@ class ServiceShell:
                 self.log.debug("undeclare failed during close", exc_info=True)
         self._declared.clear()
         self._publishers.clear()
+        if self._feedback_session is not None:
+            self._feedback_session.close()
         self.session.close()
         self.log.info("%s/%s closed", self.service, self.instance)
 

@@ -3,11 +3,15 @@ odometry covers its sweep (or the latency budget runs out), then deskewed and pu
 
 Scans leave in arrival order per robot. Without covering odometry the stage falls back to the
 constant-velocity prior fed by the matcher's accepted poses, else to no correction;
-`source_used` in each message says which.
+`source_used` in each message says which. A scan that odometry will never cover first waits
+(within the same budget) for the matcher's pose of the scan before it, so the prior holds every
+earlier estimate, as in the in-process pipeline. Poses come in on the shell's feedback lane:
+the matcher blocks on publishing them, so they must not queue behind scans that wait on it.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -16,19 +20,47 @@ from scanflow import keys
 from scanflow.config import DeskewSettings, ZenohSettings
 from scanflow.frontend import ACCEPTED
 from scanflow.pipeline import DeskewStage
-from scanflow.scan import LaserScan
+from scanflow.scan import LaserScan, Odometry
+from scanflow.warmup import warm_up
 from scanflow.wire import DeskewedScanMessage, OdometryMessage, PoseEstimateMessage, ScanMessage
 
 from services.common.logs import configure_logging
 from services.common.shell import ServiceShell
 
 _MIN_POLL_S = 0.002
+MAX_PENDING_ODOMETRY = 4096  # samples held ahead of the scans
 
 
 @dataclass
 class _Robot:
+    """One robot's deskew stage, its scans waiting for odometry and the odometry waiting for
+    its scan: scans and odometry come on separate subscribers, whose callbacks do not keep
+    their relative order, so odometry enters the stage only up to the scan being deskewed (and
+    the first sample past its sweep, to bracket it), as the in-process pipeline holds it."""
+
     stage: DeskewStage = field(default_factory=DeskewStage)
     pending: deque[tuple[float, LaserScan]] = field(default_factory=deque)
+    odometry: deque[Odometry] = field(default_factory=deque)
+    streams: set[str] = field(default_factory=set)  # the kinds of message this run has had
+    published_seq: int | None = None  # the last scan sent to the matcher
+    pose_seq: int | None = None  # the last scan the matcher's pose came back for
+
+    def add_odometry(self, sample: Odometry) -> None:
+        self.odometry.append(sample)
+        while len(self.odometry) > MAX_PENDING_ODOMETRY:
+            self.stage.add_odometry(self.odometry.popleft())
+
+    def feed_odometry_through(self, stamp_s: float) -> None:
+        """Move waiting samples into the stage up to the first one later than `stamp_s`."""
+        while self.odometry:
+            sample = self.odometry.popleft()
+            self.stage.add_odometry(sample)
+            if sample.stamp_s > stamp_s:
+                return
+
+    def has_prior(self) -> bool:
+        """True when the matcher's estimate of the last scan sent is in (or none was sent)."""
+        return self.published_seq is None or self.pose_seq == self.published_seq
 
 
 class DeskewService:
@@ -39,12 +71,12 @@ class DeskewService:
         self.shell = ServiceShell("deskew", settings.instance, zenoh_settings, settings.queue_size)
         prefix = self.shell.prefix
         self.robots: dict[str, _Robot] = {}
-        routes = [
-            (keys.raw_scan("*", prefix), "scan", ScanMessage.decode),
-            (keys.odom("*", prefix), "odom", OdometryMessage.decode),
-            (keys.pose("*", prefix), "pose", PoseEstimateMessage.decode),
-        ]
-        self.shell.subscribe_routes(keys.robot_streams("*", prefix), routes)
+        # Exactly its inputs: a robot-tree wildcard would also carry the matcher's output, and
+        # a full inbox would then hold up the matcher's puts too. Scans wait for covering
+        # odometry anyway, so the two subscribers' callbacks need not keep their relative order.
+        self.shell.subscribe(keys.raw_scan("*", prefix), "scan", ScanMessage.decode)
+        self.shell.subscribe(keys.odom("*", prefix), "odom", OdometryMessage.decode)
+        self.shell.subscribe_feedback(keys.pose("*", prefix), "pose", PoseEstimateMessage.decode)
         self.shell.add_stats(lambda: {"robots": len(self.robots), "pending": self._pending()})
 
     def handle(
@@ -53,18 +85,24 @@ class DeskewService:
         robot_id = message.robot_id
         if isinstance(message, PoseEstimateMessage):
             robot = self.robots.get(robot_id)
-            if robot is not None and message.status in ACCEPTED:
-                robot.stage.observe_pose(message.stamp_s, message.pose)
+            if robot is not None:
+                robot.pose_seq = message.seq
+                if message.status in ACCEPTED:
+                    robot.stage.observe_pose(message.stamp_s, message.pose)
+                self._flush(robot_id, robot, force=False)
             return
         stream = f"{robot_id}/{kind}"
         restarted = self.shell.seqs.is_restart(stream, message.seq)
         self.shell.seqs.observe(stream, message.seq)
         robot = self.robots.setdefault(robot_id, _Robot())
+        if restarted and kind in robot.streams:
+            # The source restarted (a replay): finish the old run, start afresh. The other
+            # stream's restart, seen later, then finds this run without it and keeps it.
+            self._flush(robot_id, robot, force=True)
+            self.robots[robot_id] = robot = _Robot()
+        robot.streams.add(kind)
         if isinstance(message, OdometryMessage):
-            if restarted:
-                self._flush(robot_id, robot, force=True)
-                robot.stage = DeskewStage()
-            robot.stage.add_odometry(message.odom)
+            robot.add_odometry(message.odom)
         else:
             robot.pending.append((time.monotonic() + self.settings.odom_wait_s, message.scan))
         self.idle()
@@ -78,17 +116,22 @@ class DeskewService:
         now = time.monotonic()
         while robot.pending:
             deadline, scan = robot.pending[0]
-            covered = robot.stage.odometry.coverage_gap(scan.stamp_s, scan.end_stamp_s) is None
-            if not (covered or force or now >= deadline or self._never_covered(robot, scan)):
+            robot.feed_odometry_through(scan.end_stamp_s if not force else math.inf)
+            if not (force or now >= deadline or self._ready(robot, scan)):
                 return
             robot.pending.popleft()
             self._publish(robot_id, scan, robot.stage)
+            robot.published_seq = scan.seq
 
     @staticmethod
-    def _never_covered(robot: _Robot, scan: LaserScan) -> bool:
-        """Odometry already runs past the sweep, so waiting longer cannot help."""
+    def _ready(robot: _Robot, scan: LaserScan) -> bool:
+        """Odometry runs past the sweep (waiting longer cannot change it), and when it does not
+        cover the sweep the fallback prior holds the matcher's estimate of the scan before."""
         stamps = robot.stage.odometry.stamps_s
-        return stamps.size > 0 and stamps[-1] > scan.end_stamp_s
+        if not (stamps.size > 0 and stamps[-1] > scan.end_stamp_s):
+            return False
+        covered = robot.stage.odometry.coverage_gap(scan.stamp_s, scan.end_stamp_s) is None
+        return covered or robot.has_prior()
 
     def _publish(self, robot_id: str, scan: LaserScan, stage: DeskewStage) -> None:
         result = stage.process(scan)
@@ -103,6 +146,7 @@ class DeskewService:
             beam_count=result.beam_count,
             dropped_count=result.beam_count - result.valid_count,
             no_return_points=result.no_return_points,
+            odom_pose=stage.odometry_pose_at(result.reference_stamp_s),
         )
         self.shell.put(keys.deskewed_scan(robot_id, self.shell.prefix), message.encode())
 
@@ -110,6 +154,8 @@ class DeskewService:
         return sum(len(r.pending) for r in self.robots.values())
 
     def run(self) -> None:
+        if self.settings.warm_up:  # before the health token: the first scan at full speed
+            warm_up()
         self.shell.start()
         poll_s = min(max(self.settings.odom_wait_s / 5, _MIN_POLL_S), 0.1)
         self.shell.run(self.handle, self.idle, poll_s)

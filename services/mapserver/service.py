@@ -13,8 +13,8 @@ from pathlib import Path
 import zenoh
 from scanflow import keys
 from scanflow.config import FrontendSettings, MapServerSettings, ZenohSettings
-from scanflow.frontend import default_settings
-from scanflow.maps.occupancy import OccupancyParams
+from scanflow.frontend import default_settings, occupancy_params
+from scanflow.warmup import warm_up
 from scanflow.wire import DeskewedScanMessage, Message, PoseEstimateMessage
 
 from services.common.logs import configure_logging
@@ -38,7 +38,7 @@ class MapServer:
         """`frontend_settings`: the matchers' (their map resolution), default the documented."""
         self.settings = settings
         frontend = frontend_settings if frontend_settings is not None else default_settings()
-        self.params = OccupancyParams(resolution_m=frontend.map_resolution_m)
+        self.params = occupancy_params(frontend)
         self.data_dir = Path(settings.data_dir)
         self.shell = ServiceShell(
             "mapserver", settings.instance, zenoh_settings, settings.queue_size
@@ -148,6 +148,8 @@ class MapServer:
         return gauges
 
     def run(self) -> None:
+        if self.settings.warm_up:  # before the health token: the first scan at full speed
+            warm_up()
         self.shell.start()
         self.shell.run(self.handle, self.idle)
         self._publish_changes()

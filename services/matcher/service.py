@@ -1,5 +1,9 @@
-"""Matcher service: one `Frontend` per robot of this shard, fed deskewed scans and odometry.
+"""Matcher service: one `Frontend` per robot of this shard, fed deskewed scans.
 
+Each deskewed scan carries the odometry pose at its stamp (the deskewer's buffer, as the
+in-process pipeline takes it), so the matcher subscribes to nothing else: one stream per robot
+in publication order, and no other service's output on its link (a full inbox blocks that
+link, and two matchers subscribed to each other's poses could wait on each other).
 Per scan it publishes the pose estimate; for each scan the front end put into its map it first
 publishes that scan (no-return beams included) on `map/insert`, so the map server inserts
 exactly the same scans. A robot first seen mid-stream (this matcher restarted) resumes from
@@ -10,25 +14,22 @@ current map).
 
 from __future__ import annotations
 
-import tempfile
+import io
 import threading
-from collections import deque
-from pathlib import Path
 
+import numpy as np
 import zenoh
 from scanflow import keys
 from scanflow.config import FrontendSettings, MatcherSettings, ZenohSettings
 from scanflow.frontend import Frontend, FrontendOutput
 from scanflow.geometry import Pose2D
-from scanflow.maps.export import load_npz
+from scanflow.maps.export import grid_from_npz
 from scanflow.maps.matching_map import MatchingMap
-from scanflow.pipeline import DeskewStage
-from scanflow.scan import Odometry
+from scanflow.warmup import warm_up
 from scanflow.wire import (
     DeskewedScanMessage,
     MapImageMessage,
     MatchRequest,
-    OdometryMessage,
     PoseEstimateMessage,
     TrajectoryMessage,
     decode_any,
@@ -40,35 +41,6 @@ from services.matcher.requests import answer
 from services.matcher.shard import owns
 
 SEED_TIMEOUT_S = 5.0
-MAX_PENDING_ODOMETRY = 4096  # odometry samples held ahead of the scans
-
-
-class Track:
-    """One robot: its front end and its odometry (kept by the pipeline's deskew stage).
-
-    Odometry may run far ahead of the deskewed scans (it skips the deskew hop), further than
-    the stage's buffer window: samples wait in `pending` and enter the stage only up to the
-    stamp of the scan being tracked (plus the next one, to bracket it), as in-process.
-    """
-
-    def __init__(self, frontend: Frontend, stage: DeskewStage | None = None) -> None:
-        self.frontend = frontend
-        self.stage = stage or DeskewStage()
-        self.pending: deque[Odometry] = deque()
-
-    def add_odometry(self, odom: Odometry) -> None:
-        self.pending.append(odom)
-        while len(self.pending) > MAX_PENDING_ODOMETRY:
-            self.stage.add_odometry(self.pending.popleft())
-
-    def odom_pose(self, stamp_s: float) -> Pose2D | None:
-        """The odometry pose at `stamp_s` exactly as the in-process pipeline takes it."""
-        while self.pending:
-            odom = self.pending.popleft()
-            self.stage.add_odometry(odom)
-            if odom.stamp_s > stamp_s:
-                break
-        return self.stage.odometry_pose_at(stamp_s)
 
 
 class MatcherService:
@@ -83,21 +55,19 @@ class MatcherService:
         self.settings = settings
         self.frontend_settings = frontend_settings
         self.shell = ServiceShell("matcher", settings.instance, zenoh_settings, settings.queue_size)
-        self.tracks: dict[str, Track] = {}
+        self.frontends: dict[str, Frontend] = {}
         self.lock = threading.Lock()  # the worker updates maps that match requests read
         prefix = self.shell.prefix
-        routes = [
-            (keys.deskewed_scan("*", prefix), "scan", DeskewedScanMessage.decode),
-            (keys.odom("*", prefix), "odom", OdometryMessage.decode),
-        ]
-        self.shell.subscribe_routes(keys.robot_streams("*", prefix), routes)
+        self.shell.subscribe(
+            keys.deskewed_scan("*", prefix), "scan", DeskewedScanMessage.decode
+        )
         self.shell.serve(keys.scan_match(prefix), self._on_match)
-        self.shell.add_stats(lambda: {"robots": len(self.tracks)})
+        self.shell.add_stats(lambda: {"robots": len(self.frontends)})
 
     def owns(self, robot_id: str) -> bool:
         return owns(robot_id, self.settings.shard, self.settings.robots)
 
-    def handle(self, kind: str, message: DeskewedScanMessage | OdometryMessage) -> None:
+    def handle(self, kind: str, message: DeskewedScanMessage) -> None:
         robot_id = message.robot_id
         if not self.owns(robot_id):
             self.shell.counters.add(f"other_shard.{kind}")
@@ -105,19 +75,12 @@ class MatcherService:
         stream = f"{robot_id}/{kind}"
         restarted = self.shell.seqs.is_restart(stream, message.seq)
         self.shell.seqs.observe(stream, message.seq)
-        if isinstance(message, OdometryMessage):
-            track = self._track(robot_id, message.seq)
-            if restarted:
-                track.stage = DeskewStage()
-                track.pending.clear()
-            track.add_odometry(message.odom)
-            return
-        track = self._track(robot_id, message.seq, fresh=restarted)
+        frontend = self._frontend(robot_id, message.seq, fresh=restarted)
         with self.lock:
-            out = track.frontend.process(
+            out = frontend.process(
                 message.points,
                 message.stamp_s,
-                track.odom_pose(message.stamp_s),
+                message.odom_pose,
                 message.seq,
                 message.no_return_points,
             )
@@ -132,20 +95,19 @@ class MatcherService:
         self.shell.counters.add(f"status.{out.status}")
 
     # -- robots ---------------------------------------------------------------------------
-    def _track(self, robot_id: str, seq: int, fresh: bool = False) -> Track:
-        """The robot's track; created on first sight (seeded from the map server when the
+    def _frontend(self, robot_id: str, seq: int, fresh: bool = False) -> Frontend:
+        """The robot's front end; created on first sight (seeded from the map server when the
         stream is already under way), replaced by a fresh one when the stream restarts."""
-        track = self.tracks.get(robot_id)
-        if track is not None and not fresh:
-            return track
-        frontend = self._seeded(robot_id) if track is None and seq > 0 else None
+        frontend = self.frontends.get(robot_id)
+        if frontend is not None and not fresh:
+            return frontend
+        new = self._seeded(robot_id) if frontend is None and seq > 0 else None
+        if new is None:
+            new = Frontend(self.frontend_settings)
         if frontend is None:
-            frontend = Frontend(self.frontend_settings)
-        new = Track(frontend, None if track is None else track.stage)
-        if track is None:
             self.shell.serve(keys.robot_match(robot_id, self.shell.prefix), self._on_match)
         with self.lock:
-            self.tracks[robot_id] = new
+            self.frontends[robot_id] = new
         return new
 
     def _seeded(self, robot_id: str) -> Frontend | None:
@@ -158,10 +120,8 @@ class MatcherService:
             return None
         if len(path.poses) == 0:
             return None
-        with tempfile.TemporaryDirectory(prefix="scanflow-seed-") as tmp:
-            path_npz = Path(tmp) / "map.npz"
-            path_npz.write_bytes(image.data)
-            grid = load_npz(path_npz)
+        with np.load(io.BytesIO(image.data), allow_pickle=False) as data:
+            grid = grid_from_npz(data, f"the map server's map of {robot_id}")
         pose = Pose2D.from_array(path.poses[-1])
         self.shell.counters.add("resumed_robots")
         self.shell.log.info(
@@ -178,8 +138,8 @@ class MatcherService:
 
     # -- match requests -------------------------------------------------------------------
     def _map_of(self, robot_id: str) -> MatchingMap | None:
-        track = self.tracks.get(robot_id)
-        return None if track is None else track.frontend.map
+        frontend = self.frontends.get(robot_id)
+        return None if frontend is None else frontend.map
 
     def _on_match(self, query: zenoh.Query) -> None:
         payload = query.payload
@@ -192,6 +152,8 @@ class MatcherService:
         query.reply(query.key_expr, response.encode())
 
     def run(self) -> None:
+        if self.settings.warm_up:  # before the health token: the first scan at full speed
+            warm_up(methods=True)
         self.shell.start()
         self.shell.run(self.handle)
         self.shell.close()

@@ -51,6 +51,14 @@ class ServiceSettings(BaseSettings):
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
 
 
+class KernelServiceSettings(ServiceSettings):
+    """A service that runs the compiled kernels on every scan (deskew, matcher, map server)."""
+
+    warm_up: bool = Field(
+        True, description="run the compiled kernels once before announcing health (~1 s)"
+    )
+
+
 class RouterSettings(ServiceSettings):
     """The Zenoh router process (SCANFLOW_ROUTER_*): where it listens, which routers it joins."""
 
@@ -80,7 +88,7 @@ class IngestSettings(ServiceSettings):
     drain_timeout_s: float = Field(60.0, ge=0.0, description="wait for the last pose at the end")
 
 
-class DeskewSettings(ServiceSettings):
+class DeskewSettings(KernelServiceSettings):
     """The deskew service (SCANFLOW_DESKEW_*): how long a scan may wait for odometry."""
 
     model_config = SettingsConfigDict(env_prefix="SCANFLOW_DESKEW_", extra="ignore")
@@ -88,7 +96,7 @@ class DeskewSettings(ServiceSettings):
     odom_wait_s: float = Field(0.05, ge=0.0, description="latency budget for covering odometry")
 
 
-class MatcherSettings(ServiceSettings):
+class MatcherSettings(KernelServiceSettings):
     """The matcher service (SCANFLOW_MATCHER_*): which robots this instance tracks."""
 
     model_config = SettingsConfigDict(env_prefix="SCANFLOW_MATCHER_", extra="ignore")
@@ -109,7 +117,7 @@ class MatcherSettings(ServiceSettings):
         return value
 
 
-class MapServerSettings(ServiceSettings):
+class MapServerSettings(KernelServiceSettings):
     """The map server (SCANFLOW_MAPSERVER_*): snapshot directory and notice rate."""
 
     model_config = SettingsConfigDict(env_prefix="SCANFLOW_MAPSERVER_", extra="ignore")
@@ -155,6 +163,9 @@ class FrontendSettings(BaseSettings):
     fallback_linear_m: float = Field(1.0, gt=0.0, description="fallback search half-width")
     fallback_angular_deg: float = Field(30.0, gt=0.0, description="fallback search half-angle")
     map_resolution_m: float = Field(0.05, gt=0.0)
+    no_return_clear_m: float = Field(
+        5.0, ge=0.0, description="beams with no return clear free space this far (0 = not at all)"
+    )
     min_points: int = Field(30, ge=3, description="fewer valid points: scan rejected")
     max_correction_m: float = Field(
         1.0, gt=0.0, description="largest accepted |match - prediction| translation"

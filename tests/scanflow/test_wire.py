@@ -101,6 +101,7 @@ def deskewed_messages(draw: st.DrawFn) -> wire.DeskewedScanMessage:
         beam_count=beams,
         dropped_count=draw(st.integers(misses, beams)),
         no_return_points=draw(f64_points(misses)),
+        odom_pose=draw(st.none() | poses),
     )
 
 
@@ -402,6 +403,21 @@ def test_deskewed_no_return_points_default_to_none_and_fit_the_beam_count() -> N
     assert msg.no_return_points.shape == (0, 2)
     full = wire.DeskewedScanMessage("r", 0, 0.0, np.zeros((2, 2)), "none", True, 3, 1, [[9, 0]])
     assert wire.DeskewedScanMessage.decode(full.encode()).no_return_points.tolist() == [[9, 0]]
+
+
+def test_deskewed_odom_pose_is_optional_and_must_be_a_pose() -> None:
+    msg = wire.DeskewedScanMessage("r", 0, 0.0, np.zeros((1, 2)), "none", True, 1, 0)
+    assert wire.DeskewedScanMessage.decode(msg.encode()).odom_pose is None
+    with_pose = wire.DeskewedScanMessage(
+        "r", 0, 0.0, np.zeros((1, 2)), "none", True, 1, 0, odom_pose=Pose2D(1.0, 2.0, 0.5)
+    )
+    assert wire.DeskewedScanMessage.decode(with_pose.encode()).odom_pose == Pose2D(1.0, 2.0, 0.5)
+    with pytest.raises(wire.MessageError, match="odom_pose must be a Pose2D, got tuple"):
+        wire.DeskewedScanMessage(
+            "r", 0, 0.0, np.zeros((1, 2)), "none", True, 1, 0, odom_pose=(1.0, 2.0, 0.5)
+        )
+    with pytest.raises(wire.SchemaError, match="odom_pose"):
+        wire.decode_any(_payload(msg, odom_pose=[1.0, "x", 0.0]))
 
 
 def test_zero_sized_arrays_with_huge_dimensions_are_refused() -> None:

@@ -40,4 +40,4 @@ def test_up_runs_the_simulator_through_and_stops_cleanly(tmp_path, stop_signal):
         assert line in text
     for service in ("ingest", "gateway", "mapserver", "matcher", "deskew", "router"):
         assert f"  {service}: exit 0" in text, text
-    assert (data / "robot.map.npz").exists() and (data / "robot.trajectory.npz").exists()
+    assert (data / "robot.snapshot.npz").exists()

@@ -25,6 +25,7 @@ from scanflow.frontend.tracker import (
     FrontendStatus,
     default_settings,
     insert_scan,
+    occupancy_params,
 )
 from scanflow.frontend.trajectory import TrajectoryStore, load_tum, save_tum, tum_text
 
@@ -43,6 +44,7 @@ __all__ = [
     "default_settings",
     "insert_scan",
     "load_tum",
+    "occupancy_params",
     "rejection_reason",
     "save_tum",
     "tum_text",

@@ -116,6 +116,13 @@ def default_settings() -> FrontendSettings:
     return FrontendSettings.model_construct()
 
 
+def occupancy_params(settings: FrontendSettings) -> OccupancyParams:
+    """The map's sensor model as the settings give it (the map server builds the same map)."""
+    return OccupancyParams(
+        resolution_m=settings.map_resolution_m, no_return_clear_m=settings.no_return_clear_m
+    )
+
+
 class Frontend:
     """Tracks one robot against its own growing map (see the module docstring)."""
 
@@ -128,8 +135,7 @@ class Frontend:
         s = settings if settings is not None else default_settings()
         self.settings = s
         self.initial_pose = initial_pose or Pose2D()
-        params = OccupancyParams(resolution_m=s.map_resolution_m)
-        self.map = MatchingMap(grid if grid is not None else OccupancyGrid(params))
+        self.map = MatchingMap(grid if grid is not None else OccupancyGrid(occupancy_params(s)))
         self.trajectory = TrajectoryStore()
         self._limits = AcceptanceLimits(
             max_correction_m=s.max_correction_m,

@@ -13,6 +13,7 @@ from typing import Any, ClassVar, Self
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from scanflow.geometry import Pose2D
 from scanflow.wire.codec import Fields, clip, pack_message, short, unpack_message
 from scanflow.wire.errors import DecodeError, MessageError, SchemaError
 from scanflow.wire.schema import Schema, decode_fields, encode_fields
@@ -98,6 +99,12 @@ def check_count(name: str, value: int) -> int:
         raise MessageError(f"{name} must be an integer, got {value!r}") from None
     if value < 0:
         raise MessageError(f"{name} must be >= 0, got {value}")
+    return value
+
+
+def check_pose(name: str, value: Any) -> Pose2D:
+    if not isinstance(value, Pose2D):
+        raise MessageError(f"{name} must be a Pose2D, got {type(value).__name__}")
     return value
 
 

@@ -15,7 +15,14 @@ from numpy.typing import NDArray
 
 from scanflow.geometry import Pose2D
 from scanflow.scan import LaserScan
-from scanflow.wire.base import Message, check_array, check_count, check_finite, check_text
+from scanflow.wire.base import (
+    Message,
+    check_array,
+    check_count,
+    check_finite,
+    check_pose,
+    check_text,
+)
 from scanflow.wire.codec import Fields, Scalar, encode_array, short
 from scanflow.wire.errors import MessageError, SchemaError
 from scanflow.wire.scans import scan_from_fields, scan_to_fields
@@ -46,12 +53,6 @@ def _no_information() -> NDArray[np.float64]:
 
 def _check_covariance(name: str, values: Any) -> NDArray[np.float64]:
     return check_array(name, values, np.float64, (3, 3), allow_inf=True)
-
-
-def _check_pose(name: str, value: Any) -> Pose2D:
-    if not isinstance(value, Pose2D):
-        raise MessageError(f"{name} must be a Pose2D, got {type(value).__name__}")
-    return value
 
 
 @dataclass(frozen=True, eq=False)
@@ -86,7 +87,7 @@ class PoseEstimateMessage(Message):
         check_text("robot_id", self.robot_id)
         object.__setattr__(self, "seq", check_count("seq", self.seq))
         object.__setattr__(self, "stamp_s", check_finite("stamp_s", self.stamp_s))
-        _check_pose("pose", self.pose)
+        check_pose("pose", self.pose)
         object.__setattr__(self, "covariance", _check_covariance("covariance", self.covariance))
         check_text("status", self.status)
         check_text("method", self.method, allow_empty=True)
@@ -189,7 +190,7 @@ class MatchRequest(Message):
         object.__setattr__(self, "source", _check_operand("source", self.source, False))
         object.__setattr__(self, "target", _check_operand("target", self.target, True))
         if self.initial_guess is not None:
-            _check_pose("initial_guess", self.initial_guess)
+            check_pose("initial_guess", self.initial_guess)
         if not isinstance(self.options, dict):
             raise MessageError(f"options must be a dict, got {type(self.options).__name__}")
         object.__setattr__(self, "options", {k: _option(k, v) for k, v in self.options.items()})
@@ -241,7 +242,7 @@ class MatchResponse(Message):
     error: str = ""
 
     def __post_init__(self) -> None:
-        _check_pose("pose", self.pose)
+        check_pose("pose", self.pose)
         object.__setattr__(self, "covariance", _check_covariance("covariance", self.covariance))
         object.__setattr__(self, "score", check_finite("score", self.score))
         object.__setattr__(self, "iterations", check_count("iterations", self.iterations))

@@ -8,8 +8,16 @@ from typing import Any, ClassVar, Self
 import numpy as np
 from numpy.typing import NDArray
 
+from scanflow.geometry import Pose2D
 from scanflow.scan import LaserScan, Odometry
-from scanflow.wire.base import Message, check_array, check_count, check_finite, check_text
+from scanflow.wire.base import (
+    Message,
+    check_array,
+    check_count,
+    check_finite,
+    check_pose,
+    check_text,
+)
 from scanflow.wire.codec import Fields
 from scanflow.wire.errors import MessageError
 from scanflow.wire.schema import (
@@ -97,6 +105,9 @@ class DeskewedScanMessage(Message):
     from the bus sees exactly the input of the in-process pipeline (360 beams: 5.8 kB).
     `no_return_points` (float64 too, schema version 2) are the endpoints of the beams that saw
     nothing in range (`DeskewResult.no_return_points`): the map clears free space along them.
+    `odom_pose` (schema version 2) is the odometry pose at `stamp_s` as the deskewer's buffer
+    gives it (None when it has none), what the in-process pipeline hands its front end: the
+    matcher then needs no odometry stream of its own, nor its order against the scans.
 
     `beam_count` is the raw scan's beam count and `dropped_count` its beams not in `points`
     (no-return and erroneous ones);
@@ -115,6 +126,7 @@ class DeskewedScanMessage(Message):
         "beam_count": INT,
         "dropped_count": INT,
         "no_return_points": array("<f8"),
+        "odom_pose": optional(POSE),
     }
     robot_id: str
     seq: int
@@ -125,9 +137,12 @@ class DeskewedScanMessage(Message):
     beam_count: int
     dropped_count: int
     no_return_points: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
+    odom_pose: Pose2D | None = None
 
     def __post_init__(self) -> None:
         check_text("robot_id", self.robot_id)
+        if self.odom_pose is not None:
+            check_pose("odom_pose", self.odom_pose)
         object.__setattr__(self, "seq", check_count("seq", self.seq))
         object.__setattr__(self, "stamp_s", check_finite("stamp_s", self.stamp_s))
         points = check_array("points", self.points, np.float64, (None, 2))

@@ -11,7 +11,13 @@ import pytest
 from numpy.typing import NDArray
 from scanflow.config import FrontendSettings
 from scanflow.deskew import NO_RETURN_RANGE_M
-from scanflow.frontend import Frontend, FrontendOutput, FrontendStatus, PredictionSource
+from scanflow.frontend import (
+    Frontend,
+    FrontendOutput,
+    FrontendStatus,
+    PredictionSource,
+    occupancy_params,
+)
 from scanflow.geometry import Pose2D
 
 START = Pose2D(2.5, 2.0, 0.0)
@@ -236,3 +242,9 @@ def test_memory_does_not_grow_when_revisiting(
     run(frontend, scan_at, forth + back, None, t0=30)
     assert frontend.map.nbytes == mapped_bytes
     assert len(frontend.trajectory) == 60
+
+
+def test_no_return_clear_distance_comes_from_the_settings():
+    settings = FrontendSettings(no_return_clear_m=1.5, map_resolution_m=0.1)
+    assert Frontend(settings).map.grid.params.no_return_clear_m == 1.5
+    assert occupancy_params(settings).resolution_m == 0.1
