@@ -1,11 +1,10 @@
 """Nearest-neighbour association for ICP-family matchers, and the outlier rules they share.
 
-Two indexes over the target points:
-- `KDTreeIndex` (scipy cKDTree): the textbook choice, used by point-to-point `icp`.
-- `GridIndex`: a uniform bucket grid (points sorted by cell); a lookup scans the ring of cells
-  that covers the search radius. Its lookups are numba functions callable from compiled solver
-  loops: at 180-361 points a cKDTree query costs 0.1-0.3 ms per iteration from Python
-  (profiled), the compiled grid lookup ~20 us.
+`GridIndex` over the target points: a uniform bucket grid (points sorted by cell). Its lookups
+are numba functions callable from compiled solver loops: at 180-361 points a scipy cKDTree
+query costs 0.1-0.3 ms per iteration from Python (profiled), the compiled grid lookup ~20 us.
+A lookup searches square rings of cells outward from the query and stops once no farther cell
+can hold a nearer point, so a wide gate costs little on a dense (densified) target.
 Outlier rejection: a distance gate that adapts to the robust spread of the current association
 (KISS-ICP's idea of a data-driven threshold), and trimming to a fixed inlier fraction.
 """
@@ -18,7 +17,6 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 # Robust sigma from the median absolute deviation of a Gaussian.
 MAD_TO_SIGMA = 1.4826
@@ -44,24 +42,6 @@ def trimmed_mask(distances_m: NDArray[np.float64], keep_fraction: float) -> NDAr
         return np.isfinite(distances_m)
     cut = np.partition(distances_m, keep - 1)[keep - 1]
     return distances_m <= cut
-
-
-@dataclass(frozen=True, eq=False)
-class KDTreeIndex:
-    """scipy cKDTree over the target with a gated nearest-neighbour query."""
-
-    points: NDArray[np.float64]
-    tree: cKDTree
-
-    @staticmethod
-    def build(points: NDArray[np.float64]) -> KDTreeIndex:
-        return KDTreeIndex(points, cKDTree(points, balanced_tree=False, compact_nodes=False))
-
-    def nearest(
-        self, queries: NDArray[np.float64], max_distance_m: float
-    ) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
-        """(distance, index) of each query's nearest target point; inf / len(points) if none."""
-        return self.tree.query(queries, k=1, distance_upper_bound=max_distance_m, workers=1)
 
 
 # What compiled lookups take: (points, order, starts, origin_x_m, origin_y_m, cell_m, cols, rows).
@@ -138,28 +118,49 @@ def grid_k_nearest(
     best_j[:] = -1
     cx = math.floor((qx - ox) / cell)
     cy = math.floor((qy - oy) / cell)
-    ring = math.ceil(radius_m / cell)
     r2 = radius_m * radius_m
-    for yy in range(max(cy - ring, 0), min(cy + ring + 1, rows)):
-        for xx in range(max(cx - ring, 0), min(cx + ring + 1, cols)):
-            c = yy * cols + xx
-            for s in range(starts[c], starts[c + 1]):
-                j = order[s]
-                dx = points[j, 0] - qx
-                dy = points[j, 1] - qy
-                d2 = dx * dx + dy * dy
-                if d2 <= r2 and d2 < best_d2[k - 1]:
-                    m = k - 1
-                    while m > 0 and best_d2[m - 1] > d2:
-                        best_d2[m] = best_d2[m - 1]
-                        best_j[m] = best_j[m - 1]
-                        m -= 1
-                    best_d2[m] = d2
-                    best_j[m] = j
+    # Square rings of cells outward from the query's cell: a point outside rings 0..r-1 is more
+    # than (r - 1) cells away, so the search stops once the k-th best is nearer than that.
+    for ring in range(math.ceil(radius_m / cell) + 1):
+        if ring > 1 and best_d2[k - 1] <= ((ring - 1) * cell) ** 2:
+            break
+        for yy in range(max(cy - ring, 0), min(cy + ring + 1, rows)):
+            edge_row = yy == cy - ring or yy == cy + ring
+            for xx in range(cx - ring, cx + ring + 1, 1 if edge_row else 2 * ring):
+                if xx < 0 or xx >= cols:
+                    continue
+                c = yy * cols + xx
+                for s in range(starts[c], starts[c + 1]):
+                    j = order[s]
+                    dx = points[j, 0] - qx
+                    dy = points[j, 1] - qy
+                    d2 = dx * dx + dy * dy
+                    if d2 <= r2 and d2 < best_d2[k - 1]:
+                        m = k - 1
+                        while m > 0 and best_d2[m - 1] > d2:
+                            best_d2[m] = best_d2[m - 1]
+                            best_j[m] = best_j[m - 1]
+                            m -= 1
+                        best_d2[m] = d2
+                        best_j[m] = j
     count = 0
     while count < k and best_j[count] >= 0:
         count += 1
     return count
+
+
+@njit(cache=True)
+def grid_nearest_all(
+    grid: GridArrays, queries: NDArray[np.float64], radius_m: float
+) -> NDArray[np.int64]:
+    """Index of each query's nearest grid point within radius_m (-1 if none)."""
+    best_d2 = np.empty(1)
+    best_j = np.empty(1, dtype=np.int64)
+    out = np.empty(len(queries), dtype=np.int64)
+    for i in range(len(queries)):
+        grid_k_nearest(grid, queries[i, 0], queries[i, 1], radius_m, best_d2, best_j)
+        out[i] = best_j[0]
+    return out
 
 
 @njit(cache=True)

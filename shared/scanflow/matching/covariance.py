@@ -7,7 +7,8 @@ estimated (fewer than 4 residuals, singular H) rather than a wrong finite one.
 
 For ICP on sampled scans sigma^2 H^-1 is 2-3x too confident (NEES 10-40 on simulated pairs):
 it ignores the target points' noise shared by many residuals; icp and plicp use
-`line_fit_covariance` (Censi 2007) instead, calibrated in test_plicp.py.
+`line_fit_covariance` (Censi 2007) instead (icp adds its offset from the point-to-line
+optimum), calibrated in test_plicp.py and test_icp.py.
 """
 
 from __future__ import annotations

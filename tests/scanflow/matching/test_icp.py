@@ -1,4 +1,5 @@
-"""Point-to-point ICP's outlier rules (trimming, adaptive gate) and its statuses."""
+"""Point-to-point ICP's outlier rules (trimming, adaptive gate), its statuses and its covariance's
+calibration (its accuracy on simulated scans is tested with plicp's in test_plicp.py)."""
 
 import numpy as np
 import pytest
@@ -7,6 +8,8 @@ from hypothesis import strategies as st
 from scanflow.geometry import Pose2D
 from scanflow.matching import MatchStatus, match
 from scanflow.matching.correspondence import adaptive_gate_m, trimmed_mask
+
+from .conftest import simulated_nees
 
 
 @settings(max_examples=60, deadline=None)
@@ -47,3 +50,11 @@ def test_gross_outliers_do_not_move_the_solution() -> None:
 def test_disjoint_sets_report_no_overlap() -> None:
     pts = np.random.default_rng(0).uniform(0, 5, (100, 2))
     assert match(pts + 50.0, pts, method="icp").status is MatchStatus.NO_OVERLAP
+
+
+def test_covariance_is_calibrated_nees_near_three() -> None:
+    """Censi's covariance of the point-to-line optimum plus icp's offset from it: mean NEES near
+    3 on seeded simulated pairs (Censi's alone gave ~40: icp stopped 0.3 deg off on average)."""
+    nees = simulated_nees("icp")
+    assert len(nees) >= 50
+    assert 1.5 < float(np.mean(nees)) < 6.0
