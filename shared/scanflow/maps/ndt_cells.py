@@ -67,8 +67,12 @@ class NDTCells:
         cols = math.floor((hi[0] - lo[0]) / cell_size_m) + 1
         rows = math.floor((hi[1] - lo[1]) / cell_size_m) + 1
         spec = GridSpec(float(lo[0]), float(lo[1]), cell_size_m, rows, cols)
-        index, means, inv_covs, counts, _ = block_distributions(
-            p, (spec.origin_x_m, spec.origin_y_m), cell_size_m, spec.shape, 1, min_points
+        origin = (spec.origin_x_m, spec.origin_y_m)
+        index, means, inv_covs, counts = block_distributions(
+            _sparse_moments(p, *origin, cell_size_m, rows, cols, 1, min_points),
+            origin,
+            cell_size_m,
+            cols,
         )
         return NDTCells(spec, index.reshape(rows, cols), means, inv_covs, counts)
 
@@ -197,19 +201,16 @@ class _LatticeBlocks(Generic[V]):
             math.ceil((cells.row1 + self.span - 1) * scale) + 1,
             math.ceil((cells.col1 + self.span - 1) * scale) + 1,
         )
-        rows, cols = np.nonzero(self.grid.occupied_in(fine))
-        centres = np.column_stack((cols + fine.col0 + 0.5, rows + fine.row0 + 0.5)) * res
-        index, means, inv_covs, counts, _ = block_distributions(
-            centres,
-            (blocks.col0 * size, blocks.row0 * size),
-            size,
-            blocks.shape,
-            self.span,
-            self.min_points,
-        )
+        origin = (blocks.col0 * size, blocks.row0 * size)
+        rows, cols = blocks.shape
+        kept = _mask_moments(
+            self.grid.occupied_in(fine), fine.row0, fine.col0, res, *origin, size, rows, cols,
+            self.span, self.min_points,
+        )  # fmt: skip
+        index, means, inv_covs, counts = block_distributions(kept, origin, size, cols)
         live = index >= 0
         order = index[live]  # box order
-        row_in_box, col_in_box = np.divmod(np.flatnonzero(live), blocks.shape[1])
+        row_in_box, col_in_box = np.divmod(np.flatnonzero(live), cols)
         block_rc = np.column_stack((row_in_box + blocks.row0, col_in_box + blocks.col0))
         means = means[order] + (self.grid.anchor_x_m, self.grid.anchor_y_m)
         self._apply(blocks, live, (means, inv_covs[order], counts[order], block_rc))
@@ -292,41 +293,34 @@ class GridNDTCells(_LatticeBlocks[NDTCells]):
 
 
 @njit(cache=True)
-def _sparse_moments(points, origin_x, origin_y, size, rows, cols, span, min_points):  # type: ignore[no-untyped-def]
-    """(flat index of kept block numbers or -1, (K, 6) moments of the kept blocks, (K,) flat
-    position of each kept block).
+def _add_point(x, y, origin_x, origin_y, size, rows, cols, span, index, moments, touched, n):  # type: ignore[no-untyped-def]
+    """Add (x, y) to the moments of each block holding it (see _sparse_moments); returns the
+    new number of blocks touched."""
+    col = math.floor((x - origin_x) / size)
+    row = math.floor((y - origin_y) / size)
+    for r in range(max(row - span + 1, 0), min(row, rows - 1) + 1):
+        for c in range(max(col - span + 1, 0), min(col, cols - 1) + 1):
+            flat = r * cols + c
+            k = index[flat]
+            if k < 0:
+                k = index[flat] = n
+                touched[n] = flat
+                n += 1
+            dx = x - (origin_x + c * size)
+            dy = y - (origin_y + r * size)
+            m = moments[k]
+            m[0] += 1.0
+            m[1] += dx
+            m[2] += dy
+            m[3] += dx * dx
+            m[4] += dx * dy
+            m[5] += dy * dy
+    return n
 
-    Block (r, c) covers span x span cells of `size` from cell (r, c) (corner at origin +
-    (c, r) * size): span 1 gives plain cells; span 2 the 2 x 2 blocks of OverlappingCells, each
-    point added to the four blocks holding it. Points outside every block are skipped. Moments
-    (count, sum x, sum y, sum xx, sum xy, sum yy) are accumulated only for blocks holding
-    points, about each block's corner (small sums, no cancellation far from the origin);
-    blocks with fewer than `min_points` points are dropped.
-    """
-    index = np.full(rows * cols, -1, dtype=np.int64)
-    moments = np.zeros((points.shape[0] * span * span, 6))
-    touched = np.empty(points.shape[0] * span * span, dtype=np.int64)
-    n = 0
-    for i in range(points.shape[0]):
-        col = math.floor((points[i, 0] - origin_x) / size)
-        row = math.floor((points[i, 1] - origin_y) / size)
-        for r in range(max(row - span + 1, 0), min(row, rows - 1) + 1):
-            for c in range(max(col - span + 1, 0), min(col, cols - 1) + 1):
-                flat = r * cols + c
-                k = index[flat]
-                if k < 0:
-                    k = index[flat] = n
-                    touched[n] = flat
-                    n += 1
-                x = points[i, 0] - (origin_x + c * size)
-                y = points[i, 1] - (origin_y + r * size)
-                m = moments[k]
-                m[0] += 1.0
-                m[1] += x
-                m[2] += y
-                m[3] += x * x
-                m[4] += x * y
-                m[5] += y * y
+
+@njit(cache=True)
+def _kept_blocks(index, moments, touched, n, min_points):  # type: ignore[no-untyped-def]
+    """Drop the touched blocks with fewer than `min_points` points, renumbering the rest."""
     kept = 0
     for k in range(n):
         if moments[k, 0] >= min_points:
@@ -339,29 +333,62 @@ def _sparse_moments(points, origin_x, origin_y, size, rows, cols, span, min_poin
     return index, moments[:kept], touched[:kept]
 
 
+@njit(cache=True)
+def _sparse_moments(points, origin_x, origin_y, size, rows, cols, span, min_points):  # type: ignore[no-untyped-def]
+    """(flat index of kept block numbers or -1, (K, 6) moments of the kept blocks, (K,) flat
+    position of each kept block).
+
+    Block (r, c) covers span x span cells of `size` from cell (r, c) (corner at origin +
+    (c, r) * size): span 1 gives plain cells; span 2 the 2 x 2 blocks of OverlappingCells, each
+    point added to the four blocks holding it. Points outside every block are skipped. Moments
+    (count, sum x, sum y, sum xx, sum xy, sum yy) are accumulated only for blocks holding
+    points, about each block's corner (small sums, no cancellation far from the origin);
+    blocks with fewer than `min_points` points are dropped.
+    """
+    capacity = min(points.shape[0] * span * span, rows * cols)
+    index = np.full(rows * cols, -1, dtype=np.int64)
+    moments = np.zeros((capacity, 6))
+    touched = np.empty(capacity, dtype=np.int64)
+    n = 0
+    for i in range(points.shape[0]):
+        n = _add_point(
+            points[i, 0], points[i, 1], origin_x, origin_y, size, rows, cols, span,
+            index, moments, touched, n,
+        )  # fmt: skip
+    return _kept_blocks(index, moments, touched, n, min_points)
+
+
+@njit(cache=True)
+def _mask_moments(mask, row0, col0, res, origin_x, origin_y, size, rows, cols, span, min_points):  # type: ignore[no-untyped-def]
+    """_sparse_moments of the centres of the set cells of `mask`, a window from cell (row0,
+    col0) of the lattice of `res` cells with its corner at the origin (no list of the cells)."""
+    index = np.full(rows * cols, -1, dtype=np.int64)
+    moments = np.zeros((rows * cols, 6))
+    touched = np.empty(rows * cols, dtype=np.int64)
+    n = 0
+    for i in range(mask.shape[0]):
+        y = (row0 + i + 0.5) * res
+        for j in range(mask.shape[1]):
+            if mask[i, j]:
+                n = _add_point(
+                    (col0 + j + 0.5) * res, y, origin_x, origin_y, size, rows, cols, span,
+                    index, moments, touched, n,
+                )  # fmt: skip
+    return _kept_blocks(index, moments, touched, n, min_points)
+
+
 def block_distributions(
-    points: NDArray[np.float64],
+    kept: tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64]],
     origin: tuple[float, float],
     size: float,
-    shape: tuple[int, int],
-    span: int,
-    min_points: int,
-) -> tuple[
-    NDArray[np.int64],
-    NDArray[np.float64],
-    NDArray[np.float64],
-    NDArray[np.int64],
-    NDArray[np.int64],
-]:
-    """(flat index of block numbers or -1, means, inverse covariances, counts, flat position
-    of each block) of the span x span blocks of a `shape` grid of `size` cells from `origin`
-    that hold >= `min_points` points (see _sparse_moments)."""
-    rows, cols = shape
-    index, moments, flat = _sparse_moments(
-        points, origin[0], origin[1], size, rows, cols, span, min_points
-    )
+    cols: int,
+) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+    """(flat index of block numbers or -1, means, inverse covariances, counts) from what
+    _sparse_moments or _mask_moments returned for blocks of `size` cells, `cols` per row,
+    from `origin`."""
+    index, moments, flat = kept
     corners = np.column_stack((flat % cols, flat // cols)) * size + origin
-    return (index, *cell_distributions(moments, corners), flat)
+    return (index, *cell_distributions(moments, corners))
 
 
 def cell_distributions(
@@ -440,8 +467,12 @@ class OverlappingCells:
             lo = hi = np.zeros(2, dtype=np.int64)
         cols, rows = (hi - lo + 1).tolist()
         origin = anchor + lo * half
-        index, means, inv_covs, counts, _ = block_distributions(
-            p, (float(origin[0]), float(origin[1])), half, (rows - 1, cols - 1), 2, min_points
+        ox, oy = float(origin[0]), float(origin[1])
+        index, means, inv_covs, counts = block_distributions(
+            _sparse_moments(p, ox, oy, half, rows - 1, cols - 1, 2, min_points),
+            (ox, oy),
+            half,
+            cols - 1,
         )
         return OverlappingCells(
             float(origin[0]),
