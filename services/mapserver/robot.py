@@ -1,4 +1,4 @@
-"""One robot's map as the map server keeps it: grid, trajectory, pairing, dirty region."""
+"""One robot's map as the map server keeps it: grid, trajectory, dirty region."""
 
 from __future__ import annotations
 
@@ -8,31 +8,31 @@ from scanflow.geometry import Pose2D
 from scanflow.maps.grid import CellBox
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
-from scanflow.wire import DeskewedScanMessage, MapChangedMessage, PoseEstimateMessage
+from scanflow.wire import MapChangedMessage, MapInsertMessage, PoseEstimateMessage
 
-from services.mapserver.pairing import Pairing
 from services.mapserver.snapshot import Snapshot
 
 
 class RobotMap:
-    """Inserts paired scans at their published poses with the library's map update."""
+    """Inserts the tracker's scans at the poses it inserted them, and records its poses.
+
+    Inserts and poses come on two subscribers (no order between them); an insert carries its
+    pose, so only the order of the inserts matters, and one subscriber keeps that.
+    """
 
     def __init__(
-        self,
-        robot_id: str,
-        pending_limit: int,
-        snap: Snapshot | None = None,
-        params: OccupancyParams | None = None,
+        self, robot_id: str, snap: Snapshot | None = None, params: OccupancyParams | None = None
     ) -> None:
         """`params`: the new map's (the matcher's front end settings); a snapshot keeps its own."""
         self.robot_id = robot_id
-        self.pairing = Pairing(pending_limit)
         self.map = MatchingMap(snap.grid if snap else OccupancyGrid(params))
         self.trajectory = TrajectoryStore()
         if snap is not None:
             for stamp_s, row in zip(snap.stamps_s, snap.poses, strict=True):
                 self.trajectory.append(float(stamp_s), Pose2D.from_array(row))
         self.last_seq = -1 if snap is None else snap.last_seq
+        self.last_insert_seq = -1
+        self.streams: set[str] = set()  # the kinds of message this run has had
         self.dirty: CellBox | None = None
         self.saved = self.state
 
@@ -43,26 +43,23 @@ class RobotMap:
 
     def reset(self) -> None:
         """The robot's stream restarted (a replay): start an empty map and trajectory."""
-        self.pairing.clear()
         self.map = MatchingMap(OccupancyGrid(self.map.grid.params))
         self.trajectory = TrajectoryStore()
         self.last_seq = -1
+        self.last_insert_seq = -1
+        self.streams.clear()
         self.dirty = None
 
-    def apply(self, pose: PoseEstimateMessage) -> bool:
-        """Record the pose; insert its scan if the matcher inserted it. True if inserted."""
-        scan = self.pairing.match_pose(pose)
+    def apply(self, pose: PoseEstimateMessage) -> None:
+        """Record the pose in the trajectory."""
         self.last_seq = pose.seq
         self.trajectory.append(pose.stamp_s, pose.pose)
-        if scan is None:
-            return False
-        self.insert(scan, pose.pose)
-        return True
 
-    def insert(self, scan: DeskewedScanMessage, pose: Pose2D) -> None:
-        """The front end's own insertion of `scan` (hits and no-return beams) at `pose`;
+    def insert(self, scan: MapInsertMessage) -> None:
+        """The front end's own insertion of the scan (hits and no-return beams) at its pose;
         remembers the touched cells."""
-        result = insert_scan(self.map, scan.points, pose, scan.no_return_points)
+        self.last_insert_seq = scan.seq
+        result = insert_scan(self.map, scan.points, scan.pose, scan.no_return_points)
         if result.touched is not None:
             self.dirty = result.touched.union(self.dirty)
 

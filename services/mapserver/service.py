@@ -1,6 +1,7 @@
-"""Map server: pairs deskewed scans with the matcher's poses, inserts them in seq order with
-the library's map update, serves the maps on queryables, publishes rate-limited change notices
-and snapshots every robot atomically to the data directory (a restart resumes from there).
+"""Map server: inserts the scans the matcher inserted, at the poses it inserted them, with the
+library's map update; keeps the matcher's poses as each robot's trajectory; serves the maps on
+queryables, publishes rate-limited change notices and snapshots every robot atomically to the
+data directory (a restart resumes from there).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from scanflow import keys
 from scanflow.config import FrontendSettings, MapServerSettings, ZenohSettings
 from scanflow.frontend import default_settings, occupancy_params
 from scanflow.warmup import warm_up
-from scanflow.wire import DeskewedScanMessage, Message, PoseEstimateMessage
+from scanflow.wire import MapInsertMessage, Message, PoseEstimateMessage
 
 from services.common.logs import configure_logging
 from services.common.shell import ServiceShell
@@ -49,17 +50,14 @@ class MapServer:
         for reason in skipped:
             self.shell.log.warning("%s; starting that robot afresh", reason)
         for snap in snapshots:
-            self.robots[snap.robot_id] = RobotMap(snap.robot_id, settings.pending_limit, snap)
+            self.robots[snap.robot_id] = RobotMap(snap.robot_id, snap)
             self.shell.seqs.resume(f"{snap.robot_id}/pose", snap.last_seq)
             self.shell.log.info("robot %s: resumed at seq %d", snap.robot_id, snap.last_seq)
         self._last_notice_s = 0.0
         self._last_snapshot_s = time.monotonic()
         prefix = self.shell.prefix
-        routes = [
-            (keys.map_key("*", "insert", prefix), "insert", DeskewedScanMessage.decode),
-            (keys.pose("*", prefix), "pose", PoseEstimateMessage.decode),
-        ]
-        self.shell.subscribe_routes(keys.robot_streams("*", prefix), routes)
+        self.shell.subscribe(keys.map_key("*", "insert", prefix), "insert", MapInsertMessage.decode)
+        self.shell.subscribe(keys.pose("*", prefix), "pose", PoseEstimateMessage.decode)
         self._serve(lambda r: keys.map_key(r, "meta", prefix), lambda r, _p: replies.meta(r))
         self._serve(lambda r: keys.map_key(r, "image", prefix), _image)
         self._serve(lambda r: keys.map_key(r, "region", prefix), _region)
@@ -67,29 +65,32 @@ class MapServer:
         self.shell.add_stats(self._gauges)
 
     # -- bus ------------------------------------------------------------------------------
-    def handle(self, kind: str, message: DeskewedScanMessage | PoseEstimateMessage) -> None:
+    def handle(self, kind: str, message: MapInsertMessage | PoseEstimateMessage) -> None:
         with self.lock:
-            self._apply(message)
+            self._apply(kind, message)
         self.idle()
 
-    def _apply(self, message: DeskewedScanMessage | PoseEstimateMessage) -> None:
+    def _apply(self, kind: str, message: MapInsertMessage | PoseEstimateMessage) -> None:
         robot_id = message.robot_id
         robot = self.robots.get(robot_id)
         if robot is None:
-            robot = self.robots[robot_id] = RobotMap(
-                robot_id, self.settings.pending_limit, params=self.params
-            )
-        if isinstance(message, DeskewedScanMessage):
-            robot.pairing.add_scan(message)  # inserts are sparse: their seqs have gaps
-            return
-        stream = f"{robot_id}/pose"
-        restarted = self.shell.seqs.is_restart(stream, message.seq)
-        self.shell.seqs.observe(stream, message.seq)
-        if restarted:
-            self.shell.log.info("robot %s: poses restarted at seq %d", robot_id, message.seq)
+            robot = self.robots[robot_id] = RobotMap(robot_id, params=self.params)
+        if isinstance(message, MapInsertMessage):  # sparse seqs: gaps are not misses
+            restarted = message.seq <= robot.last_insert_seq
+        else:
+            restarted = self.shell.seqs.is_restart(f"{robot_id}/pose", message.seq)
+            self.shell.seqs.observe(f"{robot_id}/pose", message.seq)
+        if restarted and kind in robot.streams:
+            # A replay: start afresh. The other stream's restart, seen later, finds this run
+            # without it and keeps it.
+            self.shell.log.info("robot %s: %ss restarted at seq %d", robot_id, kind, message.seq)
             robot.reset()
-        if robot.apply(message):
+        robot.streams.add(kind)
+        if isinstance(message, MapInsertMessage):
+            robot.insert(message)
             self.shell.counters.add("inserted")
+        else:
+            robot.apply(message)
 
     def idle(self) -> None:
         """Publish change notices at the configured rate; snapshot at the configured interval."""
@@ -136,14 +137,11 @@ class MapServer:
     def _gauges(self) -> dict[str, float]:
         gauges: dict[str, float] = {"robots": len(self.robots)}
         for robot in self.robots.values():
-            p = robot.pairing
             r = robot.robot_id
             gauges.update({
                 f"{r}.revision": robot.map.revision,
                 f"{r}.map_bytes": robot.map.grid.nbytes,
-                f"{r}.pending_scans": len(p.scans),
-                f"{r}.scans_without_pose": p.scans_without_pose,
-                f"{r}.scans_evicted": p.scans_evicted,
+                f"{r}.last_insert_seq": robot.last_insert_seq,
             })
         return gauges
 

@@ -5,9 +5,10 @@ in-process pipeline takes it), so the matcher subscribes to nothing else: one st
 in publication order, and no other service's output on its link (a full inbox blocks that
 link, and two matchers subscribed to each other's poses could wait on each other).
 Per scan it publishes the pose estimate; for each scan the front end put into its map it first
-publishes that scan (no-return beams included) on `map/insert`, so the map server inserts
-exactly the same scans. A robot first seen mid-stream (this matcher restarted) resumes from
-the map server: its map snapshot and last pose seed the front end. Match requests are answered
+publishes that scan (no-return beams included) with the pose it went in at on `map/insert`, so
+the map server inserts exactly the same scans at the same poses. A robot first seen mid-stream
+(this matcher restarted) resumes from the map server: its map snapshot and last pose seed the
+front end. Match requests are answered
 on `<prefix>/match` (any scans) and `<prefix>/<robot>/match` (also against that robot's
 current map).
 """
@@ -29,6 +30,7 @@ from scanflow.warmup import warm_up
 from scanflow.wire import (
     DeskewedScanMessage,
     MapImageMessage,
+    MapInsertMessage,
     MatchRequest,
     PoseEstimateMessage,
     TrajectoryMessage,
@@ -89,7 +91,10 @@ class MatcherService:
     def _publish(self, robot_id: str, scan: DeskewedScanMessage, out: FrontendOutput) -> None:
         prefix = self.shell.prefix
         if out.inserted:
-            self.shell.put(keys.map_key(robot_id, "insert", prefix), scan.encode())
+            insert = MapInsertMessage(
+                robot_id, out.seq, out.stamp_s, out.pose, scan.points, scan.no_return_points
+            )
+            self.shell.put(keys.map_key(robot_id, "insert", prefix), insert.encode())
         estimate = PoseEstimateMessage.from_result(out, robot_id, out.seq, out.stamp_s)
         self.shell.put(keys.pose(robot_id, prefix), estimate.encode())
         self.shell.counters.add(f"status.{out.status}")

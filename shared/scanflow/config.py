@@ -125,7 +125,6 @@ class MapServerSettings(KernelServiceSettings):
     data_dir: str = "scanflow-data"
     snapshot_interval_s: float = Field(10.0, gt=0.0)
     changed_rate_hz: float = Field(2.0, gt=0.0, description="at most this many change notices/s")
-    pending_limit: int = Field(2000, ge=1, description="scans held while waiting for their pose")
 
 
 class GatewaySettings(BaseSettings):

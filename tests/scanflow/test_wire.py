@@ -201,6 +201,18 @@ service_stats = st.builds(
     gauges=st.dictionaries(texts, st.floats(allow_nan=False), max_size=8),
 )
 
+@st.composite
+def map_inserts(draw: st.DrawFn) -> wire.MapInsertMessage:
+    return wire.MapInsertMessage(
+        robot_id=draw(ids),
+        seq=draw(counts),
+        stamp_s=draw(finite),
+        pose=draw(poses),
+        points=draw(f64_points(draw(small_n))),
+        no_return_points=draw(f64_points(draw(small_n))),
+    )
+
+
 STRATEGIES: dict[str, st.SearchStrategy[wire.Message]] = {
     "scan": scan_messages,
     "scan_deskewed": deskewed_messages(),
@@ -213,6 +225,7 @@ STRATEGIES: dict[str, st.SearchStrategy[wire.Message]] = {
     "map_region": map_regions(),
     "map_image": map_images,
     "map_changed": map_changes(),
+    "map_insert": map_inserts(),
     "service_stats": service_stats,
 }
 
@@ -418,6 +431,20 @@ def test_deskewed_odom_pose_is_optional_and_must_be_a_pose() -> None:
         )
     with pytest.raises(wire.SchemaError, match="odom_pose"):
         wire.decode_any(_payload(msg, odom_pose=[1.0, "x", 0.0]))
+
+
+def test_map_insert_points_must_be_finite_float64_rows_and_the_pose_a_pose() -> None:
+    points = np.array([[1.0, 2.0], [3.0, 4.0]])
+    msg = wire.MapInsertMessage("r", 3, 2.0, Pose2D(1, 2, 3), points, np.zeros((0, 2)))
+    assert wire.MapInsertMessage.decode(msg.encode()).points.tobytes() == points.tobytes()
+    with pytest.raises(wire.MessageError, match="pose must be a Pose2D"):
+        wire.MapInsertMessage("r", 3, 2.0, (1, 2, 3), points, np.zeros((0, 2)))
+    with pytest.raises(wire.MessageError, match="no_return_points"):
+        wire.MapInsertMessage("r", 3, 2.0, Pose2D(), points, np.zeros((2, 3)))
+    with pytest.raises(wire.SchemaError, match="points contains non-finite"):
+        wire.decode_any(
+            _payload(msg, points=wire.codec.encode_array(np.full((1, 2), np.nan), "<f8"))
+        )
 
 
 def test_zero_sized_arrays_with_huge_dimensions_are_refused() -> None:
@@ -649,6 +676,8 @@ def _examples() -> list[wire.Message]:
         wire.MapRegionMessage(meta, 2, 3, np.full((4, 5), -1, np.int8)),
         wire.MapImageMessage("r", 1, "png", b"\x89PNG\r\n"),
         wire.MapChangedMessage("r", 1, 0.0, 0, 0, 1, 1),
+        wire.MapInsertMessage("r", 3, 2.0, Pose2D(1, 2, 3), scan.points(), scan.points()[:2] * 3),
+        wire.MapInsertMessage("r", 3, 2.0, Pose2D(1, 2, 3), scan.points(), scan.points()[:2] * 3),
         wire.ServiceStatsMessage("deskew", "a", 1.0, {"in": 3}, {"lag_s": 0.5}),
     ]
 

@@ -1,4 +1,4 @@
-"""Map server pieces without a network: pairing by seq, insertion, snapshots, shards."""
+"""Map server pieces without a network: insertion, trajectory, snapshots, shards."""
 
 from __future__ import annotations
 
@@ -6,17 +6,16 @@ import numpy as np
 from scanflow.geometry import Pose2D
 from scanflow.maps.export import load_npz, save_npz
 from scanflow.maps.occupancy import OccupancyParams
-from scanflow.wire import DeskewedScanMessage, PoseEstimateMessage
+from scanflow.wire import MapInsertMessage, PoseEstimateMessage
 
-from services.mapserver.pairing import Pairing
 from services.mapserver.robot import RobotMap
 from services.mapserver.snapshot import load_snapshots, save_snapshot
 from services.matcher.shard import owns
 
 
-def scan(seq: int, points: np.ndarray | None = None) -> DeskewedScanMessage:
-    pts = np.array([[2.0, 0.0], [2.0, 1.0], [1.5, -1.0]]) if points is None else points
-    return DeskewedScanMessage("r", seq, 0.1 * seq, pts, "none", True, len(pts), 0)
+def insert(seq: int, at: Pose2D | None = None) -> MapInsertMessage:
+    pts = np.array([[2.0, 0.0], [2.0, 1.0], [1.5, -1.0]])
+    return MapInsertMessage("r", seq, 0.1 * seq, at or Pose2D(), pts, np.zeros((0, 2)))
 
 
 def pose(seq: int, at: Pose2D | None = None) -> PoseEstimateMessage:
@@ -24,52 +23,36 @@ def pose(seq: int, at: Pose2D | None = None) -> PoseEstimateMessage:
     return PoseEstimateMessage("r", seq, 0.1 * seq, at, np.eye(3), "tracked", "gn", 1, 1.0)
 
 
-def test_pairing_returns_the_inserted_scan_and_counts_the_orphans():
-    pairing = Pairing(limit=10)
-    for seq in (1, 2, 4):
-        pairing.add_scan(scan(seq))
-    assert pairing.match_pose(pose(0)) is None  # not inserted: a pose alone is normal
-    assert pairing.match_pose(pose(2)).seq == 2
-    assert pairing.scans_without_pose == 1  # scan 1 was overtaken by pose 2
-    assert pairing.match_pose(pose(4)).seq == 4
-    assert not pairing.scans
-
-
-def test_pairing_is_bounded():
-    pairing = Pairing(limit=3)
-    for seq in range(5):
-        pairing.add_scan(scan(seq))
-    assert list(pairing.scans) == [2, 3, 4] and pairing.scans_evicted == 2
-
-
-def test_robot_map_inserts_a_paired_scan_and_notices_the_change():
+def test_robot_map_inserts_at_the_insert_pose_and_notices_the_change():
     at = Pose2D(0.3, -0.2, 0.4)
-    robot = RobotMap("r", pending_limit=10)
-    assert not robot.apply(pose(2, at))  # a pose without an inserted scan changes no cell
+    robot = RobotMap("r")
+    robot.apply(pose(2, at))  # a pose without an inserted scan changes no cell
     assert robot.take_change(0.5) is None and robot.map.revision == 0
-    robot.pairing.add_scan(scan(3))
-    assert robot.apply(pose(3, at))
-    assert robot.map.revision == 1 and robot.state == (1, 3)
+    robot.insert(insert(3, at))
+    assert robot.map.revision == 1 and robot.state == (1, 2)
     notice = robot.take_change(1.0)
     assert notice.min_x_m < at.x < notice.max_x_m and robot.take_change(2.0) is None
+    moved = RobotMap("r")
+    moved.insert(insert(3, Pose2D(5.0, 0.0, 0.0)))  # the pose in the message is what counts
+    assert moved.map.grid.extent != robot.map.grid.extent
 
 
 def test_robot_map_uses_the_given_params_and_a_reset_keeps_them():
-    robot = RobotMap("r", pending_limit=10, params=OccupancyParams(resolution_m=0.1))
-    robot.pairing.add_scan(scan(0))
+    robot = RobotMap("r", params=OccupancyParams(resolution_m=0.1))
+    robot.insert(insert(0))
     robot.apply(pose(0))
     robot.reset()
     assert robot.map.grid.resolution_m == 0.1 and robot.map.revision == 0
 
 
 def test_snapshot_round_trip(tmp_path):
-    robot = RobotMap("r", pending_limit=10)
+    robot = RobotMap("r")
     for seq in range(3):
-        robot.pairing.add_scan(scan(seq))
+        robot.insert(insert(seq, Pose2D(0.1 * seq, 0.0, 0.0)))
         robot.apply(pose(seq, Pose2D(0.1 * seq, 0.0, 0.0)))
     save_snapshot(tmp_path, robot.snapshot())
     (snap,), skipped = load_snapshots(tmp_path)
-    again = RobotMap("r", 10, snap)
+    again = RobotMap("r", snap)
     assert again.last_seq == 2 and again.state == robot.state and skipped == []
     np.testing.assert_array_equal(again.map.grid.log_odds, robot.map.grid.log_odds)
     np.testing.assert_array_equal(again.trajectory.poses, robot.trajectory.poses)
@@ -77,8 +60,8 @@ def test_snapshot_round_trip(tmp_path):
 
 
 def test_a_snapshot_is_one_file_that_loads_as_a_map(tmp_path):
-    robot = RobotMap("r", pending_limit=10)
-    robot.pairing.add_scan(scan(0))
+    robot = RobotMap("r")
+    robot.insert(insert(0))
     robot.apply(pose(0))
     save_snapshot(tmp_path, robot.snapshot())
     (path,) = tmp_path.iterdir()  # map and trajectory together: no crash can split them
@@ -87,8 +70,8 @@ def test_a_snapshot_is_one_file_that_loads_as_a_map(tmp_path):
 
 
 def test_an_unreadable_snapshot_is_skipped_and_named_not_a_crash(tmp_path):
-    robot = RobotMap("r", pending_limit=10)
-    robot.pairing.add_scan(scan(0))
+    robot = RobotMap("r")
+    robot.insert(insert(0))
     robot.apply(pose(0))
     save_snapshot(tmp_path, robot.snapshot())
     (tmp_path / "s.snapshot.npz").write_bytes(b"not a zip file")

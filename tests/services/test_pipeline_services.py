@@ -132,6 +132,19 @@ def test_full_inboxes_hold_the_pipeline_back_without_deadlock(launcher, bus, sta
         assert bus.stats(service).gauges["inbox_high_water"] == 2
 
 
+def test_a_replay_restarts_every_service_and_comes_out_the_same(pipeline):
+    """The source restarts its seqs (a replay): deskew, matcher and map server each start the
+    robot afresh, whichever of its streams shows the restart first."""
+    launcher, bus = pipeline
+    poses = bus.record(keys.pose())
+    run_ingest(launcher, bus, SCANFLOW_INGEST_REPLAYS="2", **SIM)
+    expected, grid = in_process(source_events(None, "robot", SIM_S, 7, None))
+    bus.wait_until(lambda: len(poses) >= 2 * len(expected), 30.0, "every pose of both runs")
+    assert_same_poses(poses[: len(expected)], expected)
+    assert_same_poses(poses[len(expected) :], expected)
+    assert_served_map(bus, grid, 2 * len(expected))
+
+
 def assert_map_queries(bus, grid: OccupancyGrid, notices: list) -> None:
     """Region, images and change notices agree with the in-process map."""
     (meta,) = bus.get(keys.map_key("robot", "meta"))

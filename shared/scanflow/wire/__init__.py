@@ -32,6 +32,7 @@ from scanflow.wire.maps import (
     MAP_IMAGE_FORMATS,
     MapChangedMessage,
     MapImageMessage,
+    MapInsertMessage,
     MapMetaMessage,
     MapRegionMessage,
 )
@@ -47,6 +48,7 @@ __all__ = [
     "DeskewedScanMessage",
     "MapChangedMessage",
     "MapImageMessage",
+    "MapInsertMessage",
     "MapMetaMessage",
     "MapRef",
     "MapRegionMessage",

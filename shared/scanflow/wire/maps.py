@@ -1,4 +1,4 @@
-"""Map messages: grid metadata, occupancy windows, exported images and change notices.
+"""Map messages: insertions, grid metadata, occupancy windows, exported images, change notices.
 
 Occupancy values follow ROS nav_msgs/OccupancyGrid: -1 unknown, 0 free .. 100 occupied.
 Grid geometry is scanflow.maps.grid.GridSpec (row index grows with y, column with x).
@@ -12,13 +12,58 @@ from typing import ClassVar, Literal, Self
 import numpy as np
 from numpy.typing import NDArray
 
+from scanflow.geometry import Pose2D
 from scanflow.maps.grid import GridSpec
-from scanflow.wire.base import Message, check_array, check_count, check_finite, check_text
+from scanflow.wire.base import (
+    Message,
+    check_array,
+    check_count,
+    check_finite,
+    check_pose,
+    check_text,
+)
 from scanflow.wire.errors import MessageError
-from scanflow.wire.schema import BLOB, INT, NUMBER, TEXT, FieldCodec, Schema, array
+from scanflow.wire.schema import BLOB, INT, NUMBER, POSE, TEXT, FieldCodec, Schema, array
 
 MAP_IMAGE_FORMATS = ("png", "pgm", "yaml", "npz")
 MapImageFormat = Literal["png", "pgm", "yaml", "npz"]
+
+
+@dataclass(frozen=True, eq=False)
+class MapInsertMessage(Message):
+    """A scan a tracker put into its map, and the pose it put it at: a map server that inserts
+    exactly these points at exactly this pose, in the order they come, builds the same map,
+    whatever the order of the pose stream beside it.
+
+    `points` (hits) and `no_return_points` (beams that saw nothing: they clear free space) are
+    in the sensor frame at `stamp_s`, float64, bit for bit what the tracker inserted.
+    """
+
+    TYPE = "map_insert"
+    WIRE: ClassVar[Schema] = {
+        "robot_id": TEXT,
+        "seq": INT,
+        "stamp_s": NUMBER,
+        "pose": POSE,
+        "points": array("<f8"),
+        "no_return_points": array("<f8"),
+    }
+    robot_id: str
+    seq: int
+    stamp_s: float
+    pose: Pose2D
+    points: NDArray[np.float64]
+    no_return_points: NDArray[np.float64]
+
+    def __post_init__(self) -> None:
+        check_text("robot_id", self.robot_id)
+        object.__setattr__(self, "seq", check_count("seq", self.seq))
+        object.__setattr__(self, "stamp_s", check_finite("stamp_s", self.stamp_s))
+        check_pose("pose", self.pose)
+        for name in ("points", "no_return_points"):
+            object.__setattr__(
+                self, name, check_array(name, getattr(self, name), np.float64, (None, 2))
+            )
 
 
 @dataclass(frozen=True, eq=False)
