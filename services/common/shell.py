@@ -109,20 +109,10 @@ class ServiceShell:
         """Decode every sample on `key`; malformed ones are counted and logged, never fatal.
 
         Decoded messages go to `sink(kind, message)` (default: the inbox, blocking when full).
-        `sink` runs on a Zenoh thread and must be quick.
+        `sink` runs on a Zenoh thread and must be quick. Subscribe to exactly what the service
+        consumes: a full inbox stops this session's whole link (see the module docstring).
         """
-        self.subscribe_routes(key, [(key, kind, decode)], sink)
-
-    def subscribe_routes(
-        self,
-        key: str,
-        routes: list[tuple[str, str, Callable[[bytes], Any]]],
-        sink: Callable[[str, Any], object] | None = None,
-    ) -> None:
-        """One subscriber on `key`, dispatching each sample to the first route whose key
-        expression matches it: `(route_key, kind, decode)`. Samples of several topics then
-        arrive in publication order, which separate subscribers do not guarantee."""
-        callback = self._sample_callback(routes, sink or self.inbox.put)
+        callback = self._sample_callback(kind, decode, sink or self.inbox.put)
         self._declared.append(self.session.declare_subscriber(key, callback))
 
     def subscribe_feedback(self, key: str, kind: str, decode: Callable[[bytes], Any]) -> None:
@@ -131,7 +121,7 @@ class ServiceShell:
         wait: past that the oldest goes, counted as `feedback_overflow.<kind>` (hints only)."""
         if self._feedback_session is None:
             self._feedback_session = open_session(self._zenoh_settings)
-        callback = self._sample_callback([(key, kind, decode)], self._feed)
+        callback = self._sample_callback(kind, decode, self._feed)
         self._declared.append(self._feedback_session.declare_subscriber(key, callback))
 
     def _feed(self, kind: str, message: Any) -> None:
@@ -154,19 +144,15 @@ class ServiceShell:
 
     def _sample_callback(
         self,
-        routes: list[tuple[str, str, Callable[[bytes], Any]]],
+        kind: str,
+        decode: Callable[[bytes], Any],
         deliver: Callable[[str, Any], object],
     ) -> Callable[[zenoh.Sample], None]:
-        """A subscriber callback: route by key, decode, count, deliver; malformed are counted."""
-        compiled = [(zenoh.KeyExpr(k), kind, decode) for k, kind, decode in routes]
+        """A subscriber callback: decode, count, deliver; malformed samples are counted."""
 
         def on_sample(sample: zenoh.Sample) -> None:
             if sample.kind != zenoh.SampleKind.PUT:
                 return
-            route = next((r for r in compiled if r[0].intersects(sample.key_expr)), None)
-            if route is None:
-                return
-            _, kind, decode = route
             try:
                 message = decode(sample.payload.to_bytes())
             except Exception as exc:  # any decode failure: count, log, keep going

@@ -13,18 +13,18 @@ Layout (``<prefix>`` defaults to ``scanflow``; ``<robot>`` is a robot id):
 | <prefix>/<robot>/map/image            | queryable  | MapImageMessage (png/pgm/yaml) |
 | <prefix>/<robot>/map/region           | queryable  | MapRegionMessage               |
 | <prefix>/<robot>/map/changed          | pub/sub    | MapChangedMessage              |
-| <prefix>/<robot>/map/insert           | pub/sub    | DeskewedScanMessage (**)       |
+| <prefix>/<robot>/map/insert           | pub/sub    | MapInsertMessage (**)          |
 | <prefix>/<robot>/trajectory           | queryable  | TrajectoryMessage              |
-| <prefix>/<robot>/**                   | subscriber | all of a robot's streams (*)   |
 | <prefix>/match                        | queryable  | MatchRequest (scan-to-scan)    |
 | <prefix>/health/<service>/<instance>  | liveliness | (token, no payload)            |
 | <prefix>/stats/<service>/<instance>   | queryable  | ServiceStatsMessage            |
 
-(*) Zenoh keeps publication order only within one subscriber: a service that needs odometry
-and scans in the order they were published subscribes once to `robot_streams` and dispatches.
+Zenoh keeps publication order only within one subscriber, and a full inbox stops a
+session's whole link: every service subscribes to exactly the keys it consumes, and no service
+relies on the order of two keys (see the README's services section).
 
-(**) the scans the matcher's front end inserted into its map; the map server inserts the same
-points at the pose of the same seq, so its map equals the front end's.
+(**) the scans the matcher's front end inserted into its map, each with the pose it went in at;
+the map server inserts the same points at the same pose, so its map equals the front end's.
 
 Ids are single chunks (see `check_id`); a prefix may span several chunks ("site1/scanflow").
 Robot ids "health" and "stats" are reserved: their keys would collide with the service keys.
@@ -92,11 +92,6 @@ def robot_match(robot: str = "*", prefix: str = DEFAULT_PREFIX) -> str:
 
 def scan_match(prefix: str = DEFAULT_PREFIX) -> str:
     return f"{check_prefix(prefix)}/match"
-
-
-def robot_streams(robot: str = "*", prefix: str = DEFAULT_PREFIX) -> str:
-    """Every key below a robot (one subscriber keeps the publication order across topics)."""
-    return _key(robot, "**", prefix)
 
 
 def map_key(robot: str = "*", what: str = "meta", prefix: str = DEFAULT_PREFIX) -> str:
