@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from PIL import Image
 from scanflow import keys
-from scanflow.wire import DeskewedScanMessage
+from scanflow.geometry import Pose2D
+from scanflow.wire import MapInsertMessage
 
 from services.common.launch import free_port, wait_for_port
 
@@ -24,10 +25,11 @@ def test_gateway_serves_the_map_servers_map_and_trajectory(launcher, start, bus)
     launcher.start("gateway", SCANFLOW_GATEWAY_PORT=str(port))
     wait_for_port(port, 30.0)
     angles = np.linspace(-np.pi, np.pi, 90, endpoint=False)
-    points = np.column_stack((3 * np.cos(angles), 3 * np.sin(angles))).astype(np.float32)
+    points = np.column_stack((3 * np.cos(angles), 3 * np.sin(angles)))
     for seq in range(5):
-        scan = DeskewedScanMessage("r1", seq, float(seq), points, "none", True, 90, 0)
-        bus.put(keys.map_key("r1", "insert"), scan.encode())  # what the matcher forwards
+        at = Pose2D(0.1 * seq, 0.0, 0.0)
+        scan = MapInsertMessage("r1", seq, float(seq), at, points, np.zeros((0, 2)))
+        bus.put(keys.map_key("r1", "insert"), scan.encode())  # what the matcher publishes
         bus.put(keys.pose("r1"), estimate("r1", seq, float(seq), 0.1 * seq, 0.0).encode())
     with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=10.0) as http:
         eventually(lambda: http.get("/api/v1/robots/r1/pose").status_code == 200,
