@@ -11,6 +11,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 
@@ -241,3 +242,130 @@ def grown_box(old: CellBox | None, need: CellBox, minimum_cells: int = 1) -> Cel
     r0, r1 = _grown_axis((old.row0, old.row1), (need.row0, need.row1))
     c0, c1 = _grown_axis((old.col0, old.col1), (need.col0, need.col1))
     return CellBox(r0, c0, r1, c1)
+
+
+def tile_boxes(cells: NDArray[np.int64], tile: int) -> NDArray[np.int64]:
+    """The `tile` x `tile` tiles of the lattice (aligned to cell (0, 0)) holding some of the
+    (K, 2) `cells`, as boxes (n, 4): rows of [row0, col0, row1, col1), each a run of adjacent
+    tiles along a row of tiles, in row-major order.
+
+    Views track what a scan changed by tile: a few boxes along the walls it saw, where one
+    bounding box would often span the map."""
+    if tile < 1:
+        raise ValueError(f"tile must be >= 1, got {tile}")
+    t = np.asarray(cells, dtype=np.int64).reshape(-1, 2) // tile
+    if len(t) == 0:
+        return np.zeros((0, 4), dtype=np.int64)
+    lo = t.min(axis=0)
+    width = int(t[:, 1].max() - lo[1]) + 2  # a spare column: runs never wrap to the next row
+    key = np.unique((t[:, 0] - lo[0]) * width + (t[:, 1] - lo[1]))
+    new = np.ones(len(key), dtype=bool)
+    new[1:] = np.diff(key) != 1
+    first = key[new]
+    last = key[np.append(new[1:], True)]
+    row, col0 = np.divmod(first, width)
+    col1 = last - row * width + 1
+    return np.column_stack((row + lo[0], col0 + lo[1], row + lo[0] + 1, col1 + lo[1])) * tile
+
+
+@njit(cache=True)
+def _disjoint_cover(a):  # type: ignore[no-untyped-def]
+    """See disjoint_cover (non-empty boxes only)."""
+    rows = np.unique(np.concatenate((a[:, 0], a[:, 2])))
+    cols = np.unique(np.concatenate((a[:, 1], a[:, 3])))
+    bands, spans = len(rows) - 1, len(cols) - 1
+    covered = np.zeros((bands, spans), dtype=np.bool_)
+    for k in range(a.shape[0]):
+        r0, r1 = np.searchsorted(rows, a[k, 0]), np.searchsorted(rows, a[k, 2])
+        c0, c1 = np.searchsorted(cols, a[k, 1]), np.searchsorted(cols, a[k, 3])
+        covered[r0:r1, c0:c1] = True
+    out = np.empty((bands * spans, 4), dtype=np.int64)
+    n = 0
+    # The runs of the band above: start and end column (compressed) and their box in `out`.
+    above = np.empty((2, 3, spans), dtype=np.int64)
+    n_above = 0
+    for b in range(bands):
+        here = above[(b + 1) % 2]
+        prev = above[b % 2]
+        n_here = j = c = 0
+        while c < spans:
+            if not covered[b, c]:
+                c += 1
+                continue
+            start = c
+            while c < spans and covered[b, c]:
+                c += 1
+            while j < n_above and prev[0, j] < start:
+                j += 1
+            if j < n_above and prev[0, j] == start and prev[1, j] == c:
+                k = prev[2, j]
+                out[k, 2] = rows[b + 1]
+            else:
+                k = n
+                out[k, 0], out[k, 1] = rows[b], cols[start]
+                out[k, 2], out[k, 3] = rows[b + 1], cols[c]
+                n += 1
+            here[0, n_here], here[1, n_here], here[2, n_here] = start, c, k
+            n_here += 1
+        n_above = n_here
+    return out[:n].copy()
+
+
+def disjoint_cover(boxes: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Disjoint boxes whose union is the union of `boxes` ((n, 4) rows of [row0, col0, row1,
+    col1); empty ones ignored), in the same form.
+
+    The plane is cut at every box edge; each band between consecutive row edges is covered by
+    maximal runs of column intervals, and a run continues the box of the band above when it
+    spans the same columns. A view refreshed box by box then recomputes no cell twice where
+    the neighbourhoods of nearby changes overlap.
+    """
+    a = np.asarray(boxes, dtype=np.int64).reshape(-1, 4)
+    a = a[(a[:, 2] > a[:, 0]) & (a[:, 3] > a[:, 1])]
+    if len(a) <= 1:
+        return a
+    return _disjoint_cover(a)
+
+
+def boxes_of(box: CellBox | None) -> NDArray[np.int64]:
+    """`box` as boxes in the (n, 4) form of `disjoint_cover` (no row for None or an empty box)."""
+    if box is None or box.is_empty:
+        return np.zeros((0, 4), dtype=np.int64)
+    return np.array([[box.row0, box.col0, box.row1, box.col1]], dtype=np.int64)
+
+
+def clipped(boxes: NDArray[np.int64], within: CellBox) -> NDArray[np.int64]:
+    """The parts of (n, 4) `boxes` inside `within`, boxes left empty dropped."""
+    lo = np.array([within.row0, within.col0, within.row0, within.col0])
+    hi = np.array([within.row1, within.col1, within.row1, within.col1])
+    inside = np.clip(np.asarray(boxes, dtype=np.int64).reshape(-1, 4), lo, hi)
+    return inside[(inside[:, 2] > inside[:, 0]) & (inside[:, 3] > inside[:, 1])]
+
+
+class BoxUnion:
+    """A growing union of boxes (where a view is out of date), in the (n, 4) form of
+    `disjoint_cover`. Parts are kept as added and merged into one disjoint cover once there are
+    `MERGE_AFTER` of them, so a union that is seldom taken stays bounded by the area it covers.
+    """
+
+    MERGE_AFTER = 64
+
+    def __init__(self) -> None:
+        self._parts: list[NDArray[np.int64]] = []
+
+    def __bool__(self) -> bool:
+        """Whether some box was added since the last `take`."""
+        return bool(self._parts)
+
+    def add(self, boxes: NDArray[np.int64]) -> None:
+        if len(boxes):
+            self._parts.append(boxes)
+        if len(self._parts) > self.MERGE_AFTER:
+            self._parts = [disjoint_cover(np.concatenate(self._parts))]
+
+    def take(self) -> NDArray[np.int64]:
+        """The union as disjoint boxes (no row: empty); the union is empty afterwards."""
+        parts, self._parts = self._parts, []
+        if not parts:
+            return boxes_of(None)
+        return disjoint_cover(np.concatenate(parts))

@@ -1,8 +1,18 @@
-"""Growth policy of growable arrays: holds what is needed, bounded spare, few reallocations."""
+"""Growth policy of growable arrays: holds what is needed, bounded spare, few reallocations;
+box sets (tiles, disjoint covers, unions) that views track their changes with."""
 
-from hypothesis import given
+import numpy as np
+from hypothesis import given, settings
 from hypothesis import strategies as st
-from scanflow.maps.grid import CellBox, grown_box
+from scanflow.maps.grid import (
+    BoxUnion,
+    CellBox,
+    boxes_of,
+    clipped,
+    disjoint_cover,
+    grown_box,
+    tile_boxes,
+)
 
 boxes = st.builds(
     lambda r, c, h, w: CellBox(r, c, r + h, c + w),
@@ -44,3 +54,86 @@ def test_steady_growth_reallocates_logarithmically_often():
         box = new
     assert box.shape[1] <= 1.5 * used.shape[1] + 1
     assert reallocations <= 16  # log_1.5(5010 / 16) ~ 14, plus the first
+
+
+def covered(boxes: np.ndarray, lo: int, hi: int) -> np.ndarray:
+    """Boolean raster of the union of (n, 4) boxes over rows and cols [lo, hi)."""
+    mask = np.zeros((hi - lo, hi - lo), dtype=bool)
+    for r0, c0, r1, c1 in np.asarray(boxes).reshape(-1, 4).tolist():
+        mask[max(r0, lo) - lo : max(r1, lo) - lo, max(c0, lo) - lo : max(c1, lo) - lo] = True
+    return mask
+
+
+small_boxes = st.lists(
+    st.tuples(st.integers(-30, 30), st.integers(-30, 30), st.integers(0, 12), st.integers(0, 12)),
+    max_size=25,
+).map(
+    lambda bs: np.array([(r, c, r + h, c + w) for r, c, h, w in bs], dtype=np.int64).reshape(-1, 4)
+)
+
+
+@settings(deadline=None)  # the first example compiles the kernel
+@given(boxes=small_boxes)
+def test_disjoint_cover_is_the_union_without_overlaps(boxes):
+    cover = disjoint_cover(boxes)
+    assert cover.shape[1:] == (4,)
+    assert ((cover[:, 2] > cover[:, 0]) & (cover[:, 3] > cover[:, 1])).all()
+    np.testing.assert_array_equal(covered(cover, -30, 45), covered(boxes, -30, 45))
+    areas = (cover[:, 2] - cover[:, 0]) * (cover[:, 3] - cover[:, 1])
+    assert areas.sum() == covered(boxes, -30, 45).sum()  # no cell twice
+
+
+def test_disjoint_cover_merges_runs_and_stacks_of_equal_runs():
+    # Two overlapping squares: three bands, the middle one a single run.
+    cover = disjoint_cover(np.array([[0, 0, 4, 4], [2, 2, 6, 6]]))
+    assert sorted(cover.tolist()) == [[0, 0, 2, 4], [2, 0, 4, 6], [4, 2, 6, 6]]
+    # Side by side and stacked: one box each.
+    assert disjoint_cover(np.array([[0, 0, 2, 3], [0, 3, 2, 5]])).tolist() == [[0, 0, 2, 5]]
+    assert disjoint_cover(np.array([[0, 0, 2, 3], [2, 0, 5, 3]])).tolist() == [[0, 0, 5, 3]]
+    assert disjoint_cover(np.array([[1, 1, 1, 5]])).shape == (0, 4)
+
+
+@given(
+    cells=st.lists(st.tuples(st.integers(-40, 40), st.integers(-40, 40)), max_size=40),
+    tile=st.integers(1, 9),
+)
+def test_tile_boxes_are_the_tiles_holding_the_cells(cells, tile):
+    c = np.array(cells, dtype=np.int64).reshape(-1, 2)
+    boxes = tile_boxes(c, tile)
+    assert (boxes % tile == 0).all()
+    areas = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
+    assert (boxes[:, 2] - boxes[:, 0] == tile).all()
+    tiles = {tuple(t) for t in (c // tile).tolist()}
+    assert areas.sum() == len(tiles) * tile * tile  # disjoint, and only the tiles holding cells
+    mask = covered(boxes, -45, 50)
+    assert mask[c[:, 0] + 45, c[:, 1] + 45].all()
+    # Runs are maximal: no two boxes of a row of tiles touch.
+    ends = {(r0, c1) for r0, _, _, c1 in boxes.tolist()}
+    assert not any((r0, c0) in ends for r0, c0, _, _ in boxes.tolist())
+
+
+@given(boxes=small_boxes, within=boxes)
+def test_clipped_keeps_the_parts_inside(boxes, within):
+    inside = clipped(boxes, within)
+    assert all(within.contains_box(CellBox(*b)) and not CellBox(*b).is_empty for b in inside)
+    lo, hi = -30, 45
+    mask = np.zeros((hi - lo, hi - lo), dtype=bool)
+    w = within.intersection(CellBox(lo, lo, hi, hi))
+    mask[w.row0 - lo : w.row1 - lo, w.col0 - lo : w.col1 - lo] = True
+    np.testing.assert_array_equal(covered(inside, lo, hi), covered(boxes, lo, hi) & mask)
+
+
+@settings(deadline=None)
+@given(parts=st.lists(small_boxes, max_size=8))
+def test_box_union_takes_the_union_of_what_was_added(parts):
+    union = BoxUnion()
+    union.MERGE_AFTER = 3  # merge on the way
+    for part in parts:
+        union.add(part)
+    everything = np.concatenate([np.zeros((0, 4), dtype=np.int64), *parts])
+    assert bool(union) == bool(len(everything))  # something was added since the last take
+    taken = union.take()
+    np.testing.assert_array_equal(covered(taken, -30, 45), covered(everything, -30, 45))
+    assert not union and union.take().shape == (0, 4)
+    assert boxes_of(None).shape == (0, 4) and boxes_of(CellBox(1, 2, 1, 5)).shape == (0, 4)
+    assert boxes_of(CellBox(1, 2, 3, 5)).tolist() == [[1, 2, 3, 5]]
