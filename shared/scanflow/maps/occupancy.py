@@ -22,7 +22,7 @@ sub-cell accuracy. Sums and count are halved when the count would pass 255, whic
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
@@ -87,14 +87,34 @@ class OccupancyParams:
         return _logit(p)
 
 
-@dataclass(frozen=True, slots=True)
+def _no_cells() -> NDArray[np.int64]:
+    return np.zeros((0, 2), dtype=np.int64)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
 class InsertResult:
-    """What one scan changed: every cell it updated, where the occupied mask flipped, and where
-    cells that are occupied after the scan got new hits (their mean hit point moved)."""
+    """What one scan changed: the box of every cell it updated, the (K, 2) lattice (row, col)
+    of the cells whose occupied mask flipped, and those of the cells occupied after the scan
+    that got new hits (their mean hit point moved; a cell hit twice is listed twice).
+
+    The changed cells, not their bounding boxes, are what views refresh around: a 360-degree
+    scan changes cells along the walls all around the sensor, a thin set whose box is often
+    most of the map.
+    """
 
     touched: CellBox | None
-    occupied_changed: CellBox | None
-    means_changed: CellBox | None = None
+    occupied_cells: NDArray[np.int64] = field(default_factory=_no_cells)
+    means_cells: NDArray[np.int64] = field(default_factory=_no_cells)
+
+    @property
+    def occupied_changed(self) -> CellBox | None:
+        """Bounding box of the cells whose occupied mask flipped (None: none did)."""
+        return CellBox.around(self.occupied_cells) if len(self.occupied_cells) else None
+
+    @property
+    def means_changed(self) -> CellBox | None:
+        """Bounding box of the occupied cells that got new hits (None: none did)."""
+        return CellBox.around(self.means_cells) if len(self.means_cells) else None
 
 
 def _as_points(name: str, value: ArrayLike) -> NDArray[np.float64]:
@@ -108,9 +128,12 @@ def _as_points(name: str, value: ArrayLike) -> NDArray[np.float64]:
 
 
 @njit(cache=True)
-def _pooled_hit_means(log_odds, observed, hit_xy, hit_n, threshold, row0, col0, rows, cols, factor):  # type: ignore[no-untyped-def]
+def _pooled_hit_means(  # type: ignore[no-untyped-def]
+    log_odds, observed, hit_xy, hit_n, threshold, row0, col0, rows, cols, factor, out_row0, out_col0
+):
     """See OccupancyGrid.occupied_hit_means; (row0, col0) is the fine box's first cell in
-    storage indices (the box may reach outside the storage: those cells are empty)."""
+    storage indices (the box may reach outside the storage: those cells are empty), (out_row0,
+    out_col0) the coarse box's first cell in the output frame."""
     out = np.empty((rows * cols, 2))
     n_out = 0
     stored_rows, stored_cols = log_odds.shape
@@ -137,8 +160,8 @@ def _pooled_hit_means(log_odds, observed, hit_xy, hit_n, threshold, row0, col0, 
                         sy += 0.5 + i
                         n += 1.0
             if n > 0:
-                out[n_out, 0] = cr + min(max(sy / (factor * n), 0.0), 1.0) - 0.5
-                out[n_out, 1] = cc + min(max(sx / (factor * n), 0.0), 1.0) - 0.5
+                out[n_out, 0] = (out_row0 + cr) + min(max(sy / (factor * n), 0.0), 1.0) - 0.5
+                out[n_out, 1] = (out_col0 + cc) + min(max(sx / (factor * n), 0.0), 1.0) - 0.5
                 n_out += 1
     return out[:n_out]
 
@@ -158,6 +181,24 @@ def _accumulate_hits(hit_xy, hit_n, rows, cols, units):  # type: ignore[no-untyp
         hit_xy[1, r, c] += units[k, 1]
 
 
+@njit(cache=True)
+def _occupied_windows(log_odds, observed, threshold, boxes, row0, col0):  # type: ignore[no-untyped-def]
+    """See OccupancyGrid.occupied_in_boxes; (row0, col0) is the storage's first cell."""
+    sizes = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
+    starts = np.zeros(len(boxes) + 1, dtype=np.int64)
+    starts[1:] = np.cumsum(sizes)
+    out = np.zeros(starts[-1], dtype=np.bool_)
+    stored_rows, stored_cols = log_odds.shape
+    for k in range(len(boxes)):
+        width = boxes[k, 3] - boxes[k, 1]
+        for r in range(max(boxes[k, 0], row0), min(boxes[k, 2], row0 + stored_rows)):
+            at = starts[k] + (r - boxes[k, 0]) * width - boxes[k, 1]
+            sr = r - row0
+            for c in range(max(boxes[k, 1], col0), min(boxes[k, 3], col0 + stored_cols)):
+                out[at + c] = observed[sr, c - col0] and log_odds[sr, c - col0] > threshold
+    return out, starts
+
+
 def _quantised_hit_sums(
     hit_sums: NDArray[np.floating], shape: tuple[int, int]
 ) -> tuple[NDArray[np.uint16], NDArray[np.uint8]]:
@@ -175,20 +216,6 @@ def _quantised_hit_sums(
     most = count * (HIT_UNITS_PER_CELL - 1)
     xy = np.clip(np.rint((h[:2] * HIT_UNITS_PER_CELL - 0.5 * h[2]) / scale), 0, most)
     return xy.astype(np.uint16), count.astype(np.uint8)
-
-
-def _true_box(mask: NDArray[np.bool_], box: CellBox) -> CellBox | None:
-    """Lattice bounding box of the True cells of a mask that stores `box` (None if none)."""
-    rows = np.flatnonzero(mask.any(axis=1))
-    if rows.size == 0:
-        return None
-    cols = np.flatnonzero(mask.any(axis=0))
-    return CellBox(
-        box.row0 + int(rows[0]),
-        box.col0 + int(cols[0]),
-        box.row0 + int(rows[-1]) + 1,
-        box.col0 + int(cols[-1]) + 1,
-    )
 
 
 class OccupancyGrid:
@@ -350,10 +377,13 @@ class OccupancyGrid:
         out[:2] = (self._hit_xy[:, rows, cols] + 0.5 * out[2]) / np.float32(HIT_UNITS_PER_CELL)
         return out
 
-    def occupied_hit_means(self, box: CellBox, factor: int = 1) -> NDArray[np.float64]:
+    def occupied_hit_means(
+        self, box: CellBox, factor: int = 1, frame: CellBox | None = None
+    ) -> NDArray[np.float64]:
         """(K, 2) mean hit points of the occupied cells of the `factor`-times-coarser lattice
-        over `box` (a box of that lattice), as fractional (row, col) of the box with cell
-        centres at integers.
+        over `box` (a box of that lattice), as fractional (row, col) with cell centres at
+        integers, counted from the first cell of `frame` (default: `box`): a field refreshed
+        over one box reads the obstacles of a larger one around it.
 
         A coarse cell pools the hits of the occupied fine cells it covers; an occupied fine cell
         without recorded hits (a map imported without them) counts as one hit at its centre.
@@ -374,6 +404,8 @@ class OccupancyGrid:
             box.shape[0],
             box.shape[1],
             factor,
+            box.row0 - (frame or box).row0,
+            box.col0 - (frame or box).col0,
         )
 
     def probability(self) -> NDArray[np.float64]:
@@ -407,6 +439,24 @@ class OccupancyGrid:
             lo > self.params.threshold_log_odds(threshold)
         )
         return out
+
+    def occupied_in_boxes(
+        self, boxes: NDArray[np.int64]
+    ) -> tuple[NDArray[np.bool_], NDArray[np.int64]]:
+        """The occupied masks (default threshold) of the (n, 4) lattice boxes [row0, col0, row1,
+        col1), each row-major and False outside the stored area, concatenated: box k's is
+        `flat[starts[k]:starts[k + 1]]`. One pass for many small boxes (the blocks a scan's
+        changes dirty), where `occupied_in` per box would cost more in calls than in cells."""
+        b = np.ascontiguousarray(boxes, dtype=np.int64).reshape(-1, 4)
+        storage = self._storage or CellBox(0, 0, 0, 0)
+        return _occupied_windows(
+            self._log_odds,
+            self._observed,
+            np.float32(self.params.threshold_log_odds()),
+            b,
+            storage.row0,
+            storage.col0,
+        )
 
     # ---- writing --------------------------------------------------------------------------
 
@@ -469,7 +519,7 @@ class OccupancyGrid:
                 f"max_range_m {self.params.max_range_m} m"
             )
         if hits.shape[0] == 0 and misses.shape[0] == 0:
-            return InsertResult(None, None)
+            return InsertResult(None)
 
         origin_cell = self.world_to_cells(origin)
         hit_cells = self.world_to_cells(hits)
@@ -502,9 +552,10 @@ class OccupancyGrid:
 
         self._extent = box.union(self._extent)
         self.revision += 1
-        return InsertResult(
-            box, _true_box(flipped, box), _true_box(hit_mask & occupied_after, box)
-        )
+        corner = np.array([box.row0, box.col0])
+        hit_in_box = hit_cells - corner
+        moved = occupied_after[hit_in_box[:, 0], hit_in_box[:, 1]]
+        return InsertResult(box, np.argwhere(flipped) + corner, hit_cells[moved])
 
     def _add_hits(
         self, hits: NDArray[np.float64], hit_cells: NDArray[np.int64], storage: CellBox

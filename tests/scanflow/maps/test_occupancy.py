@@ -30,6 +30,7 @@ def test_beam_clears_free_space_and_marks_its_end():
     result = grid.insert_scan([[1.025, 0.025]], (0.025, 0.025))
     assert result.touched == CellBox(0, 0, 1, 21)
     assert result.occupied_changed == CellBox(0, 20, 1, 21)
+    assert result.occupied_cells.tolist() == result.means_cells.tolist() == [[0, 20]]
     assert grid.spec.shape == (1, 21)
     np.testing.assert_allclose(grid.log_odds[0, :20], params.miss_log_odds, rtol=1e-6)
     assert grid.log_odds[0, 20] == pytest.approx(params.hit_log_odds, rel=1e-6)
@@ -128,6 +129,83 @@ def test_small_initial_capacity_gives_the_same_map_as_a_large_one(scans):
     assert small.extent == large.extent
     np.testing.assert_array_equal(small.log_odds, large.log_odds)
     np.testing.assert_array_equal(small.observed, large.observed)
+
+
+def occupancy_and_sums(grid: OccupancyGrid, box: CellBox) -> tuple[np.ndarray, np.ndarray]:
+    """Occupied mask and hit sums over a lattice box (empty outside the extent)."""
+    occupied = grid.occupied_in(box)
+    sums = np.zeros((3, *box.shape), dtype=np.float32)
+    if grid.extent is not None:
+        inner = box.intersection(grid.extent)
+        sums[(slice(None), *inner.slices_in(box))] = grid.hit_sums[
+            (slice(None), *inner.slices_in(grid.extent))
+        ]
+    return occupied, sums
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    scans=st.lists(
+        st.tuples(st.floats(-3, 3), st.floats(-3, 3), st.floats(0.2, 3.0), st.integers(1, 60)),
+        min_size=1,
+        max_size=6,
+    )
+)
+def test_insert_reports_exactly_the_cells_that_changed(scans):
+    """`occupied_cells` are the cells whose occupied mask flipped (both ways), `means_cells`
+    the cells occupied after the scan whose hit sums changed; the boxes are theirs."""
+    grid = OccupancyGrid(OccupancyParams(p_hit=0.7, p_miss=0.3), initial_capacity_cells=4)
+    area = CellBox(-200, -200, 200, 200)
+    for x, y, radius, beams in scans:
+        occupied_before, sums_before = occupancy_and_sums(grid, area)
+        result = grid.insert_scan(ring((x, y), radius, beams), (x, y))
+        occupied_after, sums_after = occupancy_and_sums(grid, area)
+        corner = np.array([area.row0, area.col0])
+        flipped = np.argwhere(occupied_before != occupied_after) + corner
+        np.testing.assert_array_equal(np.unique(result.occupied_cells, axis=0), flipped)
+        moved = occupied_after & (sums_before != sums_after).any(axis=0)
+        np.testing.assert_array_equal(
+            np.unique(result.means_cells, axis=0), np.argwhere(moved) + corner
+        )
+        for box, cells in (
+            (result.occupied_changed, result.occupied_cells),
+            (result.means_changed, result.means_cells),
+        ):
+            assert box == (CellBox.around(cells) if len(cells) else None)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    boxes=st.lists(
+        st.tuples(
+            st.integers(-80, 80), st.integers(-80, 80), st.integers(0, 50), st.integers(0, 50)
+        ),
+        max_size=6,
+    ),
+    factor=st.sampled_from([1, 2, 4]),
+    shift=st.tuples(st.integers(-5, 5), st.integers(-5, 5)),
+)
+def test_many_boxes_read_like_one_at_a_time(boxes, factor, shift):
+    """occupied_in_boxes: each box's window is occupied_in of that box (also past the storage);
+    occupied_hit_means in another box's frame: the same points, shifted by the corners."""
+    grid = OccupancyGrid(initial_capacity_cells=4)
+    grid.insert_scan(ring((0.3, -0.2), 2.0, beams=120), (0.3, -0.2))
+    grid.insert_scan(ring((1.0, 0.5), 1.2, beams=60), (1.0, 0.5))
+    b = np.array([(r, c, r + h, c + w) for r, c, h, w in boxes], dtype=np.int64).reshape(-1, 4)
+    flat, starts = grid.occupied_in_boxes(b)
+    assert len(starts) == len(b) + 1 and starts[-1] == len(flat)
+    for k, row in enumerate(b.tolist()):
+        box = CellBox(*row)
+        window = flat[starts[k] : starts[k + 1]].reshape(box.shape)
+        np.testing.assert_array_equal(window, grid.occupied_in(box))
+        coarse = box.coarsened(factor)
+        frame = coarse.shifted(*shift)
+        np.testing.assert_allclose(
+            grid.occupied_hit_means(coarse, factor, frame=frame),
+            grid.occupied_hit_means(coarse, factor) - np.array(shift),
+            rtol=0,
+            atol=1e-12,
+        )
 
 
 def test_bad_input_raises_and_leaves_the_grid_unchanged():
