@@ -244,6 +244,26 @@ def grown_box(old: CellBox | None, need: CellBox, minimum_cells: int = 1) -> Cel
     return CellBox(r0, c0, r1, c1)
 
 
+@njit(cache=True)
+def _tile_runs(cells, tile):  # type: ignore[no-untyped-def]
+    """See tile_boxes (at least one cell)."""
+    rows, cols = cells[:, 0] // tile, cells[:, 1] // tile
+    row0, col0 = rows.min(), cols.min()
+    width = cols.max() - col0 + 2  # a spare column: runs never wrap to the next row
+    keys = np.unique((rows - row0) * width + (cols - col0))
+    out = np.empty((len(keys), 4), dtype=np.int64)
+    n = 0
+    for i in range(len(keys)):
+        if i > 0 and keys[i] == keys[i - 1] + 1:
+            out[n - 1, 3] += tile
+            continue
+        row, col = keys[i] // width + row0, keys[i] % width + col0
+        out[n, 0], out[n, 1] = row * tile, col * tile
+        out[n, 2], out[n, 3] = (row + 1) * tile, (col + 1) * tile
+        n += 1
+    return out[:n]
+
+
 def tile_boxes(cells: NDArray[np.int64], tile: int) -> NDArray[np.int64]:
     """The `tile` x `tile` tiles of the lattice (aligned to cell (0, 0)) holding some of the
     (K, 2) `cells`, as boxes (n, 4): rows of [row0, col0, row1, col1), each a run of adjacent
@@ -253,19 +273,10 @@ def tile_boxes(cells: NDArray[np.int64], tile: int) -> NDArray[np.int64]:
     bounding box would often span the map."""
     if tile < 1:
         raise ValueError(f"tile must be >= 1, got {tile}")
-    t = np.asarray(cells, dtype=np.int64).reshape(-1, 2) // tile
-    if len(t) == 0:
+    c = np.ascontiguousarray(cells, dtype=np.int64).reshape(-1, 2)
+    if len(c) == 0:
         return np.zeros((0, 4), dtype=np.int64)
-    lo = t.min(axis=0)
-    width = int(t[:, 1].max() - lo[1]) + 2  # a spare column: runs never wrap to the next row
-    key = np.unique((t[:, 0] - lo[0]) * width + (t[:, 1] - lo[1]))
-    new = np.ones(len(key), dtype=bool)
-    new[1:] = np.diff(key) != 1
-    first = key[new]
-    last = key[np.append(new[1:], True)]
-    row, col0 = np.divmod(first, width)
-    col1 = last - row * width + 1
-    return np.column_stack((row + lo[0], col0 + lo[1], row + lo[0] + 1, col1 + lo[1])) * tile
+    return _tile_runs(c, tile)
 
 
 @njit(cache=True)

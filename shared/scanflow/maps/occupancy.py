@@ -28,7 +28,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
-from scanflow.maps.grid import CellBox, GridSpec, grown_box
+from scanflow.maps.grid import CellBox, GridSpec, boxes_of, grown_box
 from scanflow.maps.raycast import mark_rays
 
 HIT_UNITS_PER_CELL = 256  # hit offsets are stored in 1/256 of a cell
@@ -128,41 +128,43 @@ def _as_points(name: str, value: ArrayLike) -> NDArray[np.float64]:
 
 
 @njit(cache=True)
-def _pooled_hit_means(  # type: ignore[no-untyped-def]
-    log_odds, observed, hit_xy, hit_n, threshold, row0, col0, rows, cols, factor, out_row0, out_col0
-):
-    """See OccupancyGrid.occupied_hit_means; (row0, col0) is the fine box's first cell in
-    storage indices (the box may reach outside the storage: those cells are empty), (out_row0,
-    out_col0) the coarse box's first cell in the output frame."""
-    out = np.empty((rows * cols, 2))
+def _pooled_hit_means(log_odds, observed, hit_xy, hit_n, threshold, boxes, factor, row0, col0):  # type: ignore[no-untyped-def]
+    """See OccupancyGrid.occupied_hit_means_in: `boxes` (n, 4) of the coarse lattice counted
+    from the frame's first cell, (row0, col0) the frame's first fine cell in storage indices
+    (boxes may reach outside the storage: those cells are empty)."""
+    total = 0
+    for k in range(boxes.shape[0]):
+        total += (boxes[k, 2] - boxes[k, 0]) * (boxes[k, 3] - boxes[k, 1])
+    out = np.empty((total, 2))
     n_out = 0
     stored_rows, stored_cols = log_odds.shape
-    for cr in range(rows):
-        for cc in range(cols):
-            sx = sy = n = 0.0
-            for i in range(factor):
-                r = row0 + cr * factor + i
-                if r < 0 or r >= stored_rows:
-                    continue
-                for j in range(factor):
-                    c = col0 + cc * factor + j
-                    if c < 0 or c >= stored_cols or not observed[r, c]:
+    for k in range(boxes.shape[0]):
+        for cr in range(boxes[k, 0], boxes[k, 2]):
+            for cc in range(boxes[k, 1], boxes[k, 3]):
+                sx = sy = n = 0.0
+                for i in range(factor):
+                    r = row0 + cr * factor + i
+                    if r < 0 or r >= stored_rows:
                         continue
-                    if log_odds[r, c] <= threshold:
-                        continue
-                    count = float(hit_n[r, c])
-                    if count > 0:
-                        sx += (hit_xy[0, r, c] + 0.5 * count) / HIT_UNITS_PER_CELL + j * count
-                        sy += (hit_xy[1, r, c] + 0.5 * count) / HIT_UNITS_PER_CELL + i * count
-                        n += count
-                    else:
-                        sx += 0.5 + j
-                        sy += 0.5 + i
-                        n += 1.0
-            if n > 0:
-                out[n_out, 0] = (out_row0 + cr) + min(max(sy / (factor * n), 0.0), 1.0) - 0.5
-                out[n_out, 1] = (out_col0 + cc) + min(max(sx / (factor * n), 0.0), 1.0) - 0.5
-                n_out += 1
+                    for j in range(factor):
+                        c = col0 + cc * factor + j
+                        if c < 0 or c >= stored_cols or not observed[r, c]:
+                            continue
+                        if log_odds[r, c] <= threshold:
+                            continue
+                        count = float(hit_n[r, c])
+                        if count > 0:
+                            sx += (hit_xy[0, r, c] + 0.5 * count) / HIT_UNITS_PER_CELL + j * count
+                            sy += (hit_xy[1, r, c] + 0.5 * count) / HIT_UNITS_PER_CELL + i * count
+                            n += count
+                        else:
+                            sx += 0.5 + j
+                            sy += 0.5 + i
+                            n += 1.0
+                if n > 0:
+                    out[n_out, 0] = cr + min(max(sy / (factor * n), 0.0), 1.0) - 0.5
+                    out[n_out, 1] = cc + min(max(sx / (factor * n), 0.0), 1.0) - 0.5
+                    n_out += 1
     return out[:n_out]
 
 
@@ -382,30 +384,35 @@ class OccupancyGrid:
     ) -> NDArray[np.float64]:
         """(K, 2) mean hit points of the occupied cells of the `factor`-times-coarser lattice
         over `box` (a box of that lattice), as fractional (row, col) with cell centres at
-        integers, counted from the first cell of `frame` (default: `box`): a field refreshed
-        over one box reads the obstacles of a larger one around it.
+        integers, counted from the first cell of `frame` (default: `box`).
 
         A coarse cell pools the hits of the occupied fine cells it covers; an occupied fine cell
         without recorded hits (a map imported without them) counts as one hit at its centre.
         """
+        return self.occupied_hit_means_in(boxes_of(box), factor, frame or box)
+
+    def occupied_hit_means_in(
+        self, boxes: NDArray[np.int64], factor: int, frame: CellBox
+    ) -> NDArray[np.float64]:
+        """`occupied_hit_means` of every box of the disjoint (n, 4) boxes [row0, col0, row1,
+        col1) of the coarser lattice, box after box, counted from the first cell of `frame`: a
+        field refreshed over some boxes reads the obstacles of larger ones around them, in one
+        pass."""
         if factor < 1:
             raise ValueError(f"factor must be >= 1, got {factor}")
-        if self._storage is None or box.is_empty:
+        if self._storage is None:
             return np.zeros((0, 2))
-        fine = box.refined(factor)
+        corner = np.array([frame.row0, frame.col0, frame.row0, frame.col0])
         return _pooled_hit_means(
             self._log_odds,
             self._observed,
             self._hit_xy,
             self._hit_n,
             np.float32(self.params.threshold_log_odds()),
-            fine.row0 - self._storage.row0,
-            fine.col0 - self._storage.col0,
-            box.shape[0],
-            box.shape[1],
+            np.ascontiguousarray(boxes, dtype=np.int64).reshape(-1, 4) - corner,
             factor,
-            box.row0 - (frame or box).row0,
-            box.col0 - (frame or box).col0,
+            frame.row0 * factor - self._storage.row0,
+            frame.col0 * factor - self._storage.col0,
         )
 
     def probability(self) -> NDArray[np.float64]:

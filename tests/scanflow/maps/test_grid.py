@@ -93,6 +93,7 @@ def test_disjoint_cover_merges_runs_and_stacks_of_equal_runs():
     assert disjoint_cover(np.array([[1, 1, 1, 5]])).shape == (0, 4)
 
 
+@settings(deadline=None)  # the first example compiles the kernel
 @given(
     cells=st.lists(st.tuples(st.integers(-40, 40), st.integers(-40, 40)), max_size=40),
     tile=st.integers(1, 9),

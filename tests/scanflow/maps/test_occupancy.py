@@ -187,13 +187,26 @@ def test_insert_reports_exactly_the_cells_that_changed(scans):
 )
 def test_many_boxes_read_like_one_at_a_time(boxes, factor, shift):
     """occupied_in_boxes: each box's window is occupied_in of that box (also past the storage);
-    occupied_hit_means in another box's frame: the same points, shifted by the corners."""
+    occupied_hit_means in another box's frame: the same points, shifted by the corners;
+    occupied_hit_means_in: those of each box, one after the other."""
     grid = OccupancyGrid(initial_capacity_cells=4)
     grid.insert_scan(ring((0.3, -0.2), 2.0, beams=120), (0.3, -0.2))
     grid.insert_scan(ring((1.0, 0.5), 1.2, beams=60), (1.0, 0.5))
     b = np.array([(r, c, r + h, c + w) for r, c, h, w in boxes], dtype=np.int64).reshape(-1, 4)
     flat, starts = grid.occupied_in_boxes(b)
     assert len(starts) == len(b) + 1 and starts[-1] == len(flat)
+    frame = CellBox(*shift, *shift)
+    coarse = [CellBox(*row).coarsened(factor) for row in b.tolist()]
+    np.testing.assert_array_equal(
+        grid.occupied_hit_means_in(
+            np.array([[c.row0, c.col0, c.row1, c.col1] for c in coarse]).reshape(-1, 4),
+            factor,
+            frame,
+        ),
+        np.concatenate(
+            [np.zeros((0, 2))] + [grid.occupied_hit_means(c, factor, frame) for c in coarse]
+        ),
+    )
     for k, row in enumerate(b.tolist()):
         box = CellBox(*row)
         window = flat[starts[k] : starts[k + 1]].reshape(box.shape)
