@@ -4,11 +4,13 @@ A simulated 40 m x 40 m building (4 x 4 rooms of 10 m with 1.2 m doors) is mappe
 a robot driving a serpentine through every row of rooms with a 360-beam, 10 m lidar, one scan
 every 0.25 m; then it drives the same path again over the mapped area (steady state).
 
-With --data LOG, also the matching views that csm and NDT read, on a real log's map (every
-keyframe inserted at its corrected pose): the per-scan refresh of the max-pool stack, of the
-NDT cells and of the overlapping NDT cells the ndt matcher reads (its three cell sizes) while
-the map is small (after --small-scans scans) and at the end, each next to the full rebuild it
-replaces. The refresh should not grow with the map; the rebuild does.
+With --data LOG, also the matching views that gn, csm and NDT read, on a real log's map (every
+keyframe inserted at its corrected pose): the per-scan refresh of the level-0 likelihood field,
+of the 3-level pyramid, of the max-pool stack, of the NDT cells and of the overlapping NDT
+cells the ndt matcher reads (its three cell sizes) while the map is small (after --small-scans
+scans) and at the end, each next to the full rebuild it replaces. The refresh should not grow
+with the map; the rebuild does. --tile-cells sets the side of the tiles the fields track
+changes by (default: the library's).
 
     python -m bench.maps [--json] [--step-m 0.25] [--rebuilds 5]
     python -m bench.maps --data ../shared/data/intel-corrected.log.gz --views-only [--json]
@@ -180,8 +182,15 @@ def rebuild_views(world: MatchingMap, rebuilds: int) -> dict[str, dict[str, floa
     of the occupied cells (the NDT cells from freshly listed occupied cell centres), and the
     ndt matcher's overlapping cells as it built them on every match."""
     field = world.likelihood_field(0)
-    spec, occupied = world.grid.spec, world.grid.occupied_mask()
-    anchor = (world.grid.anchor_x_m, world.grid.anchor_y_m)
+    grid = world.grid
+    spec, occupied = grid.spec, grid.occupied_mask()
+    anchor = (grid.anchor_x_m, grid.anchor_y_m)
+
+    def rebuild_field0() -> None:
+        MatchingMap(grid).likelihood_field(0)
+
+    def rebuild_pyramid() -> None:
+        MatchingMap(grid).likelihood_pyramid(PYRAMID_LEVELS)
 
     def rebuild_stack() -> None:
         MaxPoolStack.from_values(field.spec, field.values, STACK_DEPTH)
@@ -194,7 +203,13 @@ def rebuild_views(world: MatchingMap, rebuilds: int) -> dict[str, dict[str, floa
         for size in NDT_SIZES_M:
             OverlappingCells.from_points(centres, size, anchor)
 
-    builds = {"maxpool": rebuild_stack, "ndt": rebuild_ndt, "overlapping": rebuild_overlapping}
+    builds = {
+        "field0": rebuild_field0,
+        "pyramid": rebuild_pyramid,
+        "maxpool": rebuild_stack,
+        "ndt": rebuild_ndt,
+        "overlapping": rebuild_overlapping,
+    }
     for build in builds.values():
         build()  # compiled kernels loaded outside the timings
     return {
@@ -204,10 +219,15 @@ def rebuild_views(world: MatchingMap, rebuilds: int) -> dict[str, dict[str, floa
 
 
 def view_refresh(
-    log: Path, small_scans: int, samples: int, rebuilds: int, limit: int | None
+    log: Path,
+    small_scans: int,
+    samples: int,
+    rebuilds: int,
+    limit: int | None,
+    tile_cells: int | None = None,
 ) -> dict[str, object]:
-    """Per-scan refresh of the max-pool stack and NDT cells on a real log's map, while it is
-    small and at the end, next to rebuilding them whole (what MatchingMap did before)."""
+    """Per-scan refresh of the fields, the max-pool stack and the NDT cells on a real log's
+    map, while it is small and at the end, next to rebuilding them whole."""
     frames = load_keyframes(log)[:limit]
     if small_scans + 2 * samples > len(frames):
         need = small_scans + 2 * samples
@@ -216,15 +236,18 @@ def view_refresh(
         "small": range(small_scans, small_scans + samples),
         "large": range(len(frames) - samples, len(frames)),
     }
-    world = MatchingMap()
-    out: dict[str, object] = {"log": log.name, "scans": len(frames)}
-    samples_ms: dict[str, list[float]] = {"field0": [], "maxpool": [], "ndt": [], "overlapping": []}
+    world = MatchingMap() if tile_cells is None else MatchingMap(tile_cells=tile_cells)
+    out: dict[str, object] = {"log": log.name, "scans": len(frames), "tile_cells": tile_cells}
+    views = ("field0", "pyramid", "maxpool", "ndt", "overlapping")
+    samples_ms: dict[str, list[float]] = {view: [] for view in views}
     for i, frame in enumerate(frames):
         pose = frame.true_pose
         world.update(pose.transform_points(frame.scan.points()), (pose.x, pose.y))
         # Views read after every scan, as a front end would: each refresh covers one scan.
+        field0_s = timed(lambda: world.likelihood_field(0))
         times = {
-            "field0": timed(lambda: world.likelihood_field(0)),
+            "field0": field0_s,
+            "pyramid": field0_s + timed(lambda: world.likelihood_pyramid(PYRAMID_LEVELS)),
             "maxpool": timed(lambda: world.maxpool_stack(STACK_DEPTH)),
             "ndt": timed(lambda: world.ndt_cells(NDT_CELL_M)),
             "overlapping": timed(
@@ -289,7 +312,7 @@ def print_views(v: dict[str, object]) -> None:
             f"({w['mapped_area_m2']} m^2), {w['occupied_cells']} occupied, "
             f"{w['ndt_cells']} NDT cells"
         )
-        for view in ("maxpool", "ndt", "overlapping"):
+        for view in ("field0", "pyramid", "maxpool", "ndt", "overlapping"):
             fresh, full = w[f"{view}_refresh_ms"], w[f"{view}_rebuild_ms"]
             print(
                 f"  {view:11s} refresh after one scan mean {fresh['mean']} p95 {fresh['p95']} "
@@ -307,13 +330,14 @@ def main() -> None:
     parser.add_argument("--small-scans", type=int, default=100, help="scans in the small map")
     parser.add_argument("--samples", type=int, default=50, help="scans timed per map size")
     parser.add_argument("--limit", type=int, help="use only the log's first LIMIT keyframes")
+    parser.add_argument("--tile-cells", type=int, help="side of the fields' dirty tiles")
     args = parser.parse_args()
     if args.views_only and args.data is None:
         parser.error("--views-only needs --data")
     result = {} if args.views_only else run(args.step_m, args.rebuilds)
     if args.data is not None:
         result["views"] = view_refresh(
-            args.data, args.small_scans, args.samples, args.rebuilds, args.limit
+            args.data, args.small_scans, args.samples, args.rebuilds, args.limit, args.tile_cells
         )
     if args.json:
         print(json.dumps(result, indent=2))

@@ -38,7 +38,7 @@ LOG = DATA / "intel-corrected.log.gz"
 
 @pytest.mark.skipif(not LOG.exists(), reason=f"real log {LOG} not available")
 def test_bench_maps_times_view_refresh_and_rebuild_on_a_small_and_a_large_map():
-    args = ["--json", "--views-only", "--data", str(LOG), "--limit", "60"]
+    args = ["--json", "--views-only", "--data", str(LOG), "--limit", "60", "--tile-cells", "8"]
     out = subprocess.run(
         [sys.executable, "-m", "bench.maps", *args, "--small-scans", "10", "--samples", "5"],
         cwd=REPO,
@@ -48,14 +48,13 @@ def test_bench_maps_times_view_refresh_and_rebuild_on_a_small_and_a_large_map():
         timeout=120,
     )
     views = json.loads(out.stdout)["views"]
-    assert views["scans"] == 60 and "phases" not in views
+    assert views["scans"] == 60 and views["tile_cells"] == 8 and "phases" not in views
     small, large = views["small"], views["large"]
     assert (small["after_scans"], large["after_scans"]) == (15, 60)
     assert 0 < small["occupied_cells"] <= large["occupied_cells"]
     for window in (small, large):
         assert window["ndt_cells"] > 0 and len(window["overlapping_blocks"]) == 3
         assert all(blocks > 0 for blocks in window["overlapping_blocks"])
-        for view in ("field0", "maxpool", "ndt", "overlapping"):
+        for view in ("field0", "pyramid", "maxpool", "ndt", "overlapping"):
             assert window[f"{view}_refresh_ms"]["p50"] <= window[f"{view}_refresh_ms"]["max"]
-        for view in ("maxpool", "ndt", "overlapping"):
             assert window[f"{view}_rebuild_ms"]["mean"] > 0

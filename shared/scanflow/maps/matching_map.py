@@ -2,14 +2,16 @@
 
 The likelihood fields (one per pyramid level) measure distances to each occupied cell's mean
 hit point (sub-cell accurate walls; cell centres for maps imported without hit sums). They are
-refreshed lazily, on first access after an update, and only around where the scan flipped cells
-between free/unknown and occupied or added hits to occupied cells. The views derived from them
-follow the same way: a max-pool stack re-pools only where its level's field values changed
-(`FieldLayer.take_changes`), and NDT cells (plain, and the four overlapping grids the `ndt`
-matcher reads) recompute only the cells overlapping the box where cells flipped. So keeping
-every view current costs in proportion to the region a scan touched, not to the map; their
-arrays grow amortised with the map (O(log size) re-layouts). Only the occupied points are
-rebuilt whole (on first access after the occupied cells changed).
+refreshed lazily, on first access after an update, and only around the tiles where the scan
+flipped cells between free/unknown and occupied or added hits to occupied cells (a 360-degree
+scan changes cells along every wall it sees: a thin set, whose one bounding box would often be
+the whole map). The views derived from them follow the same way: a max-pool stack re-pools
+only the boxes where its level's field values changed (`FieldLayer.take_changes`), and NDT
+cells (plain, and the four overlapping grids the `ndt` matcher reads) recompute only the cells
+holding cells that flipped. So keeping every view current costs in proportion to the region a
+scan touched, not to the map; their arrays grow amortised with the map (O(log size)
+re-layouts). Only the occupied points are rebuilt whole (on first access after the occupied
+cells changed).
 
 The default field sigma is 2 cells of the grid (0.10 m at 5 cm): wide enough for a smooth
 gradient across a wall and a basin of a few cells, narrow enough to keep walls distinct; level k
@@ -26,7 +28,7 @@ from scanflow.maps.field import LikelihoodField
 from scanflow.maps.maxpool import MaxPoolStack, MaxPoolStore
 from scanflow.maps.ndt_cells import GridNDTCells, GridOverlappingCells, NDTCells, OverlappingCells
 from scanflow.maps.occupancy import InsertResult, OccupancyGrid
-from scanflow.maps.pyramid import FieldLayer
+from scanflow.maps.pyramid import TILE_CELLS, FieldLayer
 
 
 class MatchingMap:
@@ -38,7 +40,9 @@ class MatchingMap:
         *,
         sigma_cells: float = 2.0,
         cutoff_sigmas: float = 4.0,
+        tile_cells: int = TILE_CELLS,
     ) -> None:
+        """`tile_cells`: side of the tiles the fields track changes by (see FieldLayer)."""
         if not sigma_cells > 0:
             raise ValueError(f"sigma_cells must be positive, got {sigma_cells}")
         if not cutoff_sigmas > 0:
@@ -46,6 +50,7 @@ class MatchingMap:
         self.grid = grid if grid is not None else OccupancyGrid()
         self.sigma_m = sigma_cells * self.grid.resolution_m
         self.cutoff_sigmas = cutoff_sigmas
+        self.tile_cells = tile_cells
         self._layers: dict[int, FieldLayer] = {}
         self._occupied_points: NDArray[np.float64] | None = None
         self._pools: dict[tuple[int, int], MaxPoolStore] = {}
@@ -97,15 +102,15 @@ class MatchingMap:
         self._sync()
         result = self.grid.insert_scan(points_world, sensor_origin, no_return_endpoints)
         self._seen_revision = self.grid.revision
-        moved = result.means_changed
-        dirty = moved if result.occupied_changed is None else result.occupied_changed.union(moved)
-        if dirty is not None:
+        flipped = result.occupied_cells
+        if len(flipped) or len(result.means_cells):
+            dirty = np.concatenate((flipped, result.means_cells))
             for layer in self._layers.values():
                 layer.mark_dirty(dirty)
-        if result.occupied_changed is not None:
+        if len(flipped):
             self._occupied_points = None
             for cells in (*self._ndt.values(), *self._overlapping.values()):
-                cells.mark_dirty(result.occupied_changed)
+                cells.mark_dirty(flipped)
         return result
 
     def _layer(self, level: int) -> FieldLayer:
@@ -115,7 +120,9 @@ class MatchingMap:
         layer = self._layers.get(level)
         if layer is None:
             sigma_m = self.sigma_m * 2**level
-            layer = FieldLayer(self.grid, 2**level, sigma_m, self.cutoff_sigmas * sigma_m)
+            layer = FieldLayer(
+                self.grid, 2**level, sigma_m, self.cutoff_sigmas * sigma_m, self.tile_cells
+            )
             self._layers[level] = layer
         return layer
 

@@ -8,7 +8,7 @@ the leaf scores are compared without rounding.
 
 A change of level 0 inside a box changes level h only inside that box grown by 2**h - 1 cells
 towards lower rows and columns, which is what lets `MaxPoolStore` follow a changing grid (a
-map's likelihood field) by re-pooling just that neighbourhood.
+map's likelihood field) by re-pooling just that neighbourhood of each box that changed.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from scanflow.maps.grid import CellBox, GridSpec
+from scanflow.maps.grid import CellBox, GridSpec, clipped
 
 SCORE_SCALE = 1000  # probability 1.0 -> 1000 (int16 levels)
 
@@ -36,22 +36,27 @@ def _quantise_into(out, values):  # type: ignore[no-untyped-def]
     return True
 
 
-def _pool(levels: NDArray[np.int16], changed: CellBox) -> None:
-    """Recompute levels 1.. of `levels` where level 0 changed inside `changed` (array indices).
+@njit(cache=True)
+def _pool(levels, changed):  # type: ignore[no-untyped-def]
+    """Recompute levels 1.. of `levels` where level 0 changed inside the `changed` boxes ((n, 4)
+    rows of [row0, col0, row1, col1), array indices).
 
     Block max doubles per level: level h + 1 at (r, c) is the max of level h at (r, c),
-    (r + s, c), (r, c + s), (r + s, c + s) with s = 2**h, so the changed box grows by s towards
-    lower indices per level. `changed` must keep 2**depth - 1 cells from the low edges of the
-    array and 2**(depth - 1) from the high ones (the zero padding does).
+    (r + s, c), (r, c + s), (r + s, c + s) with s = 2**h, so a box changed at level 0 changes
+    level h + 1 in the box grown by 2**(h + 1) - 1 towards lower indices. Each level is done
+    for every box before the next (where grown boxes overlap, cells are recomputed to the same
+    value). The boxes must keep 2**depth - 1 cells from the low edges of the array and
+    2**(depth - 1) from the high ones (the zero padding does).
     """
-    box = changed
-    for h in range(len(levels) - 1):
+    for h in range(levels.shape[0] - 1):
         s = 2**h
-        box = CellBox(box.row0 - s, box.col0 - s, box.row1, box.col1)
-        rows, cols = slice(box.row0, box.row1), slice(box.col0, box.col1 + s)
-        prev = levels[h]
-        pair = np.maximum(prev[rows, cols], prev[box.row0 + s : box.row1 + s, cols])
-        levels[h + 1, rows, box.col0 : box.col1] = np.maximum(pair[:, :-s], pair[:, s:])
+        prev, out = levels[h], levels[h + 1]
+        for k in range(changed.shape[0]):
+            c0, c1 = changed[k, 1] - (2 * s - 1), changed[k, 3]
+            for r in range(changed[k, 0] - (2 * s - 1), changed[k, 2]):
+                here, below, row = prev[r], prev[r + s], out[r]
+                for c in range(c0, c1):
+                    row[c] = max(max(here[c], below[c]), max(here[c + s], below[c + s]))
 
 
 def _check_depth(depth: int) -> None:
@@ -81,7 +86,7 @@ class MaxPoolStack:
         pad = 2**depth
         levels = np.zeros((depth + 1, spec.rows + 2 * pad, spec.cols + 2 * pad), dtype=np.int16)
         _quantised(levels[0, pad : pad + spec.rows, pad : pad + spec.cols], v)
-        _pool(levels, CellBox(pad, pad, pad + spec.rows, pad + spec.cols))
+        _pool(levels, np.array([[pad, pad, pad + spec.rows, pad + spec.cols]]))
         return MaxPoolStack(spec, levels, pad)
 
     @property
@@ -108,7 +113,7 @@ class MaxPoolStore:
 
     `follow` tracks probabilities stored over a box of a lattice (a map's field level, whose box
     grows amortised): it re-lays the levels out when that box moves, which copies the kept cells
-    (a growth adds zeros, whose pooled values are zero too), and re-pools the box of values
+    (a growth adds zeros, whose pooled values are zero too), and re-pools the boxes of values
     changed since the previous call. `stack` then serves any box inside as a view equal to
     `MaxPoolStack.from_values` over it, when the values around that box are 0.
     """
@@ -128,22 +133,25 @@ class MaxPoolStore:
     def _storage(self, box: CellBox) -> CellBox:
         return box.expanded(self.pad)
 
-    def follow(self, box: CellBox, values: NDArray[np.floating], changed: CellBox | None) -> None:
-        """Track `values` (probabilities in [0, 1] over `box`) that changed only inside
-        `changed` since the previous call (None: nowhere; pass `box` the first time). Cells
-        that `box` no longer holds must have been 0."""
+    def follow(
+        self, box: CellBox, values: NDArray[np.floating], changed: NDArray[np.int64]
+    ) -> None:
+        """Track `values` (probabilities in [0, 1] over `box`) that changed only inside the
+        `changed` boxes ((n, 4) rows of [row0, col0, row1, col1) of the lattice; none: no row;
+        pass `box` the first time) since the previous call. Cells that `box` no longer holds
+        must have been 0."""
         if values.shape != box.shape:
             raise ValueError(f"values shape {values.shape} != box shape {box.shape}")
         if box != self._box:
             self._relayout(box)
-        if changed is None:
-            return
-        changed = changed.intersection(box)
-        if changed.is_empty:
+        inside = clipped(changed, box)
+        if len(inside) == 0:
             return
         storage = self._storage(box)
-        _quantised(self._levels[0][changed.slices_in(storage)], values[changed.slices_in(box)])
-        _pool(self._levels, changed.shifted(-storage.row0, -storage.col0))
+        for r0, c0, r1, c1 in inside.tolist():
+            part = CellBox(r0, c0, r1, c1)
+            _quantised(self._levels[0][part.slices_in(storage)], values[part.slices_in(box)])
+        _pool(self._levels, inside - np.array([storage.row0, storage.col0] * 2))
         self._stack = None
 
     def _relayout(self, box: CellBox) -> None:

@@ -7,8 +7,8 @@ construction shifted by half a cell in x, y and both (`OverlappingCells`, all fo
 
 `GridNDTCells` and `GridOverlappingCells` keep the cells of a growing occupancy grid's
 occupied cell centres current, on lattices anchored at the grid's anchor: after a scan they
-recompute only the cells (the 2 x 2 blocks of half-cells) holding the box where cells flipped
-between free and occupied, from the occupied centres inside them.
+recompute only the cells (the 2 x 2 blocks of half-cells) holding a cell that flipped between
+free and occupied, from the occupied centres inside them.
 """
 
 from __future__ import annotations
@@ -21,7 +21,15 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from scanflow.maps.grid import CellBox, GridSpec, grown_box
+from scanflow.maps.grid import (
+    BoxUnion,
+    CellBox,
+    GridSpec,
+    boxes_of,
+    disjoint_cover,
+    grown_box,
+    tile_boxes,
+)
 from scanflow.maps.occupancy import OccupancyGrid
 
 MIN_CELL_POINTS = 3
@@ -105,10 +113,11 @@ class _LatticeBlocks(Generic[V]):
     lattice anchored at the grid's anchor, kept current block by block.
 
     A fine cell belongs to the lattice cell holding its centre, so a block's distribution
-    depends only on the occupied fine cells inside it. `mark_dirty(box)` notes where the
-    occupied mask changed; the next `cells()` recomputes the moments of the lattice cells
-    holding that box plus span - 1 cells around it (about each cell's corner: small sums), sums
-    them into every block holding a changed cell, adds or drops blocks as they reach or fall
+    depends only on the occupied fine cells inside it. `mark_dirty(cells)` notes the fine cells
+    whose occupied mask changed; the next `cells()` recomputes every block holding the lattice
+    cell of one of them (the blocks of a scan's changes along its walls: a few disjoint boxes,
+    not their bounding box, which would often be the map), from the occupied fine cells inside
+    (moments about each block's corner: small sums), adds or drops blocks as they reach or fall
     below `min_points`, and keeps the distributions packed (a dropped block's slot takes the
     last one's). The index grid, by block start, grows like the grid's storage (`grown_box`).
     """
@@ -126,16 +135,18 @@ class _LatticeBlocks(Generic[V]):
         self._counts = np.zeros(0, dtype=np.int64)
         self._cell_of = np.zeros((0, 2), dtype=np.int64)  # (row, col) of each slot's block
         self._used = 0
-        self._pending: CellBox | None = grid.extent  # fine cells; everything to start with
+        self._pending = BoxUnion()  # lattice cells; everything to start with
+        if grid.extent is not None:
+            self._pending.add(boxes_of(self._cells_over(grid.extent)))
         self._view: V | None = None
 
     @property
     def nbytes(self) -> int:
         return int(self._index.nbytes + sum(a.nbytes for a in self._slot_arrays()))
 
-    def mark_dirty(self, fine_box: CellBox) -> None:
-        """Note that the grid's occupied mask changed inside `fine_box` (grid cells)."""
-        self._pending = fine_box.union(self._pending)
+    def mark_dirty(self, fine_cells: NDArray[np.int64]) -> None:
+        """Note that the grid's occupied mask changed at the (K, 2) cells (grid cells)."""
+        self._pending.add(tile_boxes(self._bins(fine_cells), 1))
 
     def _bins(self, fine: NDArray[np.int64]) -> NDArray[np.int64]:
         """The lattice cell (row or col) holding the centre of each fine row or col."""
@@ -157,10 +168,11 @@ class _LatticeBlocks(Generic[V]):
         """The current blocks: read-only views, the same object while the occupied cells did
         not change, valid until the next grid update."""
         extent = self.grid.extent
-        if self._pending is not None and extent is not None:
+        if self._pending and extent is not None:
             self._hold(self._blocks_over(self._cells_over(extent)))
-            self._refresh(self._cells_over(self._pending))
-            self._pending, self._view = None, None
+            lead = self.span - 1
+            self._refresh(disjoint_cover(self._pending.take() - np.array([lead, lead, 0, 0])))
+            self._view = None
         if self._view is None:
             arrays = BlockArrays(
                 self._index[:, :],
@@ -189,44 +201,41 @@ class _LatticeBlocks(Generic[V]):
             index[kept.slices_in(new)] = self._index[kept.slices_in(self._box)]
         self._box, self._index = new, index
 
-    def _refresh(self, cells: CellBox) -> None:
-        """Recompute every block holding a lattice cell of `cells`, from the occupied fine
-        cells whose centres lie in those blocks (coordinates from the anchor: small sums)."""
-        blocks = self._blocks_over(cells)
+    def _refresh(self, blocks: NDArray[np.int64]) -> None:
+        """Recompute the blocks of the disjoint (n, 4) boxes of blocks (by first cell), from
+        the occupied fine cells whose centres lie in them (coordinates from each block's corner:
+        small sums), all boxes in one compiled pass."""
         res, size = self.grid.resolution_m, self.lattice_m
         scale = size / res
-        fine = CellBox(  # the fine cells over the blocks, and one more each side
-            math.floor(blocks.row0 * scale) - 1,
-            math.floor(blocks.col0 * scale) - 1,
-            math.ceil((cells.row1 + self.span - 1) * scale) + 1,
-            math.ceil((cells.col1 + self.span - 1) * scale) + 1,
+        fine = np.column_stack(  # the fine cells over each box of blocks, and one more each side
+            (
+                np.floor(blocks[:, 0] * scale) - 1,
+                np.floor(blocks[:, 1] * scale) - 1,
+                np.ceil((blocks[:, 2] + self.span - 1) * scale) + 1,
+                np.ceil((blocks[:, 3] + self.span - 1) * scale) + 1,
+            )
+        ).astype(np.int64)
+        masks, starts = self.grid.occupied_in_boxes(fine)
+        block_rc, live, moments, corners = _boxes_moments(
+            masks, starts, fine, blocks, res, size, self.span, self.min_points
         )
-        origin = (blocks.col0 * size, blocks.row0 * size)
-        rows, cols = blocks.shape
-        kept = _mask_moments(
-            self.grid.occupied_in(fine), fine.row0, fine.col0, res, *origin, size, rows, cols,
-            self.span, self.min_points,
-        )  # fmt: skip
-        index, means, inv_covs, counts = block_distributions(kept, origin, size, cols)
-        live = index >= 0
-        order = index[live]  # box order
-        row_in_box, col_in_box = np.divmod(np.flatnonzero(live), cols)
-        block_rc = np.column_stack((row_in_box + blocks.row0, col_in_box + blocks.col0))
-        means = means[order] + (self.grid.anchor_x_m, self.grid.anchor_y_m)
-        self._apply(blocks, live, (means, inv_covs[order], counts[order], block_rc))
+        means, inv_covs, counts = cell_distributions(moments, corners)
+        means += (self.grid.anchor_x_m, self.grid.anchor_y_m)
+        self._apply(block_rc, live, (means, inv_covs, counts, block_rc[live]))
 
     def _apply(
         self,
-        box: CellBox,
+        block_rc: NDArray[np.int64],
         live: NDArray[np.bool_],
         new: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64], NDArray[np.int64]],
     ) -> None:
-        """Store the recomputed cells of `box` (`new` holds the live ones, in box order)."""
+        """Store the recomputed blocks at (row, col) `block_rc` (distinct; `new` holds the live
+        ones, in that order)."""
         assert self._box is not None
-        region = box.slices_in(self._box)
-        index = self._index[region].reshape(-1)
+        at = (block_rc[:, 0] - self._box.row0, block_rc[:, 1] - self._box.col0)
+        index = self._index[at]
         was = index >= 0
-        order = np.cumsum(live) - 1  # row of `new` for each live cell of the box
+        order = np.cumsum(live) - 1  # row of `new` for each live block
         added = live & ~was
         slots = self._used + np.arange(np.count_nonzero(added))
         self._reserve(self._used + len(slots))
@@ -237,7 +246,7 @@ class _LatticeBlocks(Generic[V]):
         dropped = index[was & ~live]
         index[added] = slots
         index[was & ~live] = -1
-        self._index[region] = index.reshape(box.shape)
+        self._index[at] = index
         self._used += len(slots)
         self._drop(dropped)
 
@@ -377,6 +386,43 @@ def _mask_moments(mask, row0, col0, res, origin_x, origin_y, size, rows, cols, s
     return _kept_blocks(index, moments, touched, n, min_points)
 
 
+@njit(cache=True)
+def _boxes_moments(masks, starts, fine, blocks, res, size, span, min_points):  # type: ignore[no-untyped-def]
+    """_mask_moments of several boxes of blocks at once: box k covers blocks[k] (by first
+    cell, on the lattice of `size` cells from the anchor), its occupied mask is the window
+    fine[k] of fine cells, stored row-major at masks[starts[k]:]. Returns the (row, col) of
+    every block of every box (box after box, row-major), whether each is kept (>= min_points
+    points), and the (K, 6) moments of the kept ones in that order with the (K, 2) corners
+    (x, y from the anchor) they are taken about."""
+    total = 0
+    for k in range(len(blocks)):
+        total += (blocks[k, 2] - blocks[k, 0]) * (blocks[k, 3] - blocks[k, 1])
+    block_rc = np.empty((total, 2), dtype=np.int64)
+    live = np.zeros(total, dtype=np.bool_)
+    moments = np.empty((total, 6))
+    corners = np.empty((total, 2))
+    b = n_live = 0
+    for k in range(len(blocks)):
+        r0, c0, r1, c1 = blocks[k, 0], blocks[k, 1], blocks[k, 2], blocks[k, 3]
+        shape = (fine[k, 2] - fine[k, 0], fine[k, 3] - fine[k, 1])
+        mask = masks[starts[k] : starts[k] + shape[0] * shape[1]].reshape(shape)
+        index, kept, _ = _mask_moments(
+            mask, fine[k, 0], fine[k, 1], res, c0 * size, r0 * size, size, r1 - r0, c1 - c0,
+            span, min_points,
+        )  # fmt: skip
+        for i in range((r1 - r0) * (c1 - c0)):
+            row, col = i // (c1 - c0), i % (c1 - c0)
+            block_rc[b, 0], block_rc[b, 1] = r0 + row, c0 + col
+            if index[i] >= 0:
+                live[b] = True
+                moments[n_live] = kept[index[i]]
+                corners[n_live, 0] = c0 * size + col * size  # as _add_point takes them
+                corners[n_live, 1] = r0 * size + row * size
+                n_live += 1
+            b += 1
+    return block_rc, live, moments[:n_live], corners[:n_live]
+
+
 def block_distributions(
     kept: tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64]],
     origin: tuple[float, float],
@@ -507,8 +553,8 @@ class GridOverlappingCells(_LatticeBlocks[OverlappingCells]):
     """OverlappingCells of an OccupancyGrid's occupied cell centres, kept current block by block.
 
     The half-size lattice is anchored at the grid's anchor, so the four grids do not shift as
-    the map grows; a change recomputes the half-cells it touches plus one around them and the
-    2 x 2 blocks holding a touched half-cell (see _LatticeBlocks). Per block location the
+    the map grows; a change recomputes the 2 x 2 blocks holding a half-cell it touched (see
+    _LatticeBlocks). Per block location the
     result equals `OverlappingCells.from_points` of the occupied centres with the same size and
     anchor, up to summation order; the numbering of the blocks differs.
     """

@@ -7,13 +7,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scanflow.geometry import Pose2D
-from scanflow.maps import maxpool, pyramid
+from scanflow.maps import maxpool
 from scanflow.maps.field import LikelihoodField
-from scanflow.maps.grid import CellBox
+from scanflow.maps.grid import CellBox, tile_boxes
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.maxpool import MaxPoolStack
 from scanflow.maps.ndt_cells import NDTCells, OverlappingCells, regularised_inverse
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
+from scanflow.maps.pyramid import TILE_CELLS
 from scanflow.matching import MatchStatus, match
 from scipy.spatial import cKDTree
 
@@ -78,12 +79,20 @@ def reference_field(grid: OccupancyGrid, level: int, sigma_m: float, cutoff_sigm
     return LikelihoodField(spec, values.reshape(spec.shape), sigma)
 
 
-def assert_views_match_scratch(world: MatchingMap, levels=3):
+def assert_views_match_scratch(world: MatchingMap, levels=3, ulps=0):
+    """Every level equals the point-by-point reference (to float32 precision) and a field built
+    from scratch by a new map on the same grid: exactly, or within `ulps` float32 ulps (means
+    are rounded in float64 relative to the corner of whichever box is computed, which can move
+    a value across a float32 rounding boundary; on real logs no value differs)."""
+    fresh = MatchingMap(world.grid, cutoff_sigmas=world.cutoff_sigmas)
     for level in range(levels):
         got = world.likelihood_field(level)
         want = reference_field(world.grid, level, world.sigma_m, world.cutoff_sigmas)
         assert got.spec == want.spec
         np.testing.assert_allclose(got.values, want.values, rtol=0, atol=1e-6)
+        rebuilt = fresh.likelihood_field(level)
+        assert rebuilt.spec == got.spec
+        np.testing.assert_array_max_ulp(got.values, rebuilt.values, maxulp=ulps)
 
 
 def test_empty_map():
@@ -129,28 +138,93 @@ def test_incremental_equals_scratch_property(scans):
         world.update(room_scan((x, y), half, beams=60), (x, y))
         if read_views:
             world.likelihood_field(1)
-    assert_views_match_scratch(world)
+    assert_views_match_scratch(world, ulps=1)
+
+
+def corridor_map(tile_cells: int = TILE_CELLS) -> MatchingMap:
+    """A 40 m long corridor of rooms mapped at 5 cm (a big map for small changes)."""
+    world = MatchingMap(OccupancyGrid(initial_capacity_cells=1200), tile_cells=tile_cells)
+    for x in np.arange(-20.0, 21.0, 2.0):
+        world.update(room_scan((x, 0.0), 3.0, beams=90), (x, 0.0))
+    return world
+
+
+def record_sources(monkeypatch, world: MatchingMap) -> list:
+    """The shapes of the boxes whose obstacles a field refresh reads from now on."""
+    shapes = []
+    real = world.grid.occupied_hit_means_in
+    monkeypatch.setattr(
+        world.grid,
+        "occupied_hit_means_in",
+        lambda boxes, *a: (
+            shapes.extend(CellBox(*b).shape for b in boxes.tolist()) or real(boxes, *a)
+        ),
+    )
+    return shapes
 
 
 def test_refresh_touches_only_the_neighbourhood_of_the_change(monkeypatch):
-    world = MatchingMap(OccupancyGrid(initial_capacity_cells=1200))
-    for x in np.arange(-20.0, 21.0, 2.0):
-        world.update(room_scan((x, 0.0), 3.0, beams=90), (x, 0.0))
+    world = corridor_map()
     world.likelihood_field(0)
-    shapes = []
-    real = pyramid.field_from_means
-    monkeypatch.setattr(
-        pyramid, "field_from_means", lambda shape, *a: shapes.append(shape) or real(shape, *a)
-    )
+    shapes = record_sources(monkeypatch, world)
     # A new obstacle 0.5 m in front of the sensor: a small change in a big map.
     result = world.update([[0.5, 0.0]], (0.0, 0.0))
     world.likelihood_field(0)
     margin = math.ceil(world.cutoff_sigmas * world.sigma_m / world.resolution_m) + 1
-    assert result.occupied_changed is not None
-    rows, cols = result.occupied_changed.expanded(2 * margin).shape
-    assert shapes == [(rows, cols)]
+    (tile,) = tile_boxes(result.occupied_cells, TILE_CELLS).tolist()
+    assert shapes == [CellBox(*tile).expanded(2 * margin).shape]
+    assert CellBox(*tile).contains_box(result.occupied_changed)
+    rows, cols = shapes[0]
     assert rows * cols < world.grid.spec.rows * world.grid.spec.cols / 50
     assert_views_match_scratch(world, levels=1)
+
+
+def test_changes_far_apart_refresh_apart(monkeypatch):
+    """Two obstacles 30 m apart in one scan: the refresh reads the obstacles around each (its
+    tile and twice the cut-off), not the box spanning both; after a scan of a big room it reads
+    a band along the room's walls, a fraction of their bounding box."""
+    world = corridor_map()
+    world.likelihood_pyramid(3)
+    shapes = record_sources(monkeypatch, world)
+    result = world.update([[-15.0, 1.0], [15.0, -1.0]], (0.0, 0.0))
+    world.likelihood_field(0)
+    margin = math.ceil(world.cutoff_sigmas * world.sigma_m / world.resolution_m) + 1
+    assert result.occupied_changed.shape[1] > 590  # one box would span the corridor
+    tiles = tile_boxes(result.occupied_cells, TILE_CELLS)
+    want = sorted(CellBox(*t).expanded(2 * margin).shape for t in tiles.tolist())
+    assert sorted(shapes) == want
+    assert len(shapes) == 2
+    assert_views_match_scratch(world)
+    shapes.clear()
+    center = (0.7, 30.3)  # a new 16 m square room beside the corridor
+    result = world.update(room_scan(center, 8.0, beams=1440), center)
+    world.likelihood_field(0)
+    read = sum(rows * cols for rows, cols in shapes)
+    changed = CellBox.around(np.concatenate((result.occupied_cells, result.means_cells)))
+    rows, cols = changed.expanded(2 * margin).shape
+    assert read < 0.6 * rows * cols
+    assert_views_match_scratch(world)
+
+
+@settings(max_examples=10, deadline=None)
+@given(
+    scans=st.lists(
+        st.tuples(st.floats(-3, 3), st.floats(-3, 3), st.floats(0.3, 2.5), st.integers(0, 7)),
+        min_size=1,
+        max_size=6,
+    ),
+    tile_cells=st.sampled_from([1, 3, 8, 32]),
+)
+def test_every_tile_size_refreshes_exactly_property(scans, tile_cells):
+    """Whatever the tile size, levels read after random scans (some levels skipped, so their
+    changes pile up) equal the field from scratch."""
+    world = MatchingMap(OccupancyGrid(initial_capacity_cells=4), tile_cells=tile_cells)
+    for x, y, half, read in scans:
+        world.update(room_scan((x, y), half, beams=60), (x, y))
+        for level in range(3):
+            if read >> level & 1:
+                world.likelihood_field(level)
+    assert_views_match_scratch(world, ulps=1)
 
 
 def test_direct_grid_writes_are_noticed():
@@ -450,32 +524,53 @@ def test_ndt_cells_disappear_when_their_walls_are_cleared():
 
 
 def test_stack_and_ndt_refresh_only_the_changed_neighbourhood(monkeypatch):
-    world = MatchingMap(OccupancyGrid(initial_capacity_cells=1200))
-    for x in np.arange(-20.0, 21.0, 2.0):
-        world.update(room_scan((x, 0.0), 3.0, beams=90), (x, 0.0))
+    world = corridor_map()
     world.maxpool_stack(4)
     world.ndt_cells(0.5)
     world.overlapping_ndt_cells(0.5)
     pooled, fetched = [], []
-    real_pool, real_occupied_in = maxpool._pool, world.grid.occupied_in
+    real_pool, real_occupied_in = maxpool._pool, world.grid.occupied_in_boxes
     monkeypatch.setattr(
-        maxpool, "_pool", lambda levels, box: pooled.append(box.shape) or real_pool(levels, box)
+        maxpool,
+        "_pool",
+        lambda levels, boxes: (
+            pooled.append([CellBox(*b).shape for b in boxes.tolist()]) or real_pool(levels, boxes)
+        ),
     )
     monkeypatch.setattr(
-        world.grid, "occupied_in", lambda box: fetched.append(box.shape) or real_occupied_in(box)
+        world.grid,
+        "occupied_in_boxes",
+        lambda boxes: (
+            fetched.append([CellBox(*b).shape for b in boxes.tolist()]) or real_occupied_in(boxes)
+        ),
     )
     result = world.update([[0.5, 0.0]], (0.0, 0.0))  # a new obstacle in a big map
     world.maxpool_stack(4)
     world.ndt_cells(0.5)
     world.overlapping_ndt_cells(0.5)
     margin = math.ceil(world.cutoff_sigmas * world.sigma_m / world.resolution_m) + 1
-    assert pooled == [result.occupied_changed.expanded(margin).shape]
-    assert pooled[0][0] * pooled[0][1] < world.likelihood_field(0).values.size / 50
+    (tile,) = tile_boxes(result.occupied_cells, TILE_CELLS).tolist()
+    assert pooled == [[CellBox(*tile).expanded(margin).shape]]
+    assert pooled[0][0][0] * pooled[0][0][1] < world.likelihood_field(0).values.size / 50
     # The NDT cells holding the changed cells' centres: one or two 0.5 m cells per axis (plus
     # a fine cell each side); the overlapping ones: one or two 0.25 m half-cells, plus one
     # half-cell each side (the blocks holding them reach that far).
-    assert len(fetched) == 2
-    assert max(fetched[0]) <= 2 * 10 + 2 and max(fetched[1]) <= 4 * 5 + 2
+    assert [len(f) for f in fetched] == [1, 1]
+    assert max(fetched[0][0]) <= 2 * 10 + 2 and max(fetched[1][0]) <= 4 * 5 + 2
+    assert_maxpool_matches_scratch(world, 4, 0)
+    assert_ndt_matches_scratch(world, 0.5)
+    assert_overlapping_matches_scratch(world, 0.5)
+    # Two obstacles 30 m apart: a refresh per obstacle, each as small as the one above.
+    pooled.clear()
+    fetched.clear()
+    world.update([[-15.0, 1.0], [15.0, -1.0]], (0.0, 0.0))
+    world.maxpool_stack(4)
+    world.ndt_cells(0.5)
+    world.overlapping_ndt_cells(0.5)
+    assert len(pooled) == 1 and len(pooled[0]) == 2
+    assert all(rows * cols <= (TILE_CELLS + 2 * margin) ** 2 for rows, cols in pooled[0])
+    assert [len(f) for f in fetched] == [2, 2]  # one box per obstacle, in one call per view
+    assert max(max(shape) for f in fetched for shape in f) <= 2 * 10 + 2
     assert_maxpool_matches_scratch(world, 4, 0)
     assert_ndt_matches_scratch(world, 0.5)
     assert_overlapping_matches_scratch(world, 0.5)

@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scanflow.maps import maxpool
-from scanflow.maps.grid import CellBox, GridSpec
+from scanflow.maps.grid import CellBox, GridSpec, boxes_of
 from scanflow.maps.maxpool import SCORE_SCALE, MaxPoolStack, MaxPoolStore
 
 
@@ -81,10 +81,16 @@ def _stack_of(store: MaxPoolStore, box: CellBox) -> MaxPoolStack:
     depth=st.integers(0, 3),
     steps=st.lists(
         st.tuples(
-            st.integers(-6, 6),  # shift of the support box's low corner
-            st.integers(-6, 6),
-            st.integers(1, 9),  # support box shape
-            st.integers(1, 9),
+            st.lists(  # the boxes that change in this step (may overlap or touch)
+                st.tuples(
+                    st.integers(-6, 6),  # low corner
+                    st.integers(-6, 6),
+                    st.integers(1, 9),  # shape
+                    st.integers(1, 9),
+                ),
+                min_size=1,
+                max_size=3,
+            ),
             st.integers(0, 4),  # spare cells around the support in the followed box
             st.integers(0, 2**31 - 1),
         ),
@@ -93,24 +99,25 @@ def _stack_of(store: MaxPoolStore, box: CellBox) -> MaxPoolStack:
     ),
 )
 def test_store_follows_changes_like_a_rebuild(depth: int, steps: list) -> None:
-    """Values change in random boxes while the followed box grows, moves and shrinks (keeping
-    every non-zero value): the store's stack equals a rebuild over the followed box and over the
-    support inside it."""
+    """Values change in a few random boxes per step while the followed box grows, moves and
+    shrinks (keeping every non-zero value): the store's stack equals a rebuild over the
+    followed box and over the support inside it."""
     store = MaxPoolStore(depth)
     values: dict[tuple[int, int], float] = {}  # lattice cell -> non-zero value
     support = None
-    for dr, dc, rows, cols, spare, seed in steps:
+    for changes, spare, seed in steps:
         rng = np.random.default_rng(seed)
-        changed = CellBox(dr, dc, dr + rows, dc + cols)
-        new = rng.random(changed.shape) * (rng.random(changed.shape) < 0.5)
-        for (r, c), v in np.ndenumerate(new):
-            values[(changed.row0 + r, changed.col0 + c)] = v
-        support = changed.union(support)
+        changed = [CellBox(r, c, r + rows, c + cols) for r, c, rows, cols in changes]
+        for part in changed:
+            new = rng.random(part.shape) * (rng.random(part.shape) < 0.5)
+            for (r, c), v in np.ndenumerate(new):
+                values[(part.row0 + r, part.col0 + c)] = v
+            support = part.union(support)
         box = support.expanded(spare)
         dense = np.zeros(box.shape)
         for (r, c), v in values.items():
             dense[r - box.row0, c - box.col0] = v
-        store.follow(box, dense, changed)
+        store.follow(box, dense, np.concatenate([boxes_of(part) for part in changed]))
         for inner, inner_values in ((box, dense), (support, dense[support.slices_in(box)])):
             spec = GridSpec(0.1 * inner.col0, 0.1 * inner.row0, 0.1, *inner.shape)
             got = store.stack(spec, inner)
@@ -120,21 +127,30 @@ def test_store_follows_changes_like_a_rebuild(depth: int, steps: list) -> None:
     assert not _stack_of(store, support).levels.flags.writeable
 
 
-def test_store_repools_only_around_the_change(monkeypatch) -> None:
+def test_store_repools_only_around_the_changes(monkeypatch) -> None:
+    """Two changes far apart: level 0 is re-quantised in the two boxes only, and each level
+    above re-pooled in the two boxes grown towards lower indices, not in the box spanning
+    both."""
     store = MaxPoolStore(3)
     big = CellBox(0, 0, 200, 300)
     values = np.zeros(big.shape)
-    store.follow(big, values, big)
+    store.follow(big, values, boxes_of(big))
     stack = _stack_of(store, big)
+    assert _stack_of(store, big) is stack
+    store.follow(big, values, boxes_of(None))
     assert _stack_of(store, big) is stack
     pooled = []
     real = maxpool._pool
     monkeypatch.setattr(
-        maxpool, "_pool", lambda levels, box: pooled.append(box.shape) or real(levels, box)
+        maxpool, "_pool", lambda levels, boxes: pooled.append(boxes.tolist()) or real(levels, boxes)
     )
     values[50:53, 60:62] = 0.5
-    store.follow(big, values, CellBox(50, 60, 53, 62))
-    assert pooled == [(3, 2)]
+    values[150:151, 250:254] = 0.7
+    store.follow(big, values, np.array([[50, 60, 53, 62], [150, 250, 151, 254]]))
+    pad = 2**3
+    assert pooled == [
+        [[50 + pad, 60 + pad, 53 + pad, 62 + pad], [150 + pad, 250 + pad, 151 + pad, 254 + pad]]
+    ]
     assert _stack_of(store, big) is not stack
     np.testing.assert_array_equal(
         _stack_of(store, big).levels,
@@ -146,10 +162,10 @@ def test_store_rejects_boxes_it_does_not_hold() -> None:
     store = MaxPoolStore(1)
     with pytest.raises(ValueError, match="followed box"):
         _stack_of(store, CellBox(0, 0, 2, 2))
-    store.follow(CellBox(0, 0, 4, 4), np.zeros((4, 4)), CellBox(0, 0, 4, 4))
+    store.follow(CellBox(0, 0, 4, 4), np.zeros((4, 4)), boxes_of(CellBox(0, 0, 4, 4)))
     with pytest.raises(ValueError, match="followed box"):
         _stack_of(store, CellBox(0, 0, 5, 4))
     with pytest.raises(ValueError, match="box shape"):
-        store.follow(CellBox(0, 0, 4, 4), np.zeros((3, 4)), None)
+        store.follow(CellBox(0, 0, 4, 4), np.zeros((3, 4)), boxes_of(None))
     with pytest.raises(ValueError, match="probabilities"):
-        store.follow(CellBox(0, 0, 4, 4), np.full((4, 4), 2.0), CellBox(1, 1, 2, 2))
+        store.follow(CellBox(0, 0, 4, 4), np.full((4, 4), 2.0), boxes_of(CellBox(1, 1, 2, 2)))
