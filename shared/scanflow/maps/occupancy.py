@@ -559,10 +559,13 @@ class OccupancyGrid:
 
         self._extent = box.union(self._extent)
         self.revision += 1
-        corner = np.array([box.row0, box.col0])
-        hit_in_box = hit_cells - corner
+        hit_in_box = hit_cells - np.array([box.row0, box.col0])
         moved = occupied_after[hit_in_box[:, 0], hit_in_box[:, 1]]
-        return InsertResult(box, np.argwhere(flipped) + corner, hit_cells[moved])
+        # Few cells flip in a box of up to ~1e6: list them from the rows that hold one.
+        rows = np.flatnonzero(flipped.any(axis=1))
+        row_at, col = np.nonzero(flipped[rows])
+        flipped_cells = np.column_stack((rows[row_at] + box.row0, col + box.col0))
+        return InsertResult(box, flipped_cells, hit_cells[moved])
 
     def _add_hits(
         self, hits: NDArray[np.float64], hit_cells: NDArray[np.int64], storage: CellBox
