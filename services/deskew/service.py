@@ -125,10 +125,11 @@ class DeskewService:
 
     @staticmethod
     def _ready(robot: _Robot, scan: LaserScan) -> bool:
-        """Odometry runs past the sweep (waiting longer cannot change it), and when it does not
-        cover the sweep the fallback prior holds the matcher's estimate of the scan before."""
+        """Odometry reaches the end of the sweep (waiting longer cannot change it; a log with
+        one odometry pose per zero-length scan has it at the scan's stamp), and when it does
+        not cover the sweep the fallback prior holds the matcher's estimate of the scan before."""
         stamps = robot.stage.odometry.stamps_s
-        if not (stamps.size > 0 and stamps[-1] > scan.end_stamp_s):
+        if not (stamps.size > 0 and stamps[-1] >= scan.end_stamp_s):
             return False
         covered = robot.stage.odometry.coverage_gap(scan.stamp_s, scan.end_stamp_s) is None
         return covered or robot.has_prior()
