@@ -25,14 +25,17 @@ SCORE_SCALE = 1000  # probability 1.0 -> 1000 (int16 levels)
 
 
 @njit(cache=True)
-def _quantise_into(out, values):  # type: ignore[no-untyped-def]
-    """out = rint(values * SCORE_SCALE) in one pass; False if a value is not in [0, 1]."""
-    for r in range(values.shape[0]):
-        for c in range(values.shape[1]):
-            v = values[r, c]
-            if not 0.0 <= v <= 1.0:  # NaN fails too
-                return False
-            out[r, c] = np.rint(v * SCORE_SCALE)
+def _quantise_into(out, values, boxes, pad):  # type: ignore[no-untyped-def]
+    """out[r + pad, c + pad] = rint(values[r, c] * SCORE_SCALE) over each box (n, 4) of values'
+    indices, in one pass; False if a value is not in [0, 1]."""
+    for k in range(boxes.shape[0]):
+        for r in range(boxes[k, 0], boxes[k, 2]):
+            row, to = values[r], out[r + pad]
+            for c in range(boxes[k, 1], boxes[k, 3]):
+                v = row[c]
+                if not 0.0 <= v <= 1.0:  # NaN fails too
+                    return False
+                to[c + pad] = np.rint(v * SCORE_SCALE)
     return True
 
 
@@ -50,13 +53,17 @@ def _pool(levels, changed):  # type: ignore[no-untyped-def]
     """
     for h in range(levels.shape[0] - 1):
         s = 2**h
+        shift = np.uint64(s)
         prev, out = levels[h], levels[h + 1]
         for k in range(changed.shape[0]):
-            c0, c1 = changed[k, 1] - (2 * s - 1), changed[k, 3]
+            # Unsigned columns: no negative-index wrap-around check, so the loop vectorises
+            # (as fast as numpy's whole-array maximum on one big box).
+            c0, c1 = np.uint64(changed[k, 1] - (2 * s - 1)), np.uint64(changed[k, 3])
             for r in range(changed[k, 0] - (2 * s - 1), changed[k, 2]):
                 here, below, row = prev[r], prev[r + s], out[r]
                 for c in range(c0, c1):
-                    row[c] = max(max(here[c], below[c]), max(here[c + s], below[c + s]))
+                    pair = max(here[c], below[c])
+                    row[c] = max(pair, max(here[c + shift], below[c + shift]))
 
 
 def _check_depth(depth: int) -> None:
@@ -85,8 +92,9 @@ class MaxPoolStack:
         _check_depth(depth)
         pad = 2**depth
         levels = np.zeros((depth + 1, spec.rows + 2 * pad, spec.cols + 2 * pad), dtype=np.int16)
-        _quantised(levels[0, pad : pad + spec.rows, pad : pad + spec.cols], v)
-        _pool(levels, np.array([[pad, pad, pad + spec.rows, pad + spec.cols]]))
+        whole = np.array([[0, 0, spec.rows, spec.cols]])
+        _quantised(levels[0], v, whole, pad)
+        _pool(levels, whole + pad)
         return MaxPoolStack(spec, levels, pad)
 
     @property
@@ -103,8 +111,10 @@ class MaxPoolStack:
         return grid[r, c]
 
 
-def _quantised(out: NDArray[np.int16], values: NDArray[np.floating]) -> None:
-    if not _quantise_into(out, values):
+def _quantised(
+    out: NDArray[np.int16], values: NDArray[np.floating], boxes: NDArray[np.int64], pad: int
+) -> None:
+    if not _quantise_into(out, values, boxes, pad):
         raise ValueError("values must be probabilities in [0, 1]")
 
 
@@ -147,11 +157,9 @@ class MaxPoolStore:
         inside = clipped(changed, box)
         if len(inside) == 0:
             return
-        storage = self._storage(box)
-        for r0, c0, r1, c1 in inside.tolist():
-            part = CellBox(r0, c0, r1, c1)
-            _quantised(self._levels[0][part.slices_in(storage)], values[part.slices_in(box)])
-        _pool(self._levels, inside - np.array([storage.row0, storage.col0] * 2))
+        at = inside - np.array([box.row0, box.col0, box.row0, box.col0])  # indices of values
+        _quantised(self._levels[0], values, at, self.pad)  # levels hold the box plus the pad
+        _pool(self._levels, at + self.pad)
         self._stack = None
 
     def _relayout(self, box: CellBox) -> None:
