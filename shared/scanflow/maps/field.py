@@ -73,11 +73,16 @@ def _splat_means(values, mean_rc, resolution_m, sigma_m, cutoff_m):  # type: ign
             if dr * dr > limit2:
                 continue
             half = math.sqrt(limit2 - dr * dr)
-            row = values[r]
-            for c in range(max(math.ceil(mc - half), 0), min(math.floor(mc + half), cols - 1) + 1):
-                v = row_term[r - r0] * col_term[c - c0]
-                if v > row[c]:
-                    row[c] = v
+            c_lo = max(math.ceil(mc - half), 0)
+            c_hi = min(math.floor(mc + half), cols - 1) + 1
+            if c_hi <= c_lo:
+                continue
+            # Unsigned indices: no negative-index wrap-around check, so the loop vectorises.
+            row, rt = values[r], row_term[r - r0]
+            first, offset = np.uint64(c_lo), np.uint64(c_lo - c0)
+            for i in range(np.uint64(c_hi - c_lo)):
+                c = first + i
+                row[c] = max(row[c], rt * col_term[offset + i])
 
 
 def field_from_means(
