@@ -2,7 +2,7 @@
 
 from services.common.counters import Counters, SeqTracker
 from services.common.inbox import Inbox
-from services.common.logs import configure_logging
+from services.common.process import configure_logging, init_process
 from services.common.shell import ServiceShell, rss_bytes
 from services.common.zsession import open_session, zenoh_config
 
@@ -12,6 +12,7 @@ __all__ = [
     "SeqTracker",
     "ServiceShell",
     "configure_logging",
+    "init_process",
     "open_session",
     "rss_bytes",
     "zenoh_config",

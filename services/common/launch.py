@@ -13,8 +13,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from scanflow import keys
-from scanflow.config import ZenohSettings
+from scanflow.config import LaunchSettings, ZenohSettings
 
+from services.common.process import CpuPlan, available_cpus, cpu_plan
 from services.common.zsession import open_session
 
 ORDER = ("router", "deskew", "matcher", "mapserver", "gateway", "ingest")
@@ -47,11 +48,13 @@ class Launcher:
     """Service subprocesses sharing one environment (router endpoint, prefix, settings).
 
     Each service logs to `<log_dir>/<name>.log`. `stop_all` sends SIGTERM in reverse start
-    order and waits, then kills what is left.
+    order and waits, then kills what is left. With a `cpus` plan each service is started with
+    its `SCANFLOW_<SERVICE>_CPUS`, unless the environment already sets that.
     """
 
     env: dict[str, str]
     log_dir: Path
+    cpus: CpuPlan | None = None
     processes: dict[str, subprocess.Popen[bytes]] = field(default_factory=dict)
 
     @classmethod
@@ -67,7 +70,7 @@ class Launcher:
         )
         env.update(settings)
         log_dir.mkdir(parents=True, exist_ok=True)
-        return cls(env, log_dir)
+        return cls(env, log_dir, cpu_plan(available_cpus(), LaunchSettings().matcher_cpus))
 
     @property
     def zenoh_port(self) -> int:
@@ -82,6 +85,9 @@ class Launcher:
         if label in self.processes and self.processes[label].poll() is None:
             raise RuntimeError(f"service {label!r} is already running")
         env = {**self.env, **settings}
+        cpus_key = f"SCANFLOW_{name.upper()}_CPUS"
+        if self.cpus is not None and cpus_key not in env:
+            env[cpus_key] = ",".join(map(str, self.cpus.cpus_for(name, label)))
         log = (self.log_dir / f"{label}.log").open("ab")
         # A session of its own: a terminal's Ctrl-C reaches only the launcher, which then
         # stops the services in order (last started first) instead of all at once.

@@ -24,7 +24,7 @@ from scanflow.scan import LaserScan, Odometry
 from scanflow.warmup import warm_up
 from scanflow.wire import DeskewedScanMessage, OdometryMessage, PoseEstimateMessage, ScanMessage
 
-from services.common.logs import configure_logging
+from services.common.process import init_process
 from services.common.shell import ServiceShell
 
 _MIN_POLL_S = 0.002
@@ -168,5 +168,5 @@ class DeskewService:
 def main() -> None:
     """Run the deskew service with settings from SCANFLOW_DESKEW_* and SCANFLOW_ZENOH_*."""
     settings = DeskewSettings()
-    configure_logging(settings.log_level)
+    init_process(settings.log_level, settings.cpus)
     DeskewService(settings, ZenohSettings()).run()

@@ -5,13 +5,13 @@ from __future__ import annotations
 import uvicorn
 from scanflow.config import GatewaySettings
 
-from services.common.logs import configure_logging
+from services.common.process import init_process
 from services.gateway.app import create_app
 
 
 def main() -> None:
     settings = GatewaySettings()
-    configure_logging(settings.log_level)
+    init_process(settings.log_level, settings.cpus)
     uvicorn.run(
         create_app(settings),
         host=settings.host,

@@ -12,7 +12,7 @@ from scanflow.config import IngestSettings, ZenohSettings
 from scanflow.scan import LaserScan
 from scanflow.wire import OdometryMessage, PoseEstimateMessage, ScanMessage
 
-from services.common.logs import configure_logging
+from services.common.process import init_process
 from services.common.shell import ServiceShell
 from services.ingest.flow import CreditWindow, Pacer
 from services.ingest.sources import source_events
@@ -102,5 +102,5 @@ class Ingest:
 def main() -> None:
     """Run ingest with settings from SCANFLOW_INGEST_* and SCANFLOW_ZENOH_*."""
     settings = IngestSettings()
-    configure_logging(settings.log_level)
+    init_process(settings.log_level, settings.cpus)
     Ingest(settings, ZenohSettings()).run()

@@ -18,7 +18,7 @@ from scanflow.frontend import default_settings, occupancy_params
 from scanflow.warmup import warm_up
 from scanflow.wire import MapInsertMessage, Message, PoseEstimateMessage
 
-from services.common.logs import configure_logging
+from services.common.process import init_process
 from services.common.shell import ServiceShell
 from services.mapserver import replies
 from services.mapserver.robot import RobotMap
@@ -176,5 +176,5 @@ def main() -> None:
     """Run the map server (settings: SCANFLOW_MAPSERVER_*, SCANFLOW_ZENOH_*, and the map
     resolution from SCANFLOW_FRONTEND_*, so its maps have the matchers' lattice)."""
     settings = MapServerSettings()
-    configure_logging(settings.log_level)
+    init_process(settings.log_level, settings.cpus)
     MapServer(settings, ZenohSettings(), FrontendSettings()).run()

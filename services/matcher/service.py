@@ -37,7 +37,7 @@ from scanflow.wire import (
     decode_any,
 )
 
-from services.common.logs import configure_logging
+from services.common.process import init_process
 from services.common.shell import ServiceShell
 from services.matcher.requests import answer
 from services.matcher.shard import owns
@@ -167,5 +167,5 @@ class MatcherService:
 def main() -> None:
     """Run a matcher (settings: SCANFLOW_MATCHER_*, SCANFLOW_FRONTEND_*, SCANFLOW_ZENOH_*)."""
     settings = MatcherSettings()
-    configure_logging(settings.log_level)
+    init_process(settings.log_level, settings.cpus)
     MatcherService(settings, FrontendSettings(), ZenohSettings()).run()

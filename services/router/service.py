@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from scanflow.config import RouterSettings, ZenohSettings
 
-from services.common.logs import configure_logging
+from services.common.process import init_process
 from services.common.shell import ServiceShell
 
 
@@ -18,7 +18,7 @@ def router_zenoh_settings(settings: RouterSettings, prefix: str) -> ZenohSetting
 def main() -> None:
     """Run the router until SIGTERM/Ctrl-C."""
     settings = RouterSettings()
-    configure_logging(settings.log_level)
+    init_process(settings.log_level, settings.cpus)
     zenoh_settings = router_zenoh_settings(settings, ZenohSettings().prefix)
     shell = ServiceShell("router", settings.instance, zenoh_settings, settings.queue_size)
     shell.start()

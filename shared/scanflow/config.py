@@ -39,16 +39,26 @@ class ZenohSettings(BaseSettings):
     _split = field_validator("connect", "listen", mode="before")(_split_csv)
 
 
-class ServiceSettings(BaseSettings):
-    """Fields every service process shares; each service subclass sets its env prefix."""
+class ProcessSettings(BaseSettings):
+    """Fields of every scanflow process: log level and the CPUs it may run on."""
 
     model_config = SettingsConfigDict(extra="ignore")
+
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    cpus: Annotated[list[int], NoDecode] = Field(
+        default_factory=list, description="CPU ids the process runs on (Linux); empty = any"
+    )
+
+    _split_cpus = field_validator("cpus", mode="before")(_split_csv)
+
+
+class ServiceSettings(ProcessSettings):
+    """Fields every service process shares; each service subclass sets its env prefix."""
 
     instance: str = "0"
     queue_size: int = Field(
         256, ge=1, description="bounded inbox between Zenoh and the worker (> 3 x ingest window)"
     )
-    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
 
 
 class KernelServiceSettings(ServiceSettings):
@@ -68,6 +78,19 @@ class RouterSettings(ServiceSettings):
     connect: Annotated[list[str], NoDecode] = Field(default_factory=list)
 
     _split = field_validator("connect", "listen", mode="before")(_split_csv)
+
+
+class LaunchSettings(BaseSettings):
+    """A local launch of the services: `scanflow up`, tests, benchmarks (SCANFLOW_LAUNCH_*)."""
+
+    model_config = SettingsConfigDict(env_prefix="SCANFLOW_LAUNCH_", extra="ignore")
+
+    matcher_cpus: int = Field(
+        1,
+        ge=0,
+        description="matchers given a CPU of their own (one each, at least one CPU left for "
+        "the rest); 0 = no pinning; a service's own SCANFLOW_<SERVICE>_CPUS wins",
+    )
 
 
 class IngestSettings(ServiceSettings):
@@ -127,7 +150,7 @@ class MapServerSettings(KernelServiceSettings):
     changed_rate_hz: float = Field(2.0, gt=0.0, description="at most this many change notices/s")
 
 
-class GatewaySettings(BaseSettings):
+class GatewaySettings(ProcessSettings):
     """The HTTP gateway (SCANFLOW_GATEWAY_*): bind address, API key, request limits, cache size."""
 
     model_config = SettingsConfigDict(env_prefix="SCANFLOW_GATEWAY_", extra="ignore")
@@ -143,7 +166,6 @@ class GatewaySettings(BaseSettings):
     query_timeout_s: float = Field(5.0, gt=0.0, le=120.0, description="Zenoh query deadline")
     trajectory_cache_len: int = Field(20_000, ge=2, description="poses kept per robot")
     stream_queue_len: int = Field(256, ge=1, description="events buffered per stream client")
-    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
 
 
 class FrontendSettings(BaseSettings):

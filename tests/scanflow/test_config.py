@@ -104,3 +104,25 @@ def test_inherited_fields_read_only_the_sections_prefix(clean_env, section) -> N
         assert getattr(section(), name) == "from-section"
         clean_env.delenv(f"{prefix}{name.upper()}")
         assert getattr(section(), name) != "from-bare-variable"
+
+
+@pytest.mark.parametrize(
+    "section", [c for c in _sections() if "cpus" in c.model_fields], ids=lambda c: c.__name__
+)
+def test_every_process_takes_its_cpus_as_csv_or_json(clean_env, section) -> None:
+    name = f"{section.model_config['env_prefix']}CPUS"
+    assert section().cpus == []
+    clean_env.setenv(name, "1, 3")
+    assert section().cpus == [1, 3]
+    clean_env.setenv(name, "[0, 2]")
+    assert section().cpus == [0, 2]
+    clean_env.setenv(name, "one")
+    with pytest.raises(ValidationError, match="cpus"):
+        section()
+
+
+def test_launch_pins_one_matcher_by_default_and_refuses_a_negative_count(clean_env) -> None:
+    assert config.LaunchSettings().matcher_cpus == 1
+    clean_env.setenv("SCANFLOW_LAUNCH_MATCHER_CPUS", "-1")
+    with pytest.raises(ValidationError, match="matcher_cpus"):
+        config.LaunchSettings()

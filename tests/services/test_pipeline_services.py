@@ -6,6 +6,7 @@ Reference: the plain `scanflow.pipeline.Pipeline` fed the same source events in 
 
 from __future__ import annotations
 
+import os
 import tempfile
 from pathlib import Path
 
@@ -20,6 +21,7 @@ from scanflow.pipeline import Pipeline
 from scanflow.scan import LaserScan
 from scanflow.wire import MapImageMessage, PoseEstimateMessage
 
+from services.common.process import available_cpus
 from services.ingest.sources import source_events
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
@@ -205,3 +207,16 @@ def test_two_matchers_split_the_robots_by_shard(launcher, bus, start):
     first, second = bus.stats("matcher", "0"), bus.stats("matcher", "1")
     assert first.gauges["robots"] == 1 and second.gauges["robots"] == 1
     assert first.counters["other_shard.scan"] == 20 == second.counters["other_shard.scan"]
+    assert_cpu_plan(launcher, ["deskew", "matcher-0", "matcher-1"])
+
+
+def assert_cpu_plan(launcher, labels: list[str]) -> None:
+    """With 2+ CPUs the first matcher runs on a CPU of its own, every other process on the
+    rest (SCANFLOW_LAUNCH_MATCHER_CPUS=1 by default); with one CPU nothing is pinned."""
+    cpus = {label: os.sched_getaffinity(launcher.processes[label].pid) for label in labels}
+    available = set(available_cpus())
+    if len(available) < 2:
+        assert all(c == available for c in cpus.values())
+        return
+    (own,) = cpus.pop("matcher-0")
+    assert all(c == available - {own} for c in cpus.values()), cpus

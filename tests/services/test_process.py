@@ -1,0 +1,90 @@
+"""Process set-up: the local launch's CPU plan and a service pinning itself to its CPUs."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from services.common.process import available_cpus, cpu_plan
+
+needs_two_cpus = pytest.mark.skipif(len(available_cpus()) < 2, reason="needs 2 CPUs")
+
+
+@given(
+    cpus=st.sets(st.integers(0, 63), min_size=1, max_size=16),
+    matchers=st.integers(0, 20),
+)
+def test_cpu_plan_splits_the_cpus_and_always_leaves_one_to_share(cpus, matchers):
+    plan = cpu_plan(sorted(cpus), matchers)
+    if len(cpus) == 1 or matchers == 0:
+        assert plan is None
+        return
+    assert plan is not None
+    assert set(plan.dedicated).isdisjoint(plan.shared)
+    assert set(plan.dedicated) | set(plan.shared) == cpus
+    assert len(plan.dedicated) == min(matchers, len(cpus) - 1)
+    assert plan.shared  # the light services always have somewhere to run
+
+
+def test_cpu_plan_gives_matchers_the_last_cpus_each_its_own_and_keeps_it_on_restart():
+    plan = cpu_plan([0, 1, 2, 3], 2)
+    assert plan is not None
+    assert plan.cpus_for("router", "router") == [0, 1]
+    assert plan.cpus_for("matcher", "matcher-a") == [2]
+    assert plan.cpus_for("matcher", "matcher-b") == [3]
+    assert plan.cpus_for("matcher", "matcher-c") == [0, 1]  # no dedicated CPU left: share
+    assert plan.cpus_for("matcher", "matcher-a") == [2]  # a restart keeps its CPU
+    assert plan.cpus_for("deskew", "deskew") == [0, 1]
+
+
+def _affinity_after_init(cpus: str) -> subprocess.CompletedProcess[str]:
+    """A fresh interpreter that runs `init_process` with `cpus`, then reports the affinity of
+    itself and of a thread started afterwards."""
+    code = (
+        "import os, threading\n"
+        "from services.common.process import init_process\n"
+        f"init_process('INFO', [{cpus}])\n"
+        "seen = []\n"
+        "t = threading.Thread(target=lambda: seen.append(sorted(os.sched_getaffinity(0))))\n"
+        "t.start(); t.join()\n"
+        "print(sorted(os.sched_getaffinity(0)), seen[0])\n"
+    )
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+
+
+@needs_two_cpus
+def test_init_process_pins_the_process_and_the_threads_it_starts_later():
+    last = available_cpus()[-1]
+    result = _affinity_after_init(str(last))
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split("] [") == [f"[{last}", f"{last}]\n"]
+
+
+def test_init_process_names_cpus_the_process_cannot_have():
+    missing = max(available_cpus() or [0]) + 1000
+    result = _affinity_after_init(str(missing))
+    assert result.returncode != 0
+    assert f"cpus [{missing}] are not available" in result.stderr
+
+
+@needs_two_cpus
+@pytest.mark.skipif(shutil.which("taskset") is None, reason="needs taskset (util-linux)")
+def test_init_process_may_widen_the_affinity_it_inherited():
+    first, last = available_cpus()[0], available_cpus()[-1]
+    code = (
+        "import os\n"
+        "from services.common.process import init_process\n"
+        f"init_process('INFO', [{first}, {last}])\n"
+        "print(sorted(os.sched_getaffinity(0)))\n"
+    )
+    result = subprocess.run(
+        ["taskset", "-c", str(first), sys.executable, "-c", code],
+        capture_output=True, text=True, check=False,
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == f"[{first}, {last}]"
