@@ -2,8 +2,9 @@
 
 A service builds a `ServiceShell`, declares its publishers, subscribers and queryables through
 it, calls `start()` and then `run(handle)`: Zenoh callbacks only decode, count and enqueue;
-`handle(kind, message)` runs on the one worker thread; queries run on one query thread.
-SIGTERM or Ctrl-C ends `run`, then `close()` flushes, undeclares and closes the session.
+`handle(kind, message)` runs on the one worker thread; queries run on one query thread; puts
+leave in order from one sender thread (`Outbox`). SIGTERM or Ctrl-C ends `run`, then `close()`
+sends what is queued, flushes, undeclares and closes the session.
 
 A full inbox blocks the Zenoh callback and with it the session's whole link (backpressure).
 Hints a service takes back from a service it feeds (deskew: the matcher's poses) must not wait
@@ -30,6 +31,7 @@ from scanflow.wire import ServiceStatsMessage
 
 from services.common.counters import Counters, SeqTracker
 from services.common.inbox import Inbox
+from services.common.outbox import Outbox
 from services.common.zsession import open_session
 
 QueryHandler = Callable[[zenoh.Query], None]
@@ -52,6 +54,7 @@ class ServiceShell:
         self.counters = Counters()
         self.seqs = SeqTracker()
         self.inbox = Inbox(queue_size, self.stop_event)
+        self.outbox = Outbox(queue_size, self.stop_event, f"{service}-sender")
         self.session = open_session(zenoh_settings)
         self._zenoh_settings = zenoh_settings
         self._feedback_session: zenoh.Session | None = None
@@ -65,7 +68,7 @@ class ServiceShell:
         self._query_thread = threading.Thread(target=self._serve_queries, daemon=True)
         self._started_s = time.monotonic()
         self._busy_s = 0.0  # worker time in `handle` (and `idle`): how loaded the service is
-        self._put_s = 0.0  # time spent in puts, mostly blocked by a slow subscriber
+        self._put_s = 0.0  # worker time handing payloads to the outbox (blocked when full)
 
     # -- declarations -------------------------------------------------------------------
     def publisher(self, key: str) -> zenoh.Publisher:
@@ -79,9 +82,11 @@ class ServiceShell:
         return pub
 
     def put(self, key: str, payload: bytes) -> None:
-        """Publish on `key` through a cached reliable, blocking publisher."""
+        """Publish on `key` through a cached reliable, blocking publisher, by way of the
+        outbox: in order, and blocking the caller only when the outbox is full."""
         t0 = time.perf_counter()
-        self._cached_publisher(key).put(payload)
+        if not self.outbox.put(self._cached_publisher(key), payload):
+            self.log.warning("stopping with a full outbox: a message on %s was not sent", key)
         self._put_s += time.perf_counter() - t0
 
     def wait_for_subscribers(self, key: str, timeout_s: float) -> bool:
@@ -221,9 +226,13 @@ class ServiceShell:
     def stop(self) -> None:
         self.stop_event.set()
 
-    def close(self, flush_s: float = 0.2) -> None:
-        """Let queued puts leave, then undeclare everything and close the session."""
+    def close(self, flush_s: float = 0.2, drain_s: float = 10.0) -> None:
+        """Send what the outbox holds (at most `drain_s`), let Zenoh's queues empty for
+        `flush_s`, then undeclare everything and close the session."""
         self.stop_event.set()
+        left = self.outbox.close(drain_s)
+        if left:
+            self.log.warning("%d queued messages not sent within %.0f s", left, drain_s)
         time.sleep(flush_s)
         for entity in reversed(self._declared):
             try:
@@ -241,6 +250,7 @@ class ServiceShell:
     def stats(self) -> ServiceStatsMessage:
         """Counters (incl. per-stream seq gaps), queue depths, RSS and service gauges."""
         counters = self.counters.snapshot()
+        counters.update({"puts.failed": self.outbox.failed, "puts.refused": self.outbox.refused})
         gauges: dict[str, float] = {
             "pid": os.getpid(),
             "uptime_s": time.monotonic() - self._started_s,
@@ -249,6 +259,8 @@ class ServiceShell:
             "inbox_high_water": self.inbox.high_water,
             "worker_busy_s": self._busy_s,
             "put_s": self._put_s,
+            "send_s": self.outbox.send_s,
+            "outbox_depth": self.outbox.depth(),
         }
         for stream, figures in self.seqs.snapshot().items():
             gauges[f"seq.{stream}.last"] = figures.pop("last_seq")
