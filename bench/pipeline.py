@@ -1,11 +1,13 @@
 """The distributed pipeline's numbers: Zenoh transport alone, end-to-end throughput against the
 in-process pipeline, ingest-to-pose latency at real-time rate, and resident memory per service.
 
-    python -m bench.pipeline [--json] [--limit N] [--only transport,throughput,latency,memory]
+    python -m bench.pipeline [--json] [--limit N] [--rounds K]
+                             [--only transport,throughput,latency,memory]
 
 Every service runs as its own process through a router on a free loopback port, exactly as
-`scanflow up` starts them. Latencies are measured by one observer process that sees both the
-raw scan and its pose on the bus (one clock).
+`scanflow up` starts them (matchers on CPUs of their own; `SCANFLOW_LAUNCH_MATCHER_CPUS=0` in
+the environment measures them unpinned). Latencies are measured by one observer process that
+sees both the raw scan and its pose on the bus (one clock).
 """
 
 from __future__ import annotations
@@ -24,13 +26,14 @@ from typing import Any
 import numpy as np
 import zenoh
 from scanflow import keys
-from scanflow.config import ZenohSettings
+from scanflow.config import LaunchSettings, ZenohSettings
 from scanflow.pipeline import Pipeline
 from scanflow.scan import LaserScan
 from scanflow.wire import ScanMessage, ServiceStatsMessage, decode_any
 
 from services.common.launch import PIPELINE as SERVICES
 from services.common.launch import Launcher, free_port
+from services.common.process import available_cpus
 from services.common.zsession import open_session
 from services.ingest.sources import source_events
 
@@ -41,22 +44,50 @@ FREIBURG = DATA_DIR / "freiburg-079-corrected.log.gz"
 
 @contextmanager
 def running(services: tuple[str, ...], **settings: str) -> Iterator[tuple[Launcher, Any]]:
-    """A router, `services` and an observer session; everything stopped on exit."""
+    """A router, `services` and an observer session; everything stopped on exit. With a CPU
+    plan this process (the observer's Zenoh and callback threads) keeps off the matchers' CPUs
+    while the services run, as the light services do."""
     with tempfile.TemporaryDirectory(prefix="scanflow-bench-") as tmp:
         launcher = Launcher.local(
             Path(tmp) / "logs", free_port(), SCANFLOW_MAPSERVER_DATA_DIR=str(Path(tmp) / "data"),
             **settings,
         )
-        launcher.start("router")
-        session = open_session(ZenohSettings(connect=[f"tcp/127.0.0.1:{launcher.zenoh_port}"]))
-        try:
-            for name in services:
-                launcher.start(name)
-            launcher.wait_healthy(services)
-            yield launcher, session
-        finally:
-            session.close()
-            launcher.stop_all()
+        with threads_on(launcher.cpus.shared if launcher.cpus is not None else []):
+            launcher.start("router")
+            session = open_session(
+                ZenohSettings(connect=[f"tcp/127.0.0.1:{launcher.zenoh_port}"])
+            )
+            try:
+                for name in services:
+                    launcher.start(name)
+                launcher.wait_healthy(services)
+                yield launcher, session
+            finally:
+                session.close()
+                launcher.stop_all()
+
+
+@contextmanager
+def threads_on(cpus: list[int]) -> Iterator[None]:
+    """Every thread of this process (and those it starts meanwhile) on `cpus`, restored after;
+    empty: leave them where they are."""
+    if not cpus:
+        yield
+        return
+    before = available_cpus()
+
+    def pin(to: list[int]) -> None:
+        for tid in os.listdir("/proc/self/task"):
+            try:
+                os.sched_setaffinity(int(tid), to)
+            except (ProcessLookupError, PermissionError):  # a thread that just ended
+                continue
+
+    pin(cpus)
+    try:
+        yield
+    finally:
+        pin(before)
 
 
 class Observer:
@@ -145,11 +176,24 @@ def transport(count: int = 3000, latency_count: int = 500) -> dict[str, Any]:
     }
 
 
-def throughput(log: Path, limit: int | None) -> dict[str, Any]:
+def throughput(log: Path, limit: int | None, rounds: int = 1) -> dict[str, Any]:
     """Scans/s through ingest -> deskew -> matcher (-> map server) as fast as backpressure
-    allows, against the in-process pipeline on the same events; per service and scan: CPU
-    (Linux /proc), worker busy time and time blocked in puts, in ms."""
+    allows, against the in-process pipeline on the same events, `rounds` times alternating
+    (each ratio pairs runs minutes apart, so load drift on a shared machine shows); per
+    service and scan: CPU (Linux /proc), worker busy time and time blocked in puts, in ms."""
     events = list(source_events(str(log), "robot", 1.0, 0, limit))
+    runs = [_throughput_round(log, limit, events) for _ in range(rounds)]
+    ratios = [run["services_vs_in_process"] for run in runs]
+    return {
+        "log": log.name,
+        "scans": runs[0]["scans"],
+        "matcher_cpus": LaunchSettings().matcher_cpus,
+        "services_vs_in_process_median": float(np.median(ratios)),
+        "rounds": runs,
+    }
+
+
+def _throughput_round(log: Path, limit: int | None, events: list[Any]) -> dict[str, Any]:
     scans = sum(isinstance(e, LaserScan) for e in events)
     pipeline = Pipeline()
     t0, cpu0 = time.perf_counter(), time.process_time()
@@ -175,12 +219,12 @@ def throughput(log: Path, limit: int | None) -> dict[str, Any]:
         for name in SERVICES
     }
     return {
-        "log": log.name,
         "scans": scans,
         "in_process_scans_per_s": scans / in_process_s,
         "in_process_cpu_ms_per_scan": 1e3 * in_process_cpu_s / scans,
         "services_scans_per_s": scans / services_s,
         "services_vs_in_process": in_process_s / services_s,
+        "load_average": os.getloadavg()[0],
         "per_scan_ms": per_scan_ms,
     }
 
@@ -253,6 +297,7 @@ def main() -> None:
     parser.add_argument("--latency-s", type=float, default=30.0, help="simulated seconds")
     parser.add_argument("--replays", type=int, default=3, help="replays for the memory figure")
     parser.add_argument("--only", default="transport,throughput,latency,memory")
+    parser.add_argument("--rounds", type=int, default=3, help="throughput rounds (alternating)")
     args = parser.parse_args()
     wanted = set(args.only.split(","))
     needs_log = wanted & {"throughput", "memory"}
@@ -262,7 +307,7 @@ def main() -> None:
     if "transport" in wanted:
         results["transport"] = transport()
     if "throughput" in wanted:
-        results["throughput"] = throughput(FREIBURG, args.limit)
+        results["throughput"] = throughput(FREIBURG, args.limit, args.rounds)
     if "latency" in wanted:
         results["latency"] = latency(args.latency_s)
     if "memory" in wanted:
