@@ -49,3 +49,62 @@ def test_warm_up_compiles_the_per_scan_kernels_and_with_methods_every_matcher():
     assert all(plain["after"][f"{m}.{k}"] for m, names in KERNELS.items() for k in names)
     full = _run(everything, methods=True)
     assert all(full["after"].values()), full["after"]
+
+
+NOTHING_LEFT_SCRIPT = """
+import importlib, json, pkgutil
+from numba.core.registry import CPUDispatcher
+import scanflow
+from scanflow.frontend import FrontendStatus
+from scanflow.geometry import Pose2D
+from scanflow.matching import MatchInputError, available_methods, match
+from scanflow.pipeline import Pipeline
+from scanflow.sim import SimConfig, simulate
+from scanflow.warmup import warm_up
+
+kernels = {}
+for info in pkgutil.walk_packages(scanflow.__path__, "scanflow."):
+    if info.name.endswith("__main__"):
+        continue
+    for name, value in vars(importlib.import_module(info.name)).items():
+        if isinstance(value, CPUDispatcher):
+            kernels[f"{value.__module__}.{name}"] = value
+warm_up(methods=True)
+before = {name: len(kernel.signatures) for name, kernel in kernels.items()}
+
+# A robot out of reach for 15 s (a network cut): back, it needs the fallback search (twice).
+pipeline, statuses, scans = Pipeline(), [], []
+for frame in simulate(SimConfig(duration_s=25.0, seed=7, robot_id="gap")):
+    if 1.6 <= frame.scan.stamp_s < 16.6:
+        continue
+    for odom in frame.odometry:
+        pipeline.add_odometry(odom)
+    statuses.append(pipeline.process(frame.scan).estimate.status)
+    scans.append(frame.scan)
+source = scans[-1].points()
+target = Pose2D(-0.1, 0.05, 0.03).transform_points(source)
+for method in available_methods():
+    match(source, target, None, method=method)
+    try:
+        match(scans[-1], pipeline.frontend.map, pipeline.frontend.pose, method=method)
+    except MatchInputError:
+        pass
+compiled = sorted(n for n, k in kernels.items() if len(k.signatures) > before[n])
+print(json.dumps({"kernels": len(kernels), "compiled": compiled,
+                  "recovered": statuses.count(FrontendStatus.RECOVERED)}))
+"""
+
+
+def test_after_warm_up_a_recovery_and_every_method_on_a_map_compile_nothing():
+    """What a service does after its health token compiles no kernel: the first scan after a
+    gap (the fallback search on the map, then the refinement) once compiled for seconds while
+    the robot's scans queued behind it, which warm_up now covers."""
+    out = subprocess.run(
+        [sys.executable, "-c", NOTHING_LEFT_SCRIPT],
+        capture_output=True, text=True, check=False, timeout=600,
+    )
+    assert out.returncode == 0, out.stderr[-4000:]
+    report = json.loads(out.stdout.strip().splitlines()[-1])
+    assert report["kernels"] >= 10  # the search found the package's kernels
+    assert report["recovered"] >= 1  # the gap took the fallback path
+    assert report["compiled"] == []

@@ -200,22 +200,39 @@ class Frontend:
             return result, FrontendStatus.TRACKED, result.message
         if not s.fallback_method:
             return result, FrontendStatus.REJECTED, reason
+        found, status, note = self.relocalise(points, guess)
+        if status is FrontendStatus.RECOVERED:
+            return found, status, f"{note}: {reason}"
+        # Rejected: the search's optimum when it found one, else the local match.
+        return (found if found.ok else result), status, f"{reason}; {note}"
+
+    def relocalise(
+        self, points_m: ArrayLike, guess: Pose2D
+    ) -> tuple[MatchResult, FrontendStatus, str]:
+        """Search the map around `guess` (settings.fallback_method over +-fallback_linear_m /
+        +-fallback_angular_deg), refine the best pose with settings.method, and check it
+        against `guess` as a tracked match is: RECOVERED with the match, or REJECTED with why.
+        The front end's own state is untouched. Needs a fallback method and a non-empty map."""
+        s = self.settings
+        if not s.fallback_method:
+            raise ValueError("relocalise needs settings.fallback_method (it is '')")
+        points = as_points(points_m, "points_m")
         coarse = match(
             points, self.map, guess, method=s.fallback_method,
             linear_m=s.fallback_linear_m, angular_rad=math.radians(s.fallback_angular_deg),
             resolution_m=s.map_resolution_m,
         )
         if not coarse.ok:
-            return result, FrontendStatus.REJECTED, f"{reason}; fallback: {coarse.message}"
+            return coarse, FrontendStatus.REJECTED, f"fallback: {coarse.message}"
         refined = match(points, self.map, coarse.pose, method=s.method)
         if not rejection_reason(refined, guess, self._limits):
-            return refined, FrontendStatus.RECOVERED, f"recovered by {s.fallback_method}: {reason}"
+            return refined, FrontendStatus.RECOVERED, f"recovered by {s.fallback_method}"
         # The search's own optimum (grid resolution) when refining it fails too.
         coarse_reason = rejection_reason(coarse, guess, self._limits)
         if coarse_reason:
-            return coarse, FrontendStatus.REJECTED, f"{reason}; after fallback: {coarse_reason}"
+            return coarse, FrontendStatus.REJECTED, f"after fallback: {coarse_reason}"
         return coarse, FrontendStatus.RECOVERED, (
-            f"recovered by {s.fallback_method} alone ({s.method} refinement failed): {reason}"
+            f"recovered by {s.fallback_method} alone ({s.method} refinement failed)"
         )
 
     def _finish(

@@ -223,6 +223,32 @@ def test_fallback_recovers_from_a_bad_prediction(scan_at: Scanner) -> None:
         assert out_without.status is FrontendStatus.REJECTED
 
 
+def test_relocalise_finds_the_pose_from_a_far_guess_and_leaves_the_state_alone(
+    scan_at: Scanner,
+) -> None:
+    truth = straight_path(START, 0.1, 6)
+    frontend = Frontend(FrontendSettings.model_construct(), initial_pose=START_IN_MAP)
+    run(frontend, scan_at, truth, odometry_with_drift(truth, 1.0))
+    pose, trajectory = frontend.pose, len(frontend.trajectory)
+    far = MAP_FROM_WORLD * truth[-1] * Pose2D(0.6, -0.5, math.radians(20.0))
+    found, status, note = frontend.relocalise(scan_at(truth[-1]), far)
+    assert status is FrontendStatus.RECOVERED, note
+    assert note.startswith("recovered by csm")
+    position_m, heading_rad = error(found.pose, truth[-1])
+    assert position_m < 0.03 and heading_rad < math.radians(1.0)
+    assert frontend.pose == pose and len(frontend.trajectory) == trajectory
+
+
+def test_relocalise_on_an_empty_map_says_why_and_needs_a_fallback(scan_at: Scanner) -> None:
+    frontend = Frontend(FrontendSettings.model_construct(), initial_pose=START_IN_MAP)
+    found, status, note = frontend.relocalise(scan_at(START), START_IN_MAP)
+    assert status is FrontendStatus.REJECTED and not found.ok
+    assert note.startswith("fallback: ") and len(note) > len("fallback: ")
+    plain = Frontend(FrontendSettings.model_construct(fallback_method=""))
+    with pytest.raises(ValueError, match="fallback_method"):
+        plain.relocalise(scan_at(START), START_IN_MAP)
+
+
 @pytest.mark.parametrize("method", ["gn", "lm"])
 def test_method_is_configurable(method: str, scan_at: Scanner) -> None:
     truth = straight_path(START, 0.1, 4)
