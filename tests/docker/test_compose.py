@@ -68,6 +68,10 @@ def stack(compose_projects, harness):
         "SCANFLOW_INGEST_RATE": "0",
         "SCANFLOW_INGEST_SIM_DURATION_S": str(SIM_S),
         "SCANFLOW_INGEST_SIM_SEED": str(SEED),
+        # The deskew latency budget is wall-clock: under CI load (both test halves, image
+        # builds) odometry can come more than the default 50 ms after its scan, which then
+        # falls back by design (seen once). Equality needs a budget these runs never reach.
+        "SCANFLOW_DESKEW_ODOM_WAIT_S": "3",
     })
     start = time.monotonic()
     project.up()
@@ -255,10 +259,18 @@ def missing(client: httpx.Client) -> set[str]:
     return set(health(client)["missing"])
 
 
-def poses_advance(client: httpx.Client, timeout_s: float) -> bool:
+def poses_advance(project, client: httpx.Client, timeout_s: float) -> None:
+    """New poses of the fault robot within `timeout_s`; else fail with what each stage holds
+    (the deskew and matcher counters and gauges, and their logs)."""
     first = client.get(f"/api/v1/robots/{FAULT_ROBOT}/pose").json()["seq"]
-    return bool(poll(lambda: client.get(f"/api/v1/robots/{FAULT_ROBOT}/pose").json()["seq"]
-                     > first, timeout_s, f"new poses of {FAULT_ROBOT}"))
+    try:
+        poll(lambda: client.get(f"/api/v1/robots/{FAULT_ROBOT}/pose").json()["seq"] > first,
+             timeout_s, f"new poses of {FAULT_ROBOT} (last seq {first})")
+    except AssertionError as exc:
+        stages = [line for line in client.get("/metrics").text.splitlines()
+                  if 'service="deskew"' in line or 'service="matcher"' in line]
+        raise AssertionError("\n".join([str(exc), *stages, project.describe("deskew"),
+                                        project.describe("matcher")])) from None
 
 
 def test_matcher_stop_and_start(fault_run):
@@ -270,7 +282,7 @@ def test_matcher_stop_and_start(fault_run):
     project.start("matcher")
     project.wait_healthy(["matcher"], timeout_s=120.0)
     poll(lambda: "matcher" not in missing(client), 2 * LEASE_S, "health to report the matcher")
-    assert poses_advance(client, 30.0)
+    poses_advance(project, client, 30.0)
 
 
 def test_mapserver_killed_restarts_with_its_map(fault_run):
@@ -300,7 +312,7 @@ def test_deskew_cut_off_the_network_comes_back(fault_run):
         project.connect("deskew", network)
     poll(lambda: "deskew" not in missing(client), 6 * LEASE_S, "deskew to rejoin")
     project.wait_healthy(["deskew"], timeout_s=120.0)
-    assert poses_advance(client, 30.0)
+    poses_advance(project, client, 30.0)
 
 
 def test_what_was_missed_is_counted(fault_run):
