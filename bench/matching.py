@@ -12,6 +12,10 @@ composed with an error of 0.1/0.3/1.0 m (random direction) and 5/15/30 deg (rand
 Each matcher is called once untimed before its timed run (numba JIT and library warm-up).
 Times: wall clock per match (median, mean) and the median process CPU time, which a shared
 machine inflates less than wall time.
+Trust (scanflow methods only; the peers report no status): "trusted" is the share of pairs whose
+status is ok, "silently wrong" the share trusted although beyond 10 cm or 1 deg (the figure to
+drive down), "flagged good" the share not ok although within 5 cm and 0.5 deg (the cost). The
+success rates count the pose whatever the status.
 """
 
 from __future__ import annotations
@@ -29,7 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scanflow.geometry import Pose2D
 from scanflow.io.carmen import load_keyframes
-from scanflow.matching import DEFAULT_METHOD, available_methods, match
+from scanflow.matching import DEFAULT_METHOD, MatchResult, available_methods, match
 from tqdm import tqdm
 
 from bench.peers import available_peers
@@ -37,7 +41,8 @@ from bench.peers import available_peers
 THRESHOLDS = ((0.05, 0.5), (0.10, 1.0))  # (metres, degrees)
 ROBUST_LEVELS = ((0.1, 5.0), (0.3, 15.0), (1.0, 30.0))
 DEFAULT_METHODS = ("odometry", "icp", "plicp", "csm+plicp")
-Matcher = Callable[[NDArray[np.float64], NDArray[np.float64], Pose2D], Pose2D]
+# A peer returns a pose; a scanflow method its whole result (pose and status).
+Matcher = Callable[[NDArray[np.float64], NDArray[np.float64], Pose2D], Pose2D | MatchResult]
 
 
 @dataclass(frozen=True)
@@ -64,8 +69,8 @@ def load_pairs(path: Path, gap: int, stride: int, limit: int | None) -> list[Pai
 
 
 def scanflow_matcher(method: str) -> Matcher:
-    def run(src: NDArray[np.float64], tgt: NDArray[np.float64], guess: Pose2D) -> Pose2D:
-        return match(src, tgt, guess, method=method).pose
+    def run(src: NDArray[np.float64], tgt: NDArray[np.float64], guess: Pose2D) -> MatchResult:
+        return match(src, tgt, guess, method=method)
 
     return run
 
@@ -84,22 +89,43 @@ def errors(truth: Pose2D, estimate: Pose2D) -> tuple[float, float]:
 def run_matcher(name: str, fn: Matcher, pairs: list[Pair], guesses: list[Pose2D]) -> dict:
     """Errors and timing of one matcher over the pairs (with the given guesses)."""
     fn(pairs[0].source, pairs[0].target, guesses[0])  # warm-up, untimed
-    trans, rot, times, cpu = [], [], [], []
+    trans, rot, times, cpu, trusted = [], [], [], [], []
     for pair, guess in tqdm(list(zip(pairs, guesses, strict=True)), desc=name, file=sys.stderr,
                             leave=False):
         t0, c0 = time.perf_counter(), time.process_time()
         est = fn(pair.source, pair.target, guess)
         times.append(time.perf_counter() - t0)
         cpu.append(time.process_time() - c0)
+        if isinstance(est, MatchResult):
+            trusted.append(est.ok)
+            est = est.pose
         et, er = errors(pair.truth, est)
         trans.append(et)
         rot.append(er)
-    return summarise(np.array(trans), np.array(rot), np.array(times), np.array(cpu))
+    out = summarise(np.array(trans), np.array(rot), np.array(times), np.array(cpu))
+    if trusted:
+        out.update(trust_shares(np.array(trans), np.array(rot), np.array(trusted)))
+    return out
+
+
+def within(trans_m: NDArray, rot_deg: NDArray, threshold: tuple[float, float]) -> NDArray:
+    """Mask of the pairs within (metres, degrees) of the truth."""
+    return (trans_m <= threshold[0]) & (rot_deg <= threshold[1])
+
+
+def trust_shares(trans_m: NDArray, rot_deg: NDArray, trusted: NDArray) -> dict[str, float]:
+    """Shares of pairs trusted (status ok), trusted but wrong, flagged although good."""
+    tight, loose = THRESHOLDS
+    return {
+        "trusted": float(np.mean(trusted)),
+        "silently_wrong": float(np.mean(trusted & ~within(trans_m, rot_deg, loose))),
+        "flagged_good": float(np.mean(~trusted & within(trans_m, rot_deg, tight))),
+    }
 
 
 def summarise(trans_m: NDArray, rot_deg: NDArray, times_s: NDArray, cpu_s: NDArray) -> dict:
     out = {
-        f"ok_{int(t * 100)}cm_{d:g}deg": float(np.mean((trans_m <= t) & (rot_deg <= d)))
+        f"ok_{int(t * 100)}cm_{d:g}deg": float(np.mean(within(trans_m, rot_deg, (t, d))))
         for t, d in THRESHOLDS
     }
     out.update(
@@ -141,7 +167,8 @@ def matchers(methods: list[str], peers: list[str]) -> dict[str, Matcher]:
 def format_table(results: dict[str, dict]) -> str:
     head = (
         f"{'matcher':<18} {'5cm/0.5d':>8} {'10cm/1d':>8} {'t50 m':>7} {'t95 m':>7} "
-        f"{'r50 deg':>7} {'r95 deg':>7} {'med ms':>7} {'mean ms':>7} {'cpu ms':>7}"
+        f"{'r50 deg':>7} {'r95 deg':>7} {'med ms':>7} {'mean ms':>7} {'cpu ms':>7} "
+        f"{'trusted':>7} {'silent':>7} {'flagged':>7}"
     )
     lines = [head]
     for name, r in results.items():
@@ -149,9 +176,16 @@ def format_table(results: dict[str, dict]) -> str:
             f"{name:<18} {r['ok_5cm_0.5deg']:>8.1%} {r['ok_10cm_1deg']:>8.1%} "
             f"{r['trans_p50_m']:>7.3f} {r['trans_p95_m']:>7.3f} {r['rot_p50_deg']:>7.2f} "
             f"{r['rot_p95_deg']:>7.2f} {r['time_p50_ms']:>7.2f} {r['time_mean_ms']:>7.2f} "
-            f"{r['cpu_p50_ms']:>7.2f}"
+            f"{r['cpu_p50_ms']:>7.2f} " + trust_cells(r)
         )
     return "\n".join(lines)
+
+
+def trust_cells(r: dict) -> str:
+    """Trusted / silently wrong / flagged good of a result, blank for a peer (no status)."""
+    if "trusted" not in r:
+        return " ".join(f"{'-':>7}" for _ in range(3))
+    return f"{r['trusted']:>7.1%} {r['silently_wrong']:>7.1%} {r['flagged_good']:>7.1%}"
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -178,6 +212,7 @@ def main(argv: list[str] | None = None) -> None:
     odom = [p.guess for p in pairs]
     results = {name: run_matcher(name, fn, pairs, odom) for name, fn in runners.items()}
     robust: dict[str, dict[str, float]] = {}
+    robust_trust: dict[str, dict[str, dict[str, float]]] = {}
     if args.robust_pairs > 0:
         rng = np.random.default_rng(args.seed)
         pick = sorted(rng.choice(len(pairs), min(args.robust_pairs, len(pairs)), replace=False))
@@ -189,9 +224,14 @@ def main(argv: list[str] | None = None) -> None:
                 if name != "odometry":
                     r = run_matcher(f"{name} {key}", fn, subset, guesses)
                     robust.setdefault(name, {})[key] = r["ok_10cm_1deg"]
+                    if "trusted" in r:
+                        robust_trust.setdefault(name, {})[key] = {
+                            k: r[k] for k in ("trusted", "silently_wrong", "flagged_good")
+                        }
     report = {
         "data": str(args.data), "gap": args.gap, "stride": args.stride, "pairs": len(pairs),
         "default_method": DEFAULT_METHOD, "results": results, "robustness_ok_10cm_1deg": robust,
+        "robustness_trust": robust_trust,
     }
     if args.json:
         print(json.dumps(report, indent=2))
@@ -205,6 +245,13 @@ def main(argv: list[str] | None = None) -> None:
         print(f"{'matcher':<18} " + " ".join(f"{lv:>11}" for lv in levels))
         for name, row in robust.items():
             print(f"{name:<18} " + " ".join(f"{v:>11.1%}" for v in row.values()))
+    if robust_trust:
+        print("\nrobustness trust: trusted / silently wrong / flagged good per level")
+        print(f"{'matcher':<18} " + " ".join(f"{lv:>20}" for lv in levels))
+        for name, row in robust_trust.items():
+            cells = [f"{t['trusted']:.1%}/{t['silently_wrong']:.1%}/{t['flagged_good']:.1%}"
+                     for t in row.values()]
+            print(f"{name:<18} " + " ".join(f"{c:>20}" for c in cells))
 
 
 if __name__ == "__main__":
