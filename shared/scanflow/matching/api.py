@@ -36,6 +36,9 @@ class MatchStatus(StrEnum):
     DIVERGED = "diverged"
     EMPTY_MAP = "empty_map"
     NO_OVERLAP = "no_overlap"
+    # Converged, but the aligned source contradicts the target: too many of its points lie
+    # where the target scan saw free space (a wrong basin). See matching/trust.py.
+    POOR_FIT = "poor_fit"
 
 
 class MatchInputError(ValueError):

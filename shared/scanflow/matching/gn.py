@@ -26,9 +26,11 @@ from scanflow.matching.field_cost import (
     run_coarse_to_fine,
     solve_well_determined,
 )
+from scanflow.matching.trust import fit_checked
 
 
 @register_method("gn")
+@fit_checked
 def match_gn(
     source: NDArray[np.float64],
     target: object,

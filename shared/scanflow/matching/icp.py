@@ -40,6 +40,7 @@ from scanflow.matching.correspondence import (
 from scanflow.matching.covariance import pose_parameter_jacobian
 from scanflow.matching.field_cost import densify_scan
 from scanflow.matching.plicp import CONVERGED, MAX_ITER, MIN_PAIRS, TOO_FEW, line_match_result
+from scanflow.matching.trust import fit_checked
 
 
 @njit(cache=True)
@@ -125,6 +126,7 @@ def _icp_kernel(
 
 
 @register_method("icp")
+@fit_checked
 def match_icp(
     source: NDArray[np.float64],
     target: object,

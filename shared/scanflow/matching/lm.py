@@ -26,11 +26,13 @@ from scanflow.matching.field_cost import (
     run_coarse_to_fine,
     solve_well_determined,
 )
+from scanflow.matching.trust import fit_checked
 
 GN_LIKE_MU = 1e-2
 
 
 @register_method("lm")
+@fit_checked
 def match_lm(
     source: NDArray[np.float64],
     target: object,

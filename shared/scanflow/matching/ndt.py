@@ -29,6 +29,7 @@ from scanflow.matching.field_cost import (
     converged_step,
     moved_points,
 )
+from scanflow.matching.trust import fit_checked
 
 ARMIJO_C = 1e-4
 GRIDS = 4  # the paper's overlapping grids
@@ -223,6 +224,7 @@ def _target_cells(
 
 
 @register_method("ndt")
+@fit_checked
 def match_ndt(
     source: NDArray[np.float64],
     target: object,

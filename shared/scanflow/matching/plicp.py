@@ -36,6 +36,7 @@ from scanflow.matching.correspondence import (
     target_lines,
 )
 from scanflow.matching.covariance import line_fit_covariance, unknown_covariance
+from scanflow.matching.trust import fit_checked
 
 MIN_PAIRS = 6
 # Solver outcome codes (shared with icp).
@@ -130,6 +131,7 @@ def _plicp_kernel(
 
 
 @register_method("plicp")
+@fit_checked
 def match_plicp(
     source: NDArray[np.float64],
     target: object,
