@@ -77,6 +77,8 @@ def fit_checked(fn: MethodFn) -> MethodFn:
     ) -> MatchResult:
         margin_m = options.pop("free_space_margin_m", FREE_SPACE_MARGIN_M)
         max_share = options.pop("max_free_space_share", MAX_FREE_SPACE_SHARE)
+        if not 0.0 <= max_share <= 1.0:
+            raise ValueError(f"max_free_space_share must be in [0, 1], got {max_share}")
         return assess_fit(fn(source, target, guess, **options), source, target, margin_m, max_share)
 
     return run

@@ -78,3 +78,11 @@ def test_on_a_map_a_turned_pose_is_a_poor_fit_and_the_match_is_ok(room, caster) 
     assert r.ok and r.extra["free_space_share"] <= 0.1, r.message
     turned = assess_fit(replace(r, pose=r.pose * Pose2D(0.0, 0.0, math.radians(30))), source, world)
     assert turned.status is MatchStatus.POOR_FIT and turned.extra["free_space_share"] > 0.1
+
+
+def test_limits_out_of_range_are_refused(room, caster) -> None:
+    scan = caster(room, Pose2D())
+    with pytest.raises(ValueError, match=r"max_free_space_share must be in \[0, 1\], got 1.5"):
+        match(scan, scan, method="plicp", max_free_space_share=1.5)
+    with pytest.raises(ValueError, match=r"margin_m must be >= 0, got -0.2"):
+        match(scan, scan, method="icp", free_space_margin_m=-0.2)
