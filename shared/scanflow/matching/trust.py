@@ -14,9 +14,9 @@ Limits, from the sensor model rather than from any log:
   0.1 allows one close passer-by. Simulated wrong basins (rooms and loop worlds, guesses off
   by up to 1 m / 30 deg) conflict by a median 0.17, 73 % of them above 0.1
   (BENCHMARKS.silent-wrong.md).
-A map target with an occupancy grid (`target.grid`, e.g. a MatchingMap) is tested on the
-cells it has seen free (map_free_space.py) with the same limits; any other target is not
-tested and its results stand as they are.
+A map target is not tested and its results stand as they are: its points do not hold its free
+space, and the free cells of an occupancy map built along drifting poses, tried and dropped,
+contradict right poses too often (BENCHMARKS.silent-wrong.md, "Front end").
 """
 
 from __future__ import annotations
@@ -29,10 +29,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanflow.geometry import Pose2D
-from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.matching.api import MatchResult, MatchStatus, MethodFn
 from scanflow.matching.free_space import free_space_test
-from scanflow.matching.map_free_space import map_free_space_test
 
 FREE_SPACE_MARGIN_M = 0.2
 MAX_FREE_SPACE_SHARE = 0.1
@@ -48,21 +46,15 @@ def assess_fit(
     max_share: float = MAX_FREE_SPACE_SHARE,
 ) -> MatchResult:
     """`result` with status POOR_FIT when it is OK but contradicts the target scan's free space."""
-    grid = getattr(target, "grid", None)
-    if not result.ok or not (isinstance(target, np.ndarray) or isinstance(grid, OccupancyGrid)):
+    if not result.ok or not isinstance(target, np.ndarray):
         return result
-    moved = result.pose.transform_points(source)
-    test = (
-        free_space_test(moved, target, margin_m)
-        if isinstance(target, np.ndarray)
-        else map_free_space_test(moved, grid, margin_m)
-    )
+    test = free_space_test(result.pose.transform_points(source), target, margin_m)
     extra = {**result.extra, "free_space_share": test.share, "free_space_tested": test.tested}
     if test.tested < MIN_TESTED or test.share <= max_share:
         return replace(result, extra=extra)
     message = (
-        f"{test.share:.0%} of {test.tested} tested source points lie in space the target saw "
-        f"free, over {margin_m} m off its surfaces (max_free_space_share {max_share})"
+        f"{test.share:.0%} of {test.tested} tested source points lie over {margin_m} m in front "
+        f"of the target's surfaces, in space it saw as free (max_free_space_share {max_share})"
     )
     return replace(result, status=MatchStatus.POOR_FIT, message=message, extra=extra)
 
