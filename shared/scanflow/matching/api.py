@@ -3,6 +3,10 @@
 Pose convention: the result `pose` is T_target_source, the motion that maps source points
 (sensor frame of the source scan) into the target's frame (the target scan's sensor frame for
 scan-to-scan, the map frame for scan-to-map). `initial_guess` follows the same convention.
+A point target is therefore one scan seen from its frame's origin: its returns also say that
+the beams' paths up to them were free, and the local methods refuse (POOR_FIT) a converged
+pose that puts too much of the source in that free space, a wrong basin (matching/trust.py).
+For a point set that is not one scan, pass `max_free_space_share=1.0` to skip that check.
 
 Each method lives in its own module and registers itself with `register_method`; this module
 validates inputs once so methods can assume clean (N, 2) finite arrays.
