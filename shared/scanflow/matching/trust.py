@@ -13,10 +13,10 @@ Limits, from the sensor model rather than from any log:
   simulated static pair); a person 0.5 m wide at 2.5 m covers ~11 deg, 6 % of a 180-deg scan, so
   0.1 allows one close passer-by. Simulated wrong basins (rooms and loop worlds, guesses off
   by up to 1 m / 30 deg) conflict by a median 0.17, 73 % of them above 0.1
-  (BENCHMARKS.silent-wrong.md).
+  (BENCHMARKS.md, `## Scan matching`, the `poor_fit` update).
 A map target is not tested and its results stand as they are: its points do not hold its free
 space, and the free cells of an occupancy map built along drifting poses, tried and dropped,
-contradict right poses too often (BENCHMARKS.silent-wrong.md, "Front end").
+contradict right poses too often (same update, "Front end").
 """
 
 from __future__ import annotations
