@@ -26,7 +26,7 @@ from typing import Any
 
 import zenoh
 from scanflow import keys
-from scanflow.config import ZenohSettings
+from scanflow.config import ServiceSettings, ZenohSettings
 from scanflow.wire import ServiceStatsMessage
 
 from services.common.counters import Counters, SeqTracker
@@ -44,10 +44,12 @@ class ServiceShell:
     """Session, liveliness token, stats queryable, counters and a bounded inbox for one service."""
 
     def __init__(
-        self, service: str, instance: str, zenoh_settings: ZenohSettings, queue_size: int = 64
+        self, service: str, settings: ServiceSettings, zenoh_settings: ZenohSettings
     ) -> None:
         self.service = keys.check_id(service, "service")
-        self.instance = keys.check_id(instance, "instance")
+        self.instance = keys.check_id(settings.instance, "instance")
+        queue_size = settings.queue_size
+        self.slow_message_s = settings.slow_message_s
         self.prefix = zenoh_settings.prefix
         self.log = logging.getLogger(f"scanflow.{service}")
         self.stop_event = threading.Event()
@@ -69,6 +71,7 @@ class ServiceShell:
         self._started_s = time.monotonic()
         self._busy_s = 0.0  # worker time in `handle` (and `idle`): how loaded the service is
         self._put_s = 0.0  # worker time handing payloads to the outbox (blocked when full)
+        self._handle_max_s = 0.0  # the longest a single message took to handle
 
     # -- declarations -------------------------------------------------------------------
     def publisher(self, key: str) -> zenoh.Publisher:
@@ -217,11 +220,20 @@ class ServiceShell:
             self._busy_s += time.perf_counter() - t0
 
     def _handle(self, handle: Callable[[str, Any], None], kind: str, message: Any) -> None:
+        t0 = time.perf_counter()
         try:
             handle(kind, message)
         except Exception:  # a bad message must not stop the service
             self.counters.add(f"errors.{kind}")
             self.log.exception("failed to handle a %s message", kind)
+        took_s = time.perf_counter() - t0
+        self._handle_max_s = max(self._handle_max_s, took_s)
+        if took_s > self.slow_message_s:  # everything behind it waited that long too
+            n = self.counters.add(f"slow.{kind}")
+            self.log.warning(
+                "a %s message took %.2f s to handle (slow_message_s=%.2f; %d so far), "
+                "inbox now %d", kind, took_s, self.slow_message_s, n, self.inbox.depth(),
+            )
 
     def stop(self) -> None:
         self.stop_event.set()
@@ -259,6 +271,7 @@ class ServiceShell:
             "inbox_high_water": self.inbox.high_water,
             "worker_busy_s": self._busy_s,
             "put_s": self._put_s,
+            "handle_max_s": self._handle_max_s,
             "send_s": self.outbox.send_s,
             "outbox_depth": self.outbox.depth(),
         }

@@ -68,7 +68,7 @@ class DeskewService:
 
     def __init__(self, settings: DeskewSettings, zenoh_settings: ZenohSettings) -> None:
         self.settings = settings
-        self.shell = ServiceShell("deskew", settings.instance, zenoh_settings, settings.queue_size)
+        self.shell = ServiceShell("deskew", settings, zenoh_settings)
         prefix = self.shell.prefix
         self.robots: dict[str, _Robot] = {}
         # Exactly its inputs: a robot-tree wildcard would also carry the matcher's output, and

@@ -24,7 +24,7 @@ class Ingest:
     def __init__(self, settings: IngestSettings, zenoh_settings: ZenohSettings) -> None:
         self.settings = settings
         keys.check_robot_id(settings.robot_id)
-        self.shell = ServiceShell("ingest", settings.instance, zenoh_settings, settings.queue_size)
+        self.shell = ServiceShell("ingest", settings, zenoh_settings)
         stop = self.shell.stop_event
         window = settings.window if settings.rate == 0 else 0
         self.credit = CreditWindow(window, settings.stall_timeout_s, stop)

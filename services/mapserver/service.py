@@ -41,9 +41,7 @@ class MapServer:
         frontend = frontend_settings if frontend_settings is not None else default_settings()
         self.params = occupancy_params(frontend)
         self.data_dir = Path(settings.data_dir)
-        self.shell = ServiceShell(
-            "mapserver", settings.instance, zenoh_settings, settings.queue_size
-        )
+        self.shell = ServiceShell("mapserver", settings, zenoh_settings)
         self.robots: dict[str, RobotMap] = {}
         self.lock = threading.Lock()  # the worker inserts while the query thread reads
         snapshots, skipped = load_snapshots(self.data_dir)

@@ -56,7 +56,7 @@ class MatcherService:
     ) -> None:
         self.settings = settings
         self.frontend_settings = frontend_settings
-        self.shell = ServiceShell("matcher", settings.instance, zenoh_settings, settings.queue_size)
+        self.shell = ServiceShell("matcher", settings, zenoh_settings)
         self.frontends: dict[str, Frontend] = {}
         self.lock = threading.Lock()  # the worker updates maps that match requests read
         prefix = self.shell.prefix

@@ -20,7 +20,7 @@ def main() -> None:
     settings = RouterSettings()
     init_process(settings.log_level, settings.cpus)
     zenoh_settings = router_zenoh_settings(settings, ZenohSettings().prefix)
-    shell = ServiceShell("router", settings.instance, zenoh_settings, settings.queue_size)
+    shell = ServiceShell("router", settings, zenoh_settings)
     shell.start()
     shell.log.info("router listening on %s", ", ".join(settings.listen))
     shell.run(lambda _kind, _message: None)

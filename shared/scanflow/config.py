@@ -59,6 +59,9 @@ class ServiceSettings(ProcessSettings):
     queue_size: int = Field(
         256, ge=1, description="bounded inbox between Zenoh and the worker (> 3 x ingest window)"
     )
+    slow_message_s: float = Field(
+        1.0, gt=0.0, description="a message handled for longer is logged and counted as slow"
+    )
 
 
 class KernelServiceSettings(ServiceSettings):

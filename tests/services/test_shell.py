@@ -1,0 +1,37 @@
+"""The service shell on a real, isolated Zenoh session (a peer with no endpoints)."""
+
+from __future__ import annotations
+
+import logging
+import time
+
+from scanflow.config import DeskewSettings, ZenohSettings
+
+from services.common.shell import ServiceShell
+
+
+def test_a_slow_message_is_logged_counted_and_measured(caplog) -> None:
+    """A message handled for longer than slow_message_s holds up everything behind it: it is
+    logged with its kind and duration, counted as slow.<kind>, and handle_max_s shows it."""
+    settings = DeskewSettings.model_construct(slow_message_s=0.05)
+    shell = ServiceShell("deskew", settings, ZenohSettings(mode="peer", connect=[]))
+    handled: list[str] = []
+
+    def handle(kind: str, sleep_s: float) -> None:
+        time.sleep(sleep_s)
+        handled.append(kind)
+        if len(handled) == 2:
+            shell.stop()
+
+    shell.inbox.put("quick", 0.0)
+    shell.inbox.put("scan", 0.2)
+    try:
+        with caplog.at_level(logging.WARNING, logger="scanflow.deskew"):
+            shell.run(handle, poll_s=0.01)
+        stats = shell.stats()
+    finally:
+        shell.close(flush_s=0.0)
+    assert handled == ["quick", "scan"]
+    assert stats.counters["slow.scan"] == 1 and "slow.quick" not in stats.counters
+    assert stats.gauges["handle_max_s"] >= 0.2
+    assert "a scan message took 0.2" in caplog.text and "slow_message_s=0.05" in caplog.text
