@@ -59,7 +59,9 @@ class LaserScan:
     seq: int = 0
 
     def __post_init__(self) -> None:
-        ranges = np.asarray(self.ranges_m, dtype=np.float32)
+        # C-contiguous and writable (a read-only array, as decoded from the wire, is copied):
+        # numba compiles each array type apart, so one type keeps a service's warm-up complete.
+        ranges = np.require(np.asarray(self.ranges_m, dtype=np.float32), None, ["C", "W"])
         if ranges.ndim != 1:
             raise ScanError(f"ranges_m must be 1-D, got shape {ranges.shape}")
         if ranges.size > MAX_BEAMS:

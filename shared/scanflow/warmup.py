@@ -6,8 +6,10 @@ first scan of a service would otherwise wait for (an ingest-to-pose latency of ~
 backlog of the scans behind it). A path left out is paid for later, at the worst time: the
 front end's recovery search (csm on the map, then the local refinement) first ran on the scan
 after a robot came back from a network cut, and compiled for 3 s idle, 7 s in a container and
-over 30 s on a loaded machine while that robot's scans queued. Services call `warm_up` before
-they announce themselves healthy; container builds call it to fill NUMBA_CACHE_DIR.
+over 30 s on a loaded machine while that robot's scans queued. (Arrays decoded from the wire
+are read-only, a type numba compiles apart: `matching.as_points` copies them, so the writable
+arrays here cover them.) Services call `warm_up` before they announce themselves healthy;
+container builds call it to fill NUMBA_CACHE_DIR.
 """
 
 from __future__ import annotations
@@ -17,7 +19,6 @@ import math
 from scanflow.geometry import Pose2D
 from scanflow.matching import MatchInputError, available_methods, match
 from scanflow.pipeline import Pipeline, PipelineOutput
-from scanflow.scan import LaserScan
 from scanflow.sim import SimConfig, simulate
 
 WARM_UP_SIM_S = 2.0
@@ -28,29 +29,30 @@ MOTION = Pose2D(0.05, -0.03, math.radians(1.0))
 
 
 def warm_up(methods: bool = False) -> int:
-    """Track a short simulated run (deskew, matching, map updates), then relocalise once off
-    the last pose (the front end's fallback search on the map, refined); with `methods`, match
-    a scan with every registered method, against itself moved and against the run's map.
-    Returns the number of scans tracked."""
+    """Track a short simulated run (deskew, matching, map updates), then relocalise off its last
+    pose (the front end's fallback search on the map, refined); with `methods`, match its last
+    scan with every registered method against itself moved and against the run's map. Returns
+    the number of scans tracked."""
     pipeline = Pipeline()
-    scans: list[LaserScan] = []
+    count = 0
     last: PipelineOutput | None = None
     for frame in simulate(SimConfig(duration_s=WARM_UP_SIM_S, seed=0, robot_id="warmup")):
         for odom in frame.odometry:
             pipeline.add_odometry(odom)
         last = pipeline.process(frame.scan)
-        scans.append(frame.scan)
-    if last is None or len(scans) < 2:
-        raise RuntimeError(f"the warm-up run produced {len(scans)} scans, needs 2")
+        count += 1
+    if last is None or count < 2:
+        raise RuntimeError(f"the warm-up run produced {count} scans, needs 2")
     frontend = pipeline.frontend
-    if frontend.settings.fallback_method and frontend.pose is not None:
-        frontend.relocalise(last.deskew.points, frontend.pose * KIDNAP)
+    points, pose = last.deskew.points, frontend.pose or Pose2D()
+    if frontend.settings.fallback_method:
+        frontend.relocalise(points, pose * KIDNAP)
     if methods:
-        source = scans[-1].points()
+        target = MOTION.transform_points(points)
         for method in available_methods():
-            match(source, MOTION.transform_points(source), None, method=method)
+            match(points, target, None, method=method)
             try:
-                match(scans[-1], frontend.map, frontend.pose, method=method)
+                match(points, frontend.map, pose, method=method)
             except MatchInputError:  # no map form (svd: known correspondences only)
                 continue
-    return len(scans)
+    return count

@@ -148,3 +148,17 @@ def test_odometry_validation() -> None:
         Odometry(0.0, Pose2D(), velocity=(1.0, 2.0, math.inf))
     with pytest.raises(ScanError, match="robot_id"):
         Odometry(0.0, Pose2D(), robot_id="")
+
+
+def test_ranges_are_held_contiguous_and_writable_whatever_comes_in() -> None:
+    """A read-only array (decoded from the wire) or a strided one is copied, so the deskew
+    kernels see one array type and compile nothing new on a service's first scan."""
+    read_only = np.full(8, 2.0, dtype=np.float32)
+    read_only.flags.writeable = False
+    strided = np.full(16, 3.0, dtype=np.float32)[::2]
+    for given in (read_only, strided):
+        ranges = make_scan(given).ranges_m
+        assert ranges.flags.c_contiguous and ranges.flags.writeable
+        np.testing.assert_array_equal(ranges, given)
+    fitting = np.full(8, 4.0, dtype=np.float32)
+    assert make_scan(fitting).ranges_m is fitting

@@ -55,12 +55,17 @@ NOTHING_LEFT_SCRIPT = """
 import importlib, json, pkgutil
 from numba.core.registry import CPUDispatcher
 import scanflow
-from scanflow.frontend import FrontendStatus
+import numpy as np
+from scanflow.frontend import Frontend, FrontendStatus, default_settings, insert_scan
+from scanflow.frontend import occupancy_params
 from scanflow.geometry import Pose2D
+from scanflow.maps.matching_map import MatchingMap
+from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.matching import MatchInputError, available_methods, match
-from scanflow.pipeline import Pipeline
+from scanflow.pipeline import DeskewStage, Pipeline
 from scanflow.sim import SimConfig, simulate
 from scanflow.warmup import warm_up
+from scanflow.wire import DeskewedScanMessage, MapInsertMessage, OdometryMessage, ScanMessage
 
 kernels = {}
 for info in pkgutil.walk_packages(scanflow.__path__, "scanflow."):
@@ -73,16 +78,46 @@ warm_up(methods=True)
 before = {name: len(kernel.signatures) for name, kernel in kernels.items()}
 
 # A robot out of reach for 15 s (a network cut): back, it needs the fallback search (twice).
-pipeline, statuses, scans = Pipeline(), [], []
+pipeline, statuses, scans, outputs = Pipeline(), [], [], []
 for frame in simulate(SimConfig(duration_s=25.0, seed=7, robot_id="gap")):
     if 1.6 <= frame.scan.stamp_s < 16.6:
         continue
     for odom in frame.odometry:
         pipeline.add_odometry(odom)
-    statuses.append(pipeline.process(frame.scan).estimate.status)
+    outputs.append(pipeline.process(frame.scan))
+    statuses.append(outputs[-1].estimate.status)
     scans.append(frame.scan)
-source = scans[-1].points()
-target = Pose2D(-0.1, 0.05, 0.03).transform_points(source)
+
+# The services' path: arrays decoded from the wire (read-only) into a matcher's front end and
+# the map server's map, and point operands of a match request.
+def wire(message):
+    return type(message).decode(message.encode())
+
+stage = DeskewStage()  # the deskew service: raw scans and odometry decoded from the wire
+for frame in simulate(SimConfig(duration_s=1.0, seed=5, robot_id="wire")):
+    for odom in frame.odometry:
+        stage.add_odometry(wire(OdometryMessage(odom)).odom)
+    stage.process(wire(ScanMessage(frame.scan)).scan)
+
+tracker = Frontend()
+served = MatchingMap(OccupancyGrid(occupancy_params(default_settings())))
+for out in outputs[-30:]:
+    r = out.deskew
+    scan = wire(DeskewedScanMessage(
+        robot_id="gap", seq=out.estimate.seq, stamp_s=r.reference_stamp_s, points=r.points,
+        source_used=r.source_used, times_assumed=r.times_assumed, beam_count=r.beam_count,
+        dropped_count=r.beam_count - r.valid_count, no_return_points=r.no_return_points,
+        odom_pose=out.estimate.pose))
+    est = tracker.process(scan.points, scan.stamp_s, scan.odom_pose, scan.seq,
+                          scan.no_return_points)
+    if est.inserted:
+        ins = wire(MapInsertMessage("gap", est.seq, est.stamp_s, est.pose, scan.points,
+                                    scan.no_return_points))
+        insert_scan(served, ins.points, ins.pose, ins.no_return_points)
+tracker.relocalise(scan.points, tracker.pose * Pose2D(0.5, 0.3, 0.35))
+source = scan.points
+target = wire(MapInsertMessage("gap", 0, 0.0, Pose2D(), Pose2D(-0.1, 0.05, 0.03)
+                               .transform_points(source), np.zeros((0, 2)))).points
 for method in available_methods():
     match(source, target, None, method=method)
     try:
@@ -98,7 +133,8 @@ print(json.dumps({"kernels": len(kernels), "compiled": compiled,
 def test_after_warm_up_a_recovery_and_every_method_on_a_map_compile_nothing():
     """What a service does after its health token compiles no kernel: the first scan after a
     gap (the fallback search on the map, then the refinement) once compiled for seconds while
-    the robot's scans queued behind it, which warm_up now covers."""
+    the robot's scans queued behind it, and arrays decoded from the wire (read-only, a numba
+    type of their own) compiled on a service's first real scan."""
     out = subprocess.run(
         [sys.executable, "-c", NOTHING_LEFT_SCRIPT],
         capture_output=True, text=True, check=False, timeout=600,

@@ -106,7 +106,10 @@ def _load_methods() -> None:
 
 
 def as_points(data: LaserScan | ArrayLike, name: str) -> NDArray[np.float64]:
-    """Validated (N, 2) float64 points; a LaserScan gives its valid endpoints. Drops NaN rows."""
+    """Validated (N, 2) float64 points; a LaserScan gives its valid endpoints. Drops NaN rows.
+    Always C-contiguous and writable (read-only arrays, as decoded from the wire, are copied):
+    numba compiles each array type apart, so one type here means no compile on a service's
+    first real scan after its warm-up."""
     if isinstance(data, LaserScan):
         return data.points()
     try:
@@ -118,7 +121,7 @@ def as_points(data: LaserScan | ArrayLike, name: str) -> NDArray[np.float64]:
     if p.ndim != 2 or p.shape[1] != 2:
         raise MatchInputError(f"{name} must have shape (N, 2), got {p.shape}")
     finite = np.all(np.isfinite(p), axis=1)
-    return p if finite.all() else p[finite]
+    return np.require(p if finite.all() else p[finite], np.float64, ["C", "W"])
 
 
 def as_pose(guess: Pose2D | ArrayLike | None) -> Pose2D:

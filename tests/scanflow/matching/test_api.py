@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scanflow.geometry import Pose2D
 from scanflow.matching import DEFAULT_METHOD, MatchInputError, MatchStatus, available_methods, match
-from scanflow.matching.api import target_points
+from scanflow.matching.api import as_points, target_points
 from scanflow.matching.checks import analyse_hessian, line_hessian
 from scanflow.matching.covariance import least_squares_covariance
 
@@ -89,3 +89,18 @@ def test_corridor_hessian_weak_direction_is_along_the_walls() -> None:
     cond = analyse_hessian(line_hessian(pts, normals), 3.0)
     assert cond.degenerate
     assert np.allclose(cond.weak_direction, (1.0, 0.0, 0.0), atol=1e-6)
+
+
+def test_as_points_gives_one_array_type_whatever_comes_in() -> None:
+    """Read-only (decoded from the wire) and strided arrays come out C-contiguous, writable and
+    equal, so numba compiles no second kernel for them; a fitting array is not copied."""
+    fitting = np.arange(12.0).reshape(6, 2)
+    assert as_points(fitting, "points") is fitting
+    read_only = fitting.copy()
+    read_only.flags.writeable = False
+    strided = np.arange(24.0).reshape(6, 4)[:, ::2]
+    for given in (read_only, strided, fitting.astype(np.float32)):
+        points = as_points(given, "points")
+        assert points.flags.c_contiguous and points.flags.writeable
+        assert points.dtype == np.float64
+        np.testing.assert_array_equal(points, given)
