@@ -235,6 +235,11 @@ def test_metrics_count_every_scan(stack, expected):
         assert metric(text, "scanflow_service_up", service=service) == 1, service
         assert metric(text, "scanflow_scans_processed_total", service=service) == len(outputs)
     assert metric(text, "scanflow_seq_gaps_total", stream=f"{ROBOT}/scan") == 0
+    # No message held a service up (SCANFLOW_<SERVICE>_SLOW_MESSAGE_S, 1 s): in particular no
+    # kernel compiled in a container after its warm-up and health token.
+    slow = [line for line in text.splitlines()
+            if line.startswith('scanflow_service_events_total{event="slow.')]
+    assert slow == [], slow
 
 
 # -- faults ----------------------------------------------------------------------------------
