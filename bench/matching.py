@@ -102,9 +102,10 @@ def run_matcher(name: str, fn: Matcher, pairs: list[Pair], guesses: list[Pose2D]
         et, er = errors(pair.truth, est)
         trans.append(et)
         rot.append(er)
-    out = summarise(np.array(trans), np.array(rot), np.array(times), np.array(cpu))
+    trans_m, rot_deg = np.array(trans), np.array(rot)
+    out = summarise(trans_m, rot_deg, np.array(times), np.array(cpu))
     if trusted:
-        out.update(trust_shares(np.array(trans), np.array(rot), np.array(trusted)))
+        out.update(trust_shares(trans_m, rot_deg, np.array(trusted)))
     return out
 
 

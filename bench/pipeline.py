@@ -184,10 +184,11 @@ def throughput(log: Path, limit: int | None, rounds: int = 1) -> dict[str, Any]:
     in ingest), and reading the log as it goes, as ingest does (like for like). Per service and
     scan: CPU (Linux /proc), worker busy time and time blocked in puts, in ms."""
     events = list(source_events(str(log), "robot", 1.0, 0, limit))
-    runs = [_throughput_round(log, limit, events) for _ in range(rounds)]
+    scans = sum(isinstance(e, LaserScan) for e in events)
+    runs = [_throughput_round(log, limit, events, scans) for _ in range(rounds)]
     return {
         "log": log.name,
-        "scans": runs[0]["scans"],
+        "scans": scans,
         "matcher_cpus": LaunchSettings().matcher_cpus,
         "services_vs_in_process_median": float(
             np.median([run["services_vs_in_process"] for run in runs])
@@ -211,8 +212,9 @@ def _in_process(events: Iterable[Any]) -> tuple[float, float]:
     return time.perf_counter() - t0, time.process_time() - cpu0
 
 
-def _throughput_round(log: Path, limit: int | None, events: list[Any]) -> dict[str, Any]:
-    scans = sum(isinstance(e, LaserScan) for e in events)
+def _throughput_round(
+    log: Path, limit: int | None, events: list[Any], scans: int
+) -> dict[str, Any]:
     in_process_s, in_process_cpu_s = _in_process(events)
     reading_s, _ = _in_process(source_events(str(log), "robot", 1.0, 0, limit))
     settings = {"SCANFLOW_INGEST_LOG": str(log), "SCANFLOW_INGEST_RATE": "0"}

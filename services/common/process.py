@@ -12,6 +12,8 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
+from scanflow.config import ProcessSettings
+
 _log = logging.getLogger("scanflow.process")
 
 
@@ -22,10 +24,11 @@ def configure_logging(level: str) -> None:
     )
 
 
-def init_process(log_level: str, cpus: Sequence[int]) -> None:
+def init_process(settings: ProcessSettings) -> None:
     """Configure logging, then restrict this process (and every thread it starts later) to
-    `cpus`; empty leaves the affinity it inherited. Unknown CPUs are a clear error."""
-    configure_logging(log_level)
+    `settings.cpus`; empty leaves the affinity it inherited. Unknown CPUs are a clear error."""
+    configure_logging(settings.log_level)
+    cpus = settings.cpus
     if not cpus:
         return
     if not available_cpus():

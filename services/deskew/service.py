@@ -168,5 +168,5 @@ class DeskewService:
 def main() -> None:
     """Run the deskew service with settings from SCANFLOW_DESKEW_* and SCANFLOW_ZENOH_*."""
     settings = DeskewSettings()
-    init_process(settings.log_level, settings.cpus)
+    init_process(settings)
     DeskewService(settings, ZenohSettings()).run()

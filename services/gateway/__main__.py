@@ -11,7 +11,7 @@ from services.gateway.app import create_app
 
 def main() -> None:
     settings = GatewaySettings()
-    init_process(settings.log_level, settings.cpus)
+    init_process(settings)
     uvicorn.run(
         create_app(settings),
         host=settings.host,

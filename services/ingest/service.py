@@ -102,5 +102,5 @@ class Ingest:
 def main() -> None:
     """Run ingest with settings from SCANFLOW_INGEST_* and SCANFLOW_ZENOH_*."""
     settings = IngestSettings()
-    init_process(settings.log_level, settings.cpus)
+    init_process(settings)
     Ingest(settings, ZenohSettings()).run()

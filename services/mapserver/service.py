@@ -174,5 +174,5 @@ def main() -> None:
     """Run the map server (settings: SCANFLOW_MAPSERVER_*, SCANFLOW_ZENOH_*, and the map
     resolution from SCANFLOW_FRONTEND_*, so its maps have the matchers' lattice)."""
     settings = MapServerSettings()
-    init_process(settings.log_level, settings.cpus)
+    init_process(settings)
     MapServer(settings, ZenohSettings(), FrontendSettings()).run()

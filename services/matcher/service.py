@@ -167,5 +167,5 @@ class MatcherService:
 def main() -> None:
     """Run a matcher (settings: SCANFLOW_MATCHER_*, SCANFLOW_FRONTEND_*, SCANFLOW_ZENOH_*)."""
     settings = MatcherSettings()
-    init_process(settings.log_level, settings.cpus)
+    init_process(settings)
     MatcherService(settings, FrontendSettings(), ZenohSettings()).run()

@@ -18,7 +18,7 @@ def router_zenoh_settings(settings: RouterSettings, prefix: str) -> ZenohSetting
 def main() -> None:
     """Run the router until SIGTERM/Ctrl-C."""
     settings = RouterSettings()
-    init_process(settings.log_level, settings.cpus)
+    init_process(settings)
     zenoh_settings = router_zenoh_settings(settings, ZenohSettings().prefix)
     shell = ServiceShell("router", settings, zenoh_settings)
     shell.start()

@@ -41,8 +41,8 @@ def warm_up(methods: bool = False) -> int:
             pipeline.add_odometry(odom)
         last = pipeline.process(frame.scan)
         count += 1
-    if last is None or count < 2:
-        raise RuntimeError(f"the warm-up run produced {count} scans, needs 2")
+    if last is None:
+        raise RuntimeError("the warm-up run produced no scan")
     frontend = pipeline.frontend
     points, pose = last.deskew.points, frontend.pose or Pose2D()
     if frontend.settings.fallback_method:

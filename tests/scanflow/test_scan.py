@@ -156,9 +156,9 @@ def test_ranges_are_held_contiguous_and_writable_whatever_comes_in() -> None:
     read_only = np.full(8, 2.0, dtype=np.float32)
     read_only.flags.writeable = False
     strided = np.full(16, 3.0, dtype=np.float32)[::2]
-    for given in (read_only, strided):
-        ranges = make_scan(given).ranges_m
+    for incoming in (read_only, strided):
+        ranges = make_scan(incoming).ranges_m
         assert ranges.flags.c_contiguous and ranges.flags.writeable
-        np.testing.assert_array_equal(ranges, given)
+        np.testing.assert_array_equal(ranges, incoming)
     fitting = np.full(8, 4.0, dtype=np.float32)
     assert make_scan(fitting).ranges_m is fitting

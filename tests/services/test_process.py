@@ -47,8 +47,9 @@ def _affinity_after_init(cpus: str) -> subprocess.CompletedProcess[str]:
     itself and of a thread started afterwards."""
     code = (
         "import os, threading\n"
+        "from scanflow.config import ProcessSettings\n"
         "from services.common.process import init_process\n"
-        f"init_process('INFO', [{cpus}])\n"
+        f"init_process(ProcessSettings(log_level='INFO', cpus=[{cpus}]))\n"
         "seen = []\n"
         "t = threading.Thread(target=lambda: seen.append(sorted(os.sched_getaffinity(0))))\n"
         "t.start(); t.join()\n"
@@ -78,8 +79,9 @@ def test_init_process_may_widen_the_affinity_it_inherited():
     first, last = available_cpus()[0], available_cpus()[-1]
     code = (
         "import os\n"
+        "from scanflow.config import ProcessSettings\n"
         "from services.common.process import init_process\n"
-        f"init_process('INFO', [{first}, {last}])\n"
+        f"init_process(ProcessSettings(log_level='INFO', cpus=[{first}, {last}]))\n"
         "print(sorted(os.sched_getaffinity(0)))\n"
     )
     result = subprocess.run(
