@@ -55,10 +55,7 @@ class Peer:
                 query.reply(query.key_expr, payload)
 
         self._declared.append(self.session.declare_queryable(key, on_query))
-        if self.gateway_session is not None:  # don't race the declaration to the gateway
-            querier = self.gateway_session.declare_querier(key)
-            eventually(lambda: querier.matching_status.matching, f"the gateway to see {key}")
-            querier.undeclare()
+        self._wait_gateway_sees(key, "querier")
 
     def token(self, key: str) -> None:
         self._declared.append(self.session.liveliness().declare_token(key))
@@ -68,7 +65,18 @@ class Peer:
         self._declared.append(
             self.session.declare_subscriber(key, lambda s: got.append(s.payload.to_bytes()))
         )
+        self._wait_gateway_sees(key, "publisher")
         return got
+
+    def _wait_gateway_sees(self, key: str, probe: str) -> None:
+        """Block until a `probe` ('querier' for a queryable, 'publisher' for a subscriber)
+        declared on the gateway's session matches `key`: Zenoh drops a put or query that meets
+        no known match, so a test must not race its declaration to the gateway."""
+        if self.gateway_session is None:
+            return
+        entity = getattr(self.gateway_session, f"declare_{probe}")(key)
+        eventually(lambda: entity.matching_status.matching, f"the gateway to see {key}")
+        entity.undeclare()
 
     def close(self) -> None:
         for entity in self._declared:
