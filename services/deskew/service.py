@@ -5,7 +5,8 @@ Scans leave in arrival order per robot. Without covering odometry the stage fall
 constant-velocity prior fed by the matcher's accepted poses, else to no correction;
 `source_used` in each message says which. A scan that odometry will never cover first waits
 (within the same budget) for the matcher's pose of the scan before it, so the prior holds every
-earlier estimate, as in the in-process pipeline. Poses come in on the shell's feedback lane:
+earlier estimate, as in the in-process pipeline; a zero-length sweep (keyframe logs) has nothing
+to correct and does not wait. Poses come in on the shell's feedback lane:
 the matcher blocks on publishing them, so they must not queue behind scans that wait on it.
 """
 
@@ -18,6 +19,7 @@ from dataclasses import dataclass, field
 
 from scanflow import keys
 from scanflow.config import DeskewSettings, ZenohSettings
+from scanflow.deskew import motion_free_reason
 from scanflow.frontend import ACCEPTED
 from scanflow.pipeline import DeskewStage
 from scanflow.scan import LaserScan, Odometry
@@ -127,12 +129,14 @@ class DeskewService:
     def _ready(robot: _Robot, scan: LaserScan) -> bool:
         """Odometry reaches the end of the sweep (waiting longer cannot change it; a log with
         one odometry pose per zero-length scan has it at the scan's stamp), and when it does
-        not cover the sweep the fallback prior holds the matcher's estimate of the scan before."""
+        not cover the sweep the fallback prior holds the matcher's estimate of the scan before,
+        unless no pose can move the scan's beams (a zero-length sweep): waiting for the matcher
+        there would only hold every scan behind the one before it (stop and wait)."""
         stamps = robot.stage.odometry.stamps_s
         if not (stamps.size > 0 and stamps[-1] >= scan.end_stamp_s):
             return False
         covered = robot.stage.odometry.coverage_gap(scan.stamp_s, scan.end_stamp_s) is None
-        return covered or robot.has_prior()
+        return covered or motion_free_reason(scan) is not None or robot.has_prior()
 
     def _publish(self, robot_id: str, scan: LaserScan, stage: DeskewStage) -> None:
         result = stage.process(scan)

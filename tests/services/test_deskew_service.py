@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from scanflow import keys
 from scanflow.deskew import OdometryBuffer, deskew
-from scanflow.scan import LaserScan
-from scanflow.wire import ScanMessage
+from scanflow.geometry import Pose2D
+from scanflow.scan import LaserScan, Odometry
+from scanflow.wire import OdometryMessage, ScanMessage
 
 from services.ingest.sources import source_events
 
@@ -64,6 +67,30 @@ def test_a_scan_without_odometry_leaves_after_the_latency_budget_uncorrected(
     assert [m.seq for m in deskewed] == [s.seq for s in scans]
     assert {m.source_used for m in deskewed} == {"none"}
     for message, scan in zip(deskewed, scans, strict=True):
+        np.testing.assert_array_equal(message.points, deskew(scan).points, strict=True)
+
+
+def test_zero_length_sweeps_are_not_held_for_the_matchers_pose(launcher, bus, start):
+    """Keyframe logs: every beam at the scan's stamp, odometry too sparse to cover it. No pose
+    can move such a scan, so none waits for the matcher's estimate of the one before (no
+    matcher runs here; the budget is far longer than the test waits)."""
+    deskewed = bus.record(keys.deskewed_scan("keys"))
+    start("deskew", SCANFLOW_DESKEW_ODOM_WAIT_S="300")
+    scans = []
+    for k in range(5):  # 1 s between odometry samples: beyond the buffer's max gap
+        odom = Odometry(float(k), Pose2D(0.5 * k, 0.0, 0.1 * k), robot_id="keys", seq=k)
+        scan = LaserScan(
+            np.full(90, 3.0, np.float32), -math.pi / 4, math.radians(1.0),
+            stamp_s=float(k), robot_id="keys", seq=k,
+        )
+        bus.put(keys.odom("keys"), OdometryMessage(odom).encode())
+        bus.put(keys.raw_scan("keys"), ScanMessage(scan).encode())
+        scans.append((scan, odom))
+    bus.wait_until(lambda: len(deskewed) == len(scans), 60.0, "every keyframe scan")
+    assert [m.seq for m in deskewed] == list(range(len(scans)))
+    for message, (scan, odom) in zip(deskewed, scans, strict=True):
+        assert message.source_used == "none"
+        assert message.odom_pose == odom.pose
         np.testing.assert_array_equal(message.points, deskew(scan).points, strict=True)
 
 

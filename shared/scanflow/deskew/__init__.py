@@ -13,6 +13,7 @@ from scanflow.deskew.compensate import (
     DeskewResult,
     Reference,
     deskew,
+    motion_free_reason,
 )
 from scanflow.deskew.source import DeskewError, PoseSource, choose_source
 from scanflow.deskew.velocity import ConstantVelocityModel
@@ -29,4 +30,5 @@ __all__ = [
     "Reference",
     "choose_source",
     "deskew",
+    "motion_free_reason",
 ]

@@ -80,17 +80,15 @@ def deskew(
     start_s = scan.stamp_s
     end_s = scan.stamp_s + (float(offsets_s[-1]) if offsets_s.size else 0.0)
     reference_s = {"start": start_s, "middle": 0.5 * (start_s + end_s), "end": end_s}[reference]
-    valid = scan.valid_mask
 
     def uncorrected(message: str) -> DeskewResult:
         zeros = np.zeros(scan.beam_count)
         moved = _moved(scan, zeros, zeros, zeros)
         return _result(scan, moved, reference, reference_s, "none", message)
 
-    if not valid.any():
-        return uncorrected(f"scan has no valid beams ({scan.beam_count} beams, all invalid)")
-    if end_s == start_s and offsets_s[0] == 0.0:
-        return uncorrected("scan has zero duration: no motion within the sweep to correct")
+    nothing_to_move = motion_free_reason(scan)
+    if nothing_to_move is not None:
+        return uncorrected(nothing_to_move)
     source, reasons = choose_source(
         sources, min(start_s + float(offsets_s[0]), reference_s), max(end_s, reference_s)
     )
@@ -98,6 +96,17 @@ def deskew(
         return uncorrected(f"no pose source covers the sweep: {reasons}")
     x, y, theta = source.relative_poses(scan.stamp_s + offsets_s, reference_s)
     return _result(scan, _moved(scan, x, y, theta), reference, reference_s, source.name, reasons)
+
+
+def motion_free_reason(scan: LaserScan) -> str | None:
+    """Why `deskew` leaves `scan` as it is whatever the pose sources say (no valid beams, or
+    every beam fired at `stamp_s`), else None: a caller need not wait for poses to deskew it."""
+    if not scan.valid_mask.any():
+        return f"scan has no valid beams ({scan.beam_count} beams, all invalid)"
+    offsets_s = _time_offsets(scan)
+    if not offsets_s.size or (offsets_s[0] == 0.0 and offsets_s[-1] == 0.0):
+        return "scan has zero duration: no motion within the sweep to correct"
+    return None
 
 
 Moved = tuple[NDArray[np.float64], NDArray[np.float64]]

@@ -12,6 +12,7 @@ from scanflow.deskew import (
     DeskewError,
     OdometryBuffer,
     deskew,
+    motion_free_reason,
 )
 from scanflow.geometry import Pose2D
 from scanflow.scan import LaserScan, ScanError
@@ -135,6 +136,16 @@ def test_zero_duration_empty_and_all_invalid_scans_are_reported_not_raised():
     np.testing.assert_allclose(np.hypot(*open_space.no_return_points.T), 30.0)
     empty = deskew(_scan(n=0, ranges=np.zeros(0)), buffer)
     assert empty.beam_count == 0 and empty.source_used == "none"
+
+
+def test_motion_free_reason_says_when_no_pose_can_move_the_beams():
+    """Callers (the deskew service) skip waiting for poses exactly when deskew ignores them."""
+    assert "zero duration" in motion_free_reason(_scan(duration_s=0.0))
+    assert "no valid beams" in motion_free_reason(_scan(ranges=np.full(8, np.nan)))
+    assert "no valid beams" in motion_free_reason(_scan(n=0, ranges=np.zeros(0)))
+    assert motion_free_reason(_scan(duration_s=0.1)) is None
+    late = np.full(8, 0.01)  # every beam at one instant, but not at the stamp: still moved
+    assert motion_free_reason(_scan(duration_s=0.0, offsets=late)) is None
 
 
 def test_odometry_gap_falls_back_with_the_reason():
