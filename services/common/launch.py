@@ -49,7 +49,7 @@ class Launcher:
 
     Each service logs to `<log_dir>/<name>.log`. `stop_all` sends SIGTERM in reverse start
     order and waits, then kills what is left. With a `cpus` plan each service is started with
-    its `SCANFLOW_<SERVICE>_CPUS`, unless the environment already sets that.
+    its `SCANFLOW_<SERVICE>_CPUS` and `_IO_CPUS`, unless the environment already sets them.
     """
 
     env: dict[str, str]
@@ -85,9 +85,12 @@ class Launcher:
         if label in self.processes and self.processes[label].poll() is None:
             raise RuntimeError(f"service {label!r} is already running")
         env = {**self.env, **settings}
-        cpus_key = f"SCANFLOW_{name.upper()}_CPUS"
-        if self.cpus is not None and cpus_key not in env:
-            env[cpus_key] = ",".join(map(str, self.cpus.cpus_for(name, label)))
+        if self.cpus is not None:
+            for key, cpus in (
+                (f"SCANFLOW_{name.upper()}_CPUS", self.cpus.cpus_for(name, label)),
+                (f"SCANFLOW_{name.upper()}_IO_CPUS", self.cpus.io_cpus_for(name, label)),
+            ):
+                env.setdefault(key, ",".join(map(str, cpus)))
         log = (self.log_dir / f"{label}.log").open("ab")
         # A session of its own: a terminal's Ctrl-C reaches only the launcher, which then
         # stops the services in order (last started first) instead of all at once.

@@ -2,14 +2,18 @@
 
 On a small machine the scheduler's wake-up preemption lets the light services (router, ingest,
 deskew, map server), which wake for every message, keep interrupting the matcher, the one
-CPU-bound stage: a local launch can give the matcher CPUs of its own (see `cpu_plan`).
+CPU-bound stage: a local launch can give the matcher CPUs of its own (see `cpu_plan`), and put
+its Zenoh runtime's threads (network I/O, routing; they take no GIL) on the shared CPUs
+(`io_threads`). Its Python threads stay with the worker: one of them holding the GIL while
+descheduled on a busy shared CPU would stall the worker.
 """
 
 from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 from scanflow.config import ProcessSettings
@@ -25,15 +29,58 @@ def configure_logging(level: str) -> None:
 
 
 def init_process(settings: ProcessSettings) -> None:
-    """Configure logging, then restrict this process (and every thread it starts later) to
-    `settings.cpus`; empty leaves the affinity it inherited. Unknown CPUs are a clear error."""
+    """Configure logging, then restrict this process (its threads, and every thread it starts
+    later) to `settings.cpus`; empty leaves the affinity it inherited. Unknown CPUs (also among
+    `settings.io_cpus`, used by `io_threads`) are a clear error."""
     configure_logging(settings.log_level)
-    cpus = settings.cpus
-    if not cpus:
+    if not (settings.cpus or settings.io_cpus):
         return
     if not available_cpus():
-        _log.warning("CPU affinity is not supported here: ignoring cpus=%s", list(cpus))
+        _log.warning(
+            "CPU affinity is not supported here: ignoring cpus=%s, io_cpus=%s",
+            list(settings.cpus), list(settings.io_cpus),
+        )
         return
+    if settings.io_cpus:  # the kernel refuses CPUs outside the cgroup's set: check them now
+        with io_threads(settings.io_cpus):
+            pass
+    if not settings.cpus:
+        return
+    _pin_calling_thread(settings.cpus)
+    for tid in _thread_ids():  # those started at import (numpy's BLAS pool) too
+        try:
+            os.sched_setaffinity(tid, settings.cpus)
+        except ProcessLookupError:  # a thread that has just ended
+            continue
+    _log.info("running on CPUs %s", sorted(set(settings.cpus)))
+
+
+@contextmanager
+def io_threads(cpus: Sequence[int]) -> Iterator[None]:
+    """Threads started inside the block (the Zenoh runtime's, when the first session opens)
+    run on `cpus`, not where the calling thread works; its own affinity is restored after.
+    Empty, or affinity unsupported: nothing changes. Unknown CPUs are a clear error."""
+    before = available_cpus()
+    if not cpus or not before:
+        yield
+        return
+    try:
+        _pin_calling_thread(cpus)
+        yield
+    finally:
+        os.sched_setaffinity(0, before)
+
+
+def _thread_ids() -> list[int]:
+    """Kernel ids of this process's threads (Linux /proc)."""
+    try:
+        return [int(tid) for tid in os.listdir("/proc/self/task")]
+    except OSError:
+        return []
+
+
+def _pin_calling_thread(cpus: Sequence[int]) -> None:
+    """Restrict the calling thread (and the threads it starts from now on) to `cpus`."""
     wanted = set(cpus)
     try:  # may widen what the process inherited; the kernel keeps only CPUs it may use
         os.sched_setaffinity(0, wanted)
@@ -42,7 +89,6 @@ def init_process(settings: ProcessSettings) -> None:
     unknown = sorted(wanted - set(available_cpus()))
     if unknown:
         raise ValueError(f"cpus {unknown} are not available to this process")
-    _log.info("running on CPUs %s", sorted(wanted))
 
 
 def available_cpus() -> list[int]:
@@ -69,6 +115,11 @@ class CpuPlan:
             if label in self._given:
                 return [self._given[label]]
         return list(self.shared)
+
+    def io_cpus_for(self, name: str, label: str) -> list[int]:
+        """Where the Zenoh threads of `name` started as `label` go: the shared CPUs for a
+        service with a CPU of its own, else nowhere special (empty: with the process)."""
+        return list(self.shared) if self.cpus_for(name, label) != self.shared else []
 
 
 def cpu_plan(available: Sequence[int], matchers: int) -> CpuPlan | None:

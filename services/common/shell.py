@@ -32,6 +32,7 @@ from scanflow.wire import ServiceStatsMessage
 from services.common.counters import Counters, SeqTracker
 from services.common.inbox import Inbox
 from services.common.outbox import Outbox
+from services.common.process import io_threads
 from services.common.zsession import open_session
 
 QueryHandler = Callable[[zenoh.Query], None]
@@ -57,8 +58,9 @@ class ServiceShell:
         self.seqs = SeqTracker()
         self.inbox = Inbox(queue_size, self.stop_event)
         self.outbox = Outbox(queue_size, self.stop_event, f"{service}-sender")
-        self.session = open_session(zenoh_settings)
+        self._io_cpus = settings.io_cpus
         self._zenoh_settings = zenoh_settings
+        self.session = self._open_session()
         self._feedback_session: zenoh.Session | None = None
         self._feedback: deque[tuple[str, Any]] = deque()
         self._feedback_lock = threading.Lock()
@@ -72,6 +74,12 @@ class ServiceShell:
         self._busy_s = 0.0  # worker time in `handle` (and `idle`): how loaded the service is
         self._put_s = 0.0  # worker time handing payloads to the outbox (blocked when full)
         self._handle_max_s = 0.0  # the longest a single message took to handle
+
+    def _open_session(self) -> zenoh.Session:
+        """A session whose runtime threads (started with the process's first) run on the
+        service's I/O CPUs, if it has any (see services.common.process)."""
+        with io_threads(self._io_cpus):
+            return open_session(self._zenoh_settings)
 
     # -- declarations -------------------------------------------------------------------
     def publisher(self, key: str) -> zenoh.Publisher:
@@ -128,7 +136,7 @@ class ServiceShell:
         worker takes them (through `handle`) before its next inbox item. At most `queue_size`
         wait: past that the oldest goes, counted as `feedback_overflow.<kind>` (hints only)."""
         if self._feedback_session is None:
-            self._feedback_session = open_session(self._zenoh_settings)
+            self._feedback_session = self._open_session()
         callback = self._sample_callback(kind, decode, self._feed)
         self._declared.append(self._feedback_session.declare_subscriber(key, callback))
 

@@ -48,8 +48,13 @@ class ProcessSettings(BaseSettings):
     cpus: Annotated[list[int], NoDecode] = Field(
         default_factory=list, description="CPU ids the process runs on (Linux); empty = any"
     )
+    io_cpus: Annotated[list[int], NoDecode] = Field(
+        default_factory=list,
+        description="CPU ids for the Zenoh runtime's own threads (network I/O, routing), "
+        "away from a CPU-bound worker's; empty = the process's CPUs",
+    )
 
-    _split_cpus = field_validator("cpus", mode="before")(_split_csv)
+    _split_cpus = field_validator("cpus", "io_cpus", mode="before")(_split_csv)
 
 
 class ServiceSettings(ProcessSettings):

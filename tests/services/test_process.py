@@ -40,6 +40,10 @@ def test_cpu_plan_gives_matchers_the_last_cpus_each_its_own_and_keeps_it_on_rest
     assert plan.cpus_for("matcher", "matcher-c") == [0, 1]  # no dedicated CPU left: share
     assert plan.cpus_for("matcher", "matcher-a") == [2]  # a restart keeps its CPU
     assert plan.cpus_for("deskew", "deskew") == [0, 1]
+    # Zenoh's threads of a matcher with a CPU of its own go to the shared ones; others stay put
+    assert plan.io_cpus_for("matcher", "matcher-a") == [0, 1]
+    assert plan.io_cpus_for("matcher", "matcher-c") == []
+    assert plan.io_cpus_for("router", "router") == []
 
 
 def _affinity_after_init(cpus: str) -> subprocess.CompletedProcess[str]:
@@ -90,3 +94,48 @@ def test_init_process_may_widen_the_affinity_it_inherited():
     )
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == f"[{first}, {last}]"
+
+
+@needs_two_cpus
+def test_a_service_shell_puts_zenohs_threads_on_its_io_cpus_and_python_threads_with_it():
+    """The worker's CPU keeps the process's Python threads (they share the GIL with it); the
+    Zenoh runtime's threads, started when the session opens, run on the I/O CPUs."""
+    first, last = available_cpus()[0], available_cpus()[-1]
+    code = (
+        "import os, threading\n"
+        "from scanflow.config import ServiceSettings, ZenohSettings\n"
+        "from services.common.process import init_process\n"
+        "from services.common.shell import ServiceShell\n"
+        f"settings = ServiceSettings(cpus=[{last}], io_cpus=[{first}])\n"
+        "init_process(settings)\n"
+        "zenoh = ZenohSettings(mode='peer', connect=[], listen=[], multicast_scouting=False)\n"
+        "tasks = lambda: {int(t) for t in os.listdir('/proc/self/task')}\n"
+        "before = tasks()\n"
+        "shell = ServiceShell('probe', settings, zenoh)\n"
+        "shell.subscribe('probe/in', 'x', bytes)\n"
+        "shell.start(install_signals=False)\n"
+        "python = {t.native_id for t in threading.enumerate()}\n"
+        "for tid in sorted(tasks()):\n"
+        "    kind = 'python' if tid in python else 'zenoh' if tid not in before else 'import'\n"
+        "    print(kind, sorted(os.sched_getaffinity(tid)))\n"
+        "shell.close(flush_s=0.0)\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    seen = {tuple(line.split(" ", 1)) for line in result.stdout.splitlines()}
+    assert ("python", f"[{last}]") in seen and ("zenoh", f"[{first}]") in seen, seen
+    # threads started before init_process (numpy's BLAS pool) are pinned with the process
+    allowed = {("python", f"[{last}]"), ("zenoh", f"[{first}]"), ("import", f"[{last}]")}
+    assert seen <= allowed, seen
+
+
+def test_io_cpus_the_process_cannot_have_are_named():
+    missing = max(available_cpus() or [0]) + 1000
+    code = (
+        "from scanflow.config import ProcessSettings\n"
+        "from services.common.process import init_process\n"
+        f"init_process(ProcessSettings(io_cpus=[{missing}]))\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert result.returncode != 0
+    assert f"cpus [{missing}] are not available" in result.stderr
