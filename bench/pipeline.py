@@ -282,12 +282,9 @@ def latency(duration_s: float) -> dict[str, Any]:
 
 
 def memory(log: Path, limit: int | None, replays: int = 3) -> dict[str, Any]:
-    """RSS of every service after each of `replays` replays of the log in a row."""
-    settings = {
-        "SCANFLOW_INGEST_LOG": str(log),
-        "SCANFLOW_INGEST_RATE": "0",
-        "SCANFLOW_INGEST_REPLAYS": str(replays),
-    }
+    """RSS of every service after each of `replays` replays of the log in a row, each taken
+    once that replay is done and before the next starts (every map full, at the same point)."""
+    settings = {"SCANFLOW_INGEST_LOG": str(log), "SCANFLOW_INGEST_RATE": "0"}
     if limit is not None:
         settings["SCANFLOW_INGEST_LIMIT"] = str(limit)
     scans = sum(isinstance(e, LaserScan) for e in source_events(str(log), "robot", 1.0, 0, limit))
@@ -295,9 +292,10 @@ def memory(log: Path, limit: int | None, replays: int = 3) -> dict[str, Any]:
     map_mib = []
     with running(SERVICES) as (launcher, session):
         observer = Observer(session)
-        launcher.start("ingest", **settings)
         for replay in range(1, replays + 1):
+            launcher.start("ingest", **settings)  # each run restarts the seqs: a new replay
             observer.wait_poses(replay * scans, timeout_s=3600)
+            launcher.processes["ingest"].wait(60)  # drained and closed
             time.sleep(1.0)  # let the map server apply the last poses
             for name in SERVICES:
                 figures = stats(session, name).gauges
