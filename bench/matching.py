@@ -1,7 +1,7 @@
 """Scan matching on real logs: every scanflow method next to the peers, on the same pairs.
 
 `python -m bench.matching --data PATH [--gap K] [--methods ...] [--peers ...] [--limit N]
-[--stride S] [--robust-pairs N] [--json]`
+[--stride S] [--robust-pairs N] [--closure] [--json]`
 
 Pairs (i, i+K) of the log's keyframes, i stepping by K (K=1: each scan against the next; K=3:
 every third scan), optionally every S-th pair and at most N pairs. Source = scan i+K, target =
@@ -16,6 +16,13 @@ Trust (scanflow methods only; the peers report no status): "trusted" is the shar
 status is ok, "silently wrong" the share trusted although beyond 10 cm or 1 deg (the figure to
 drive down), "flagged good" the share not ok although within 5 cm and 0.5 deg (the cost). The
 success rates count the pose whatever the status.
+Closure (`--closure`, gap >= 2): a precision figure that needs no ground truth. Each direct
+match (i, i+K) is compared with the chain of the same matcher's K next-scan matches spanning it
+(each from its own odometry guess). Their difference holds the errors of K+1 independent
+matches, so its spread bounds the direct match's own error from above; set next to the same
+matches' spread against the corrected poses, it shows how much of that is the matcher's.
+Odometry is left out: its chain equals its direct guess by construction. An error shared by
+every match of one scan (a distortion of the scan itself) cancels in the chain and is not seen.
 """
 
 from __future__ import annotations
@@ -27,12 +34,14 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import reduce
+from operator import mul
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 from scanflow.geometry import Pose2D
-from scanflow.io.carmen import load_keyframes
+from scanflow.io.carmen import Keyframe, load_keyframes
 from scanflow.matching import DEFAULT_METHOD, MatchResult, available_methods, match
 from tqdm import tqdm
 
@@ -51,21 +60,29 @@ class Pair:
     target: NDArray[np.float64]
     truth: Pose2D
     guess: Pose2D
+    first: int  # index of the target keyframe i
 
 
 def load_pairs(path: Path, gap: int, stride: int, limit: int | None) -> list[Pair]:
     """Keyframe pairs (i, i+gap), i stepping by gap, every stride-th, at most limit."""
-    frames = load_keyframes(path)
-    pairs = [
-        Pair(
-            frames[i + gap].scan.points(),
-            frames[i].scan.points(),
-            frames[i + gap].true_pose.relative_to(frames[i].true_pose),
-            frames[i + gap].odom_pose.relative_to(frames[i].odom_pose),
-        )
-        for i in range(0, len(frames) - gap, gap)
-    ][::stride]
+    return keyframe_pairs(load_keyframes(path), gap, stride, limit)
+
+
+def keyframe_pairs(frames: list[Keyframe], gap: int, stride: int, limit: int | None) -> list[Pair]:
+    """`load_pairs` on keyframes already loaded."""
+    pairs = [pair_of(frames, i, i + gap) for i in range(0, len(frames) - gap, gap)][::stride]
     return pairs[:limit] if limit else pairs
+
+
+def pair_of(frames: list[Keyframe], i: int, j: int) -> Pair:
+    """Source scan j against target scan i, with their true and odometry motions."""
+    return Pair(
+        frames[j].scan.points(),
+        frames[i].scan.points(),
+        frames[j].true_pose.relative_to(frames[i].true_pose),
+        frames[j].odom_pose.relative_to(frames[i].odom_pose),
+        i,
+    )
 
 
 def scanflow_matcher(method: str) -> Matcher:
@@ -86,10 +103,16 @@ def errors(truth: Pose2D, estimate: Pose2D) -> tuple[float, float]:
     return e.translation_norm(), abs(math.degrees(e.theta))
 
 
-def run_matcher(name: str, fn: Matcher, pairs: list[Pair], guesses: list[Pose2D]) -> dict:
-    """Errors and timing of one matcher over the pairs (with the given guesses)."""
+def pose_of(estimate: Pose2D | MatchResult) -> Pose2D:
+    return estimate.pose if isinstance(estimate, MatchResult) else estimate
+
+
+def run_matcher(
+    name: str, fn: Matcher, pairs: list[Pair], guesses: list[Pose2D]
+) -> tuple[dict, list[Pose2D]]:
+    """Errors and timing of one matcher over the pairs (with the given guesses), and its poses."""
     fn(pairs[0].source, pairs[0].target, guesses[0])  # warm-up, untimed
-    trans, rot, times, cpu, trusted = [], [], [], [], []
+    trans, rot, times, cpu, trusted, poses = [], [], [], [], [], []
     for pair, guess in tqdm(list(zip(pairs, guesses, strict=True)), desc=name, file=sys.stderr,
                             leave=False):
         t0, c0 = time.perf_counter(), time.process_time()
@@ -98,15 +121,46 @@ def run_matcher(name: str, fn: Matcher, pairs: list[Pair], guesses: list[Pose2D]
         cpu.append(time.process_time() - c0)
         if isinstance(est, MatchResult):
             trusted.append(est.ok)
-            est = est.pose
-        et, er = errors(pair.truth, est)
+        poses.append(pose_of(est))
+        et, er = errors(pair.truth, poses[-1])
         trans.append(et)
         rot.append(er)
     trans_m, rot_deg = np.array(trans), np.array(rot)
     out = summarise(trans_m, rot_deg, np.array(times), np.array(cpu))
     if trusted:
         out.update(trust_shares(trans_m, rot_deg, np.array(trusted)))
+    return out, poses
+
+
+def closure(
+    name: str, fn: Matcher, pairs: list[Pair], direct: list[Pose2D], frames: list[Keyframe],
+    gap: int,
+) -> dict[str, float]:
+    """Agreement of each direct match with the chain of next-scan matches spanning its pair."""
+    steps: dict[int, Pose2D] = {}
+    for i in tqdm(sorted({p.first + k for p in pairs for k in range(gap)}), desc=f"{name} chain",
+                  file=sys.stderr, leave=False):
+        step = pair_of(frames, i, i + 1)
+        steps[i] = pose_of(fn(step.source, step.target, step.guess))
+    chains = [reduce(mul, (steps[p.first + k] for k in range(gap))) for p in pairs]
+    apart = np.array([errors(c, d) for c, d in zip(chains, direct, strict=True)])
+    out = {
+        f"agree_{int(t * 100)}cm_{d:g}deg": float(np.mean(within(apart[:, 0], apart[:, 1], (t, d))))
+        for t, d in THRESHOLDS
+    }
+    out.update(trans_p50_m=float(np.median(apart[:, 0])), rot_p50_deg=float(np.median(apart[:, 1])))
+    out.update(spread("closure", chains, direct))
+    out.update(spread("truth", [p.truth for p in pairs], direct))
     return out
+
+
+def spread(label: str, references: list[Pose2D], estimates: list[Pose2D]) -> dict[str, float]:
+    """Robust sigma (1.4826 MAD) of the signed x, y, theta of reference^-1 * estimate."""
+    d = np.array([(e.x, e.y, e.theta) for e in
+                  (est.relative_to(ref) for ref, est in zip(references, estimates, strict=True))])
+    sigma = 1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0)
+    return {f"{label}_sigma_xy_m": float(np.mean(sigma[:2])),
+            f"{label}_sigma_deg": float(math.degrees(sigma[2]))}
 
 
 def within(trans_m: NDArray, rot_deg: NDArray, threshold: tuple[float, float]) -> NDArray:
@@ -182,6 +236,24 @@ def format_table(results: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
+def format_closure(closures: dict[str, dict[str, float]], gap: int) -> str:
+    """The closure table: direct matches against their chains, and against the truth."""
+    lines = [
+        f"\nclosure: direct match vs the chain of {gap} next-scan matches (no ground truth);"
+        " robust sigma per axis",
+        f"{'matcher':<18} {'5cm/0.5d':>8} {'10cm/1d':>8} {'t50 m':>7} {'r50 deg':>7} "
+        f"{'sig mm':>7} {'sig deg':>7} {'vs truth: sig mm':>17} {'sig deg':>7}",
+    ]
+    for name, c in closures.items():
+        lines.append(
+            f"{name:<18} {c['agree_5cm_0.5deg']:>8.1%} {c['agree_10cm_1deg']:>8.1%} "
+            f"{c['trans_p50_m']:>7.3f} {c['rot_p50_deg']:>7.2f} "
+            f"{c['closure_sigma_xy_m'] * 1e3:>7.1f} {c['closure_sigma_deg']:>7.3f} "
+            f"{c['truth_sigma_xy_m'] * 1e3:>17.1f} {c['truth_sigma_deg']:>7.3f}"
+        )
+    return "\n".join(lines)
+
+
 def trust_cells(r: dict) -> str:
     """Trusted / silently wrong / flagged good of a result, blank for a peer (no status)."""
     if "trusted" not in r:
@@ -200,18 +272,28 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--stride", type=int, default=1, help="use every S-th pair")
     parser.add_argument("--robust-pairs", type=int, default=100,
                         help="pairs for the robustness sweep (0: skip it)")
+    parser.add_argument("--closure", action="store_true",
+                        help="also compare each direct match with its chain of next-scan matches")
     parser.add_argument("--seed", type=int, default=4)
     parser.add_argument("--json", action="store_true", help="print JSON instead of tables")
     args = parser.parse_args(argv)
     if args.gap < 1 or args.stride < 1:
         parser.error(f"--gap and --stride must be >= 1, got {args.gap} and {args.stride}")
+    if args.closure and args.gap < 2:
+        parser.error(f"--closure needs --gap >= 2 (a chain of next-scan matches), got {args.gap}")
     peers = list(available_peers()) if args.peers is None else args.peers
-    pairs = load_pairs(args.data, args.gap, args.stride, args.limit)
+    frames = load_keyframes(args.data)
+    pairs = keyframe_pairs(frames, args.gap, args.stride, args.limit)
     if not pairs:
         parser.error(f"{args.data} gives no pairs at gap {args.gap}")
     runners = matchers(args.methods, peers)
     odom = [p.guess for p in pairs]
-    results = {name: run_matcher(name, fn, pairs, odom) for name, fn in runners.items()}
+    results: dict[str, dict] = {}
+    closures: dict[str, dict[str, float]] = {}
+    for name, fn in runners.items():
+        results[name], poses = run_matcher(name, fn, pairs, odom)
+        if args.closure and name != "odometry":
+            closures[name] = closure(name, fn, pairs, poses, frames, args.gap)
     robust: dict[str, dict[str, float]] = {}
     robust_trust: dict[str, dict[str, dict[str, float]]] = {}
     if args.robust_pairs > 0:
@@ -223,7 +305,7 @@ def main(argv: list[str] | None = None) -> None:
             guesses = perturbed_guesses(subset, metres, degrees, args.seed)
             for name, fn in runners.items():
                 if name != "odometry":
-                    r = run_matcher(f"{name} {key}", fn, subset, guesses)
+                    r, _ = run_matcher(f"{name} {key}", fn, subset, guesses)
                     robust.setdefault(name, {})[key] = r["ok_10cm_1deg"]
                     if "trusted" in r:
                         robust_trust.setdefault(name, {})[key] = {
@@ -232,7 +314,7 @@ def main(argv: list[str] | None = None) -> None:
     report = {
         "data": str(args.data), "gap": args.gap, "stride": args.stride, "pairs": len(pairs),
         "default_method": DEFAULT_METHOD, "results": results, "robustness_ok_10cm_1deg": robust,
-        "robustness_trust": robust_trust,
+        "robustness_trust": robust_trust, "closure": closures,
     }
     if args.json:
         print(json.dumps(report, indent=2))
@@ -253,6 +335,8 @@ def main(argv: list[str] | None = None) -> None:
             cells = [f"{t['trusted']:.1%}/{t['silently_wrong']:.1%}/{t['flagged_good']:.1%}"
                      for t in row.values()]
             print(f"{name:<18} " + " ".join(f"{c:>20}" for c in cells))
+    if closures:
+        print(format_closure(closures, args.gap))
 
 
 if __name__ == "__main__":

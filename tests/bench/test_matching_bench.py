@@ -1,0 +1,115 @@
+"""bench.matching: keyframe pairs, the ground-truth-free closure figure, and the CLI end to end."""
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scanflow.geometry import Pose2D
+from scanflow.io.carmen import Keyframe
+from scanflow.scan import LaserScan
+
+from bench.matching import closure, keyframe_pairs, odometry_matcher, run_matcher
+
+REPO = Path(__file__).resolve().parents[2]
+DATA = Path(os.environ.get("SCANFLOW_DATA_DIR", REPO / ".." / "shared" / "data"))
+LOG = DATA / "intel-corrected.log.gz"
+
+
+def frames_along(poses: list[Pose2D]) -> list[Keyframe]:
+    """Keyframes at the given poses, odometry equal to the truth, distinct small scans."""
+    return [
+        Keyframe(
+            LaserScan(np.full(8, 1.0 + k, np.float32), -math.pi / 2, math.pi / 8),
+            pose,
+            pose,
+        )
+        for k, pose in enumerate(poses)
+    ]
+
+
+def same(a: Pose2D, b: Pose2D) -> bool:
+    return np.allclose((a.x, a.y, a.theta), (b.x, b.y, b.theta), atol=1e-12)
+
+
+def tour(n: int) -> list[Pose2D]:
+    poses = [Pose2D.identity()]
+    for k in range(n - 1):
+        poses.append(poses[-1] * Pose2D(0.3, 0.05 * (k % 3), math.radians(7.0 + k)))
+    return poses
+
+
+def test_keyframe_pairs_index_truth_and_guess() -> None:
+    poses = tour(10)
+    frames = frames_along(poses)
+    pairs = keyframe_pairs(frames, gap=3, stride=1, limit=None)
+    assert [p.first for p in pairs] == [0, 3, 6]
+    for p in pairs:
+        want = poses[p.first + 3].relative_to(poses[p.first])
+        assert same(p.truth, want) and same(p.guess, want)
+        assert np.array_equal(p.target, frames[p.first].scan.points())
+        assert np.array_equal(p.source, frames[p.first + 3].scan.points())
+    assert [p.first for p in keyframe_pairs(frames, 3, 2, None)] == [0, 6]
+    assert [p.first for p in keyframe_pairs(frames, 1, 1, 4)] == [0, 1, 2, 3]
+
+
+def test_closure_of_a_consistent_matcher_is_exact() -> None:
+    frames = frames_along(tour(13))
+    pairs = keyframe_pairs(frames, 3, 1, None)
+    _, direct = run_matcher("odometry", odometry_matcher, pairs, [p.guess for p in pairs])
+    c = closure("odometry", odometry_matcher, pairs, direct, frames, 3)
+    assert c["agree_5cm_0.5deg"] == c["agree_10cm_1deg"] == 1.0
+    assert c["trans_p50_m"] < 1e-9 and c["rot_p50_deg"] < 1e-9
+    assert c["closure_sigma_xy_m"] < 1e-9 and c["truth_sigma_deg"] < 1e-9
+
+
+def test_closure_sees_a_bias_that_accumulates_along_the_chain() -> None:
+    """Every match off by the same 0.3 deg: a chain of 3 is 0.6 deg further off than the direct."""
+    bias = math.radians(0.3)
+
+    def biased(src, tgt, guess: Pose2D) -> Pose2D:
+        return guess * Pose2D(0.0, 0.0, bias)
+
+    frames = frames_along(tour(13))
+    pairs = keyframe_pairs(frames, 3, 1, None)
+    summary, direct = run_matcher("biased", biased, pairs, [p.guess for p in pairs])
+    assert summary["rot_p50_deg"] == pytest.approx(0.3)
+    c = closure("biased", biased, pairs, direct, frames, 3)
+    assert c["rot_p50_deg"] == pytest.approx(0.6)
+    assert c["agree_5cm_0.5deg"] == 0.0 and c["agree_10cm_1deg"] == 1.0
+    # A constant offset has no spread, against the chains or against the truth.
+    assert c["closure_sigma_deg"] < 1e-9 and c["truth_sigma_deg"] < 1e-9
+
+
+def run_bench(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "bench.matching", *args],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+
+
+def test_closure_needs_a_gap_of_two_or_more() -> None:
+    out = run_bench("--data", str(LOG), "--gap", "1", "--closure")
+    assert out.returncode == 2
+    assert "--closure needs --gap >= 2" in out.stderr
+
+
+@pytest.mark.skipif(not LOG.exists(), reason=f"real log {LOG} not available")
+def test_bench_matching_json_with_closure_on_real_pairs() -> None:
+    out = run_bench("--data", str(LOG), "--gap", "3", "--limit", "4", "--methods", "odometry",
+                    "plicp", "--peers", "--robust-pairs", "0", "--closure", "--json")
+    assert out.returncode == 0, out.stderr
+    report = json.loads(out.stdout)
+    assert report["pairs"] == 4 and set(report["results"]) == {"odometry", "plicp"}
+    assert set(report["closure"]) == {"plicp"}  # odometry's chain is its guess
+    c = report["closure"]["plicp"]
+    assert 0.0 <= c["agree_5cm_0.5deg"] <= c["agree_10cm_1deg"] <= 1.0
+    assert all(math.isfinite(c[k]) and c[k] >= 0 for k in
+               ("closure_sigma_xy_m", "closure_sigma_deg", "truth_sigma_xy_m", "truth_sigma_deg"))
