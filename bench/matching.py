@@ -1,10 +1,11 @@
 """Scan matching on real logs: every scanflow method next to the peers, on the same pairs.
 
 `python -m bench.matching --data PATH [--gap K] [--methods ...] [--peers ...] [--limit N]
-[--stride S] [--robust-pairs N] [--closure] [--json]`
+[--stride S] [--start-step T] [--robust-pairs N] [--closure] [--json]`
 
 Pairs (i, i+K) of the log's keyframes, i stepping by K (K=1: each scan against the next; K=3:
-every third scan), optionally every S-th pair and at most N pairs. Source = scan i+K, target =
+every third scan) or by T (`--start-step 1` with K=3: every scan against the third after it,
+so overlapping pairs), optionally every S-th pair and at most N pairs. Source = scan i+K, target =
 scan i, so a match estimates T_i_(i+K). Ground truth: true_pose_i^-1 * true_pose_j; initial
 guess: the wheel odometry odom_pose_i^-1 * odom_pose_j. Error: translation norm and |rotation|
 of gt^-1 * estimate. Robustness: on a seeded subset of pairs, the guess is the ground truth
@@ -63,14 +64,13 @@ class Pair:
     first: int  # index of the target keyframe i
 
 
-def load_pairs(path: Path, gap: int, stride: int, limit: int | None) -> list[Pair]:
-    """Keyframe pairs (i, i+gap), i stepping by gap, every stride-th, at most limit."""
-    return keyframe_pairs(load_keyframes(path), gap, stride, limit)
-
-
-def keyframe_pairs(frames: list[Keyframe], gap: int, stride: int, limit: int | None) -> list[Pair]:
-    """`load_pairs` on keyframes already loaded."""
-    pairs = [pair_of(frames, i, i + gap) for i in range(0, len(frames) - gap, gap)][::stride]
+def keyframe_pairs(
+    frames: list[Keyframe], gap: int, stride: int, limit: int | None,
+    start_step: int | None = None,
+) -> list[Pair]:
+    """Pairs (i, i+gap), i stepping by start_step (default gap), every stride-th, at most limit."""
+    starts = range(0, len(frames) - gap, start_step or gap)
+    pairs = [pair_of(frames, i, i + gap) for i in starts][::stride]
     return pairs[:limit] if limit else pairs
 
 
@@ -271,6 +271,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--peers", nargs="*", default=None, help="peer names (default: all)")
     parser.add_argument("--limit", type=int, default=None, help="at most N pairs")
     parser.add_argument("--stride", type=int, default=1, help="use every S-th pair")
+    parser.add_argument("--start-step", type=int, default=None,
+                        help="i steps by T (default: the gap; 1 gives every overlapping pair)")
     parser.add_argument("--robust-pairs", type=int, default=100,
                         help="pairs for the robustness sweep (0: skip it)")
     parser.add_argument("--closure", action="store_true",
@@ -278,13 +280,15 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=4)
     parser.add_argument("--json", action="store_true", help="print JSON instead of tables")
     args = parser.parse_args(argv)
-    if args.gap < 1 or args.stride < 1:
-        parser.error(f"--gap and --stride must be >= 1, got {args.gap} and {args.stride}")
+    if args.gap < 1 or args.stride < 1 or (args.start_step is not None and args.start_step < 1):
+        parser.error(f"--gap, --stride and --start-step must be >= 1, got {args.gap}, "
+                     f"{args.stride} and {args.start_step}")
     if args.closure and args.gap < 2:
         parser.error(f"--closure needs --gap >= 2 (a chain of next-scan matches), got {args.gap}")
     peers = list(available_peers()) if args.peers is None else args.peers
     frames = load_keyframes(args.data)
-    pairs = keyframe_pairs(frames, args.gap, args.stride, args.limit)
+    start_step = args.start_step or args.gap
+    pairs = keyframe_pairs(frames, args.gap, args.stride, args.limit, start_step)
     if not pairs:
         parser.error(f"{args.data} gives no pairs at gap {args.gap}")
     runners = matchers(args.methods, peers)
@@ -313,15 +317,16 @@ def main(argv: list[str] | None = None) -> None:
                             k: r[k] for k in ("trusted", "silently_wrong", "flagged_good")
                         }
     report = {
-        "data": str(args.data), "gap": args.gap, "stride": args.stride, "pairs": len(pairs),
+        "data": str(args.data), "gap": args.gap, "stride": args.stride,
+        "start_step": start_step, "pairs": len(pairs),
         "default_method": DEFAULT_METHOD, "results": results, "robustness_ok_10cm_1deg": robust,
         "robustness_trust": robust_trust, "closure": closures,
     }
     if args.json:
         print(json.dumps(report, indent=2))
         return
-    print(f"{args.data.name}: {len(pairs)} pairs, gap {args.gap}, stride {args.stride}, "
-          f"default method {DEFAULT_METHOD}")
+    print(f"{args.data.name}: {len(pairs)} pairs, gap {args.gap}, start step {start_step}, "
+          f"stride {args.stride}, default method {DEFAULT_METHOD}")
     print(format_table(results))
     if robust:
         levels = [f"{m:g}m/{d:g}deg" for m, d in ROBUST_LEVELS]

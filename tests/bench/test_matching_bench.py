@@ -55,6 +55,9 @@ def test_keyframe_pairs_index_truth_and_guess() -> None:
         assert np.array_equal(p.source, frames[p.first + 3].scan.points())
     assert [p.first for p in keyframe_pairs(frames, 3, 2, None)] == [0, 6]
     assert [p.first for p in keyframe_pairs(frames, 1, 1, 4)] == [0, 1, 2, 3]
+    overlapping = keyframe_pairs(frames, 3, 1, None, start_step=1)
+    assert [p.first for p in overlapping] == list(range(7))
+    assert same(overlapping[1].truth, poses[4].relative_to(poses[1]))
 
 
 def test_closure_of_a_consistent_matcher_is_exact() -> None:
@@ -101,13 +104,21 @@ def test_closure_needs_a_gap_of_two_or_more() -> None:
     assert "--closure needs --gap >= 2" in out.stderr
 
 
+def test_start_step_must_be_positive() -> None:
+    out = run_bench("--data", str(LOG), "--gap", "3", "--start-step", "0")
+    assert out.returncode == 2
+    assert "--start-step must be >= 1" in out.stderr
+
+
 @pytest.mark.skipif(not LOG.exists(), reason=f"real log {LOG} not available")
 def test_bench_matching_json_with_closure_on_real_pairs() -> None:
-    out = run_bench("--data", str(LOG), "--gap", "3", "--limit", "4", "--methods", "odometry",
-                    "plicp", "--peers", "--robust-pairs", "0", "--closure", "--json")
+    out = run_bench("--data", str(LOG), "--gap", "3", "--start-step", "1", "--limit", "4",
+                    "--methods", "odometry", "plicp", "--peers", "--robust-pairs", "0",
+                    "--closure", "--json")
     assert out.returncode == 0, out.stderr
     report = json.loads(out.stdout)
-    assert report["pairs"] == 4 and set(report["results"]) == {"odometry", "plicp"}
+    assert report["pairs"] == 4 and report["start_step"] == 1
+    assert set(report["results"]) == {"odometry", "plicp"}
     assert set(report["closure"]) == {"plicp"}  # odometry's chain is its guess
     c = report["closure"]["plicp"]
     assert 0.0 <= c["agree_5cm_0.5deg"] <= c["agree_10cm_1deg"] <= 1.0
