@@ -145,10 +145,7 @@ def closure(
         steps[i] = pose_of(fn(step.source, step.target, step.guess))
     chains = [reduce(mul, (steps[p.first + k] for k in range(gap))) for p in pairs]
     apart = np.array([errors(c, d) for c, d in zip(chains, direct, strict=True)])
-    out = {
-        f"agree_{int(t * 100)}cm_{d:g}deg": float(np.mean(within(apart[:, 0], apart[:, 1], (t, d))))
-        for t, d in THRESHOLDS
-    }
+    out = shares_within("agree", apart[:, 0], apart[:, 1])
     out.update(trans_p50_m=float(np.median(apart[:, 0])), rot_p50_deg=float(np.median(apart[:, 1])))
     out.update(spread("closure", chains, direct))
     out.update(spread("truth", [p.truth for p in pairs], direct))
@@ -179,11 +176,16 @@ def trust_shares(trans_m: NDArray, rot_deg: NDArray, trusted: NDArray) -> dict[s
     }
 
 
-def summarise(trans_m: NDArray, rot_deg: NDArray, times_s: NDArray, cpu_s: NDArray) -> dict:
-    out = {
-        f"ok_{int(t * 100)}cm_{d:g}deg": float(np.mean(within(trans_m, rot_deg, (t, d))))
+def shares_within(prefix: str, trans_m: NDArray, rot_deg: NDArray) -> dict[str, float]:
+    """Share of the pairs within each of THRESHOLDS, keyed `<prefix>_5cm_0.5deg` etc."""
+    return {
+        f"{prefix}_{int(t * 100)}cm_{d:g}deg": float(np.mean(within(trans_m, rot_deg, (t, d))))
         for t, d in THRESHOLDS
     }
+
+
+def summarise(trans_m: NDArray, rot_deg: NDArray, times_s: NDArray, cpu_s: NDArray) -> dict:
+    out = shares_within("ok", trans_m, rot_deg)
     out.update(
         trans_p50_m=float(np.median(trans_m)),
         trans_p95_m=float(np.percentile(trans_m, 95)),
