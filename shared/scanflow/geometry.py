@@ -125,6 +125,10 @@ class Pose2D:
         return Pose2D(x[0], y[0], th[0])
 
 
+IDENTITY = Pose2D()
+"""The identity pose (immutable, so one shared instance serves as a default everywhere)."""
+
+
 def interpolate_arrays(
     a: Pose2D, b: Pose2D, fractions: ArrayLike
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:

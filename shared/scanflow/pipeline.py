@@ -66,7 +66,7 @@ class DeskewStage:
         self.velocity.update(stamp_s, pose)
 
     def process(self, scan: LaserScan) -> DeskewResult:
-        """The scan's valid and no-return endpoints in the frame of the reference pose
+        """The scan's valid and no-return endpoints in the robot's frame at the reference pose
         (see scanflow.deskew)."""
         sources: list[PoseSource] = [self.odometry, self.velocity] if self.enabled else []
         return deskew(scan, sources, self.reference)
@@ -121,7 +121,7 @@ class Pipeline:
         if odom_pose is None:
             odom_pose = self.deskew_stage.odometry_pose_at(stamp_s)
         estimate = self.frontend.process(
-            result.points, stamp_s, odom_pose, scan.seq, result.no_return_points
+            result.points, stamp_s, odom_pose, scan.seq, result.no_return_points, result.mount
         )
         if estimate.accepted:
             self.deskew_stage.observe_pose(stamp_s, estimate.pose)

@@ -13,7 +13,11 @@ Conventions (the same as ROS sensor_msgs/LaserScan):
   free space along its direction (up to the map's clear distance) but is never matched;
   error: NaN, -inf, zero or negative, below `range_min_m`: nothing is known, never used.
   Readers map their driver's conventions onto these (e.g. CARMEN's no-return sentinel lies
-  at or above the `range_max_m` its reader sets, so those beams come out as no return).
+  at or above the `range_max_m` its reader sets, so those beams come out as no return);
+- `mount` is the sensor's pose on the robot, T_base_sensor (ROS: the static transform
+  base_link -> the scan's frame_id). Deskewing moves every beam into the robot's frame, so
+  odometry, matching, maps and published poses are all the robot's; identity (the default)
+  means the sensor sits at the robot's origin, facing forward.
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ from functools import cached_property
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scanflow.geometry import Pose2D
+from scanflow.geometry import IDENTITY, Pose2D
 
 MAX_BEAMS = 100_000
 
@@ -57,6 +61,7 @@ class LaserScan:
     frame_id: str = "laser"
     intensities: NDArray[np.float32] | None = None
     seq: int = 0
+    mount: Pose2D = IDENTITY
 
     def __post_init__(self) -> None:
         # C-contiguous and writable (a read-only array, as decoded from the wire, is copied):
@@ -101,6 +106,8 @@ class LaserScan:
             raise ScanError(f"robot_id must be a non-empty string, got {self.robot_id!r}")
         if int(self.seq) < 0:
             raise ScanError(f"seq must be >= 0, got {self.seq}")
+        if not isinstance(self.mount, Pose2D):
+            raise ScanError(f"mount must be a Pose2D, got {type(self.mount).__name__}")
 
     @property
     def beam_count(self) -> int:
@@ -165,7 +172,7 @@ class LaserScan:
         return self.stamp_s + (float(offsets[-1]) if offsets.size else 0.0)
 
     def points(self, valid_only: bool = True) -> NDArray[np.float64]:
-        """Beam endpoints as (N, 2) Cartesian points in the sensor frame."""
+        """Beam endpoints as (N, 2) Cartesian points in the sensor frame (not yet `mount`ed)."""
         r = self.ranges_m.astype(np.float64)
         a = self.angles_rad
         if valid_only:
@@ -188,6 +195,7 @@ class LaserScan:
             frame_id=self.frame_id,
             intensities=self.intensities,
             seq=self.seq,
+            mount=self.mount,
         )
 
 

@@ -1,9 +1,12 @@
-"""Per-beam motion compensation: re-express every beam in the frame of one reference pose.
+"""Per-beam motion compensation: re-express every beam in the robot's frame at one reference pose.
 
-Beam i was measured at time t_i from pose T(t_i); its endpoint in the reference frame is
-p_ref = T(t_ref)^-1 * T(t_i) * p_i (the seed's formula, vectorised over all beams). With the
-relative pose (x_i, y_i, theta_i) = T(t_ref)^-1 T(t_i), that is
-p_ref = (x_i + r_i cos(alpha_i + theta_i), y_i + r_i sin(alpha_i + theta_i)).
+Beam i was measured at time t_i from the robot's pose T(t_i), by a sensor mounted at M =
+`scan.mount` (T_base_sensor); its endpoint in the reference frame is
+p_ref = T(t_ref)^-1 * T(t_i) * M * p_i (the seed's formula, vectorised over all beams, with the
+mount the seed leaves out). With the relative pose (x_i, y_i, theta_i) = T(t_ref)^-1 T(t_i) M,
+that is p_ref = (x_i + r_i cos(alpha_i + theta_i), y_i + r_i sin(alpha_i + theta_i)).
+Odometry and the constant-velocity prior give the robot's motion, so a mounted sensor needs no
+conversion of them, and everything downstream (matching, maps, poses) is the robot's.
 
 Default reference: "start", the pose at `scan.stamp_s` (the first beam). It is the stamp every
 other module already sees (ROS header convention), so the matcher and the frontend attach the
@@ -25,6 +28,7 @@ from numpy.typing import NDArray
 
 from scanflow.deskew import kernels
 from scanflow.deskew.source import DeskewError, PoseSource, choose_source
+from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.scan import LaserScan
 
 Reference = Literal["start", "middle", "end"]
@@ -39,8 +43,9 @@ float64 keeps the beam's direction to ~1e-13 m."""
 
 @dataclass(frozen=True, eq=False)
 class DeskewResult:
-    """A motion-compensated scan: valid beams as points in the frame of the reference pose,
-    and no-return beams as `no_return_points` (at range_max_m, or NO_RETURN_RANGE_M) there."""
+    """A motion-compensated scan: valid beams as points in the robot's frame at the reference
+    pose, and no-return beams as `no_return_points` (at range_max_m, or NO_RETURN_RANGE_M)
+    there; `mount` (the scan's) says where the sensor sits in that frame: rays start there."""
 
     points: NDArray[np.float64]
     no_return_points: NDArray[np.float64]
@@ -51,16 +56,17 @@ class DeskewResult:
     message: str
     beam_count: int
     valid_count: int
+    mount: Pose2D = IDENTITY
 
     @cached_property
     def ranges_m(self) -> NDArray[np.float64]:
-        """Range of each compensated point from the reference pose (computed on first use)."""
-        return np.hypot(self.points[:, 0], self.points[:, 1])
+        """Range of each compensated point from the sensor at the reference pose."""
+        return np.hypot(self.points[:, 0] - self.mount.x, self.points[:, 1] - self.mount.y)
 
     @cached_property
     def angles_rad(self) -> NDArray[np.float64]:
-        """Bearing of each compensated point in the reference frame (computed on first use)."""
-        return np.arctan2(self.points[:, 1], self.points[:, 0])
+        """Bearing of each compensated point from the sensor, in the robot's reference frame."""
+        return np.arctan2(self.points[:, 1] - self.mount.y, self.points[:, 0] - self.mount.x)
 
 
 def deskew(
@@ -118,9 +124,19 @@ def _moved(
     """(valid endpoints, no-return endpoints), each beam moved by its pose (x, y, theta)."""
     angles = _beam_angles(scan.beam_count, scan.angle_min_rad, scan.angle_increment_rad)
     far_m = scan.range_max_m if math.isfinite(scan.range_max_m) else NO_RETURN_RANGE_M
+    if scan.mount != IDENTITY:
+        x, y, theta = _mounted(x, y, theta, scan.mount)
     return kernels.beams_in_reference(
         scan.ranges_m, angles, scan.valid_mask, scan.no_return_mask, far_m, x, y, theta
     )
+
+
+def _mounted(
+    x: NDArray[np.float64], y: NDArray[np.float64], theta: NDArray[np.float64], mount: Pose2D
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Each beam's robot pose (x_i, y_i, theta_i) composed with the mount: the sensor's pose."""
+    c, s = np.cos(theta), np.sin(theta)
+    return x + c * mount.x - s * mount.y, y + s * mount.x + c * mount.y, theta + mount.theta
 
 
 def _result(
@@ -142,6 +158,7 @@ def _result(
         message=message,
         beam_count=scan.beam_count,
         valid_count=int(points.shape[0]),
+        mount=scan.mount,
     )
 
 

@@ -2,10 +2,10 @@
 
     from scanflow.frontend import Frontend
     frontend = Frontend(settings)              # FrontendSettings (scanflow.config), per robot
-    out = frontend.process(points_m, stamp_s, odom_pose, seq, no_return_m)  # FrontendOutput
+    out = frontend.process(points_m, stamp_s, odom_pose, seq, no_return_m, mount)  # FrontendOutput
     out.pose, out.covariance, out.status, out.inserted ...
     frontend.map (MatchingMap, the robot's map), frontend.trajectory.save_tum(path)
-    insert_scan(matching_map, points_m, pose, no_return_m)  # the map insertion, for map servers
+    insert_scan(matching_map, points_m, pose, no_return_m, mount)  # the map insertion (map servers)
 
 See `scanflow.frontend.tracker` for what happens to each scan.
 """

@@ -1,11 +1,13 @@
 """Scan-to-map tracking for one robot: predict, match against the robot's own map, check, insert.
 
-`Frontend(settings).process(points_m, stamp_s, odom_pose, seq, no_return_m) -> FrontendOutput`,
-once per deskewed scan, in stamp order. `points_m` are the scan's valid endpoints in the sensor
-frame at `stamp_s` (a `DeskewResult.points`); `no_return_m` its no-return beams' endpoints there
-(`DeskewResult.no_return_points`), which only clear free space when the scan is inserted (up to
-the map's `no_return_clear_m`) and are never matched; `odom_pose` is the wheel-odometry pose at
-`stamp_s` in the odometry frame, or None. Output poses are T_map_sensor.
+`Frontend(settings).process(points_m, stamp_s, odom_pose, seq, no_return_m, mount)
+-> FrontendOutput`, once per deskewed scan, in stamp order. `points_m` are the scan's valid
+endpoints in the robot's frame at `stamp_s` (a `DeskewResult.points`); `no_return_m` its
+no-return beams' endpoints there (`DeskewResult.no_return_points`), which only clear free space
+when the scan is inserted (up to the map's `no_return_clear_m`) and are never matched; `mount`
+is where the sensor sits on the robot (rays start there; default the robot's origin);
+`odom_pose` is the wheel-odometry pose at `stamp_s` in the odometry frame, or None. Output poses
+are the robot's, T_map_base.
 
 Per scan:
 1. predict: the odometry increment since the last scan composed onto the last estimate
@@ -36,7 +38,7 @@ from scanflow.frontend.acceptance import AcceptanceLimits, rejection_reason
 from scanflow.frontend.motion_filter import MotionFilter
 from scanflow.frontend.prediction import MotionPredictor, Prediction
 from scanflow.frontend.trajectory import TrajectoryStore
-from scanflow.geometry import Pose2D
+from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.occupancy import InsertResult, OccupancyGrid, OccupancyParams
 from scanflow.matching import MatchResult, match
@@ -58,7 +60,7 @@ ACCEPTED = frozenset({FrontendStatus.INITIALISED, FrontendStatus.TRACKED, Fronte
 
 @dataclass(frozen=True, eq=False)
 class FrontendOutput:
-    """The front end's estimate for one scan (pose = T_map_sensor at `stamp_s`)."""
+    """The front end's estimate for one scan (pose = T_map_base at `stamp_s`)."""
 
     seq: int
     stamp_s: float
@@ -89,25 +91,31 @@ class _Step:
     stamp_s: float
     odom_pose: Pose2D | None
     seq: int
+    mount: Pose2D
     match_time_s: float = 0.0
 
 
 def insert_scan(
     matching_map: MatchingMap,
-    points_sensor_m: ArrayLike,
+    points_m: ArrayLike,
     pose: Pose2D,
-    no_return_sensor_m: ArrayLike | None = None,
+    no_return_m: ArrayLike | None = None,
+    mount: Pose2D | None = None,
 ) -> InsertResult:
-    """Insert a scan's endpoints (sensor frame) within the grid's max range, and clear along
-    its no-return beams (up to the grid's no_return_clear_m), seen from `pose` (T_map_sensor):
-    the one insertion the front end and the map server both use."""
-    points = as_points(points_sensor_m, "points_sensor_m")
-    in_range = np.hypot(points[:, 0], points[:, 1]) <= matching_map.grid.params.max_range_m
+    """Insert a scan's endpoints (robot frame) within the grid's max range of the sensor, and
+    clear along its no-return beams (up to the grid's no_return_clear_m), the robot at `pose`
+    (T_map_base) and the sensor at `mount` on it: the one insertion the front end and the map
+    server both use."""
+    points = as_points(points_m, "points_m")
+    sensor = mount if mount is not None else IDENTITY
+    reach = np.hypot(points[:, 0] - sensor.x, points[:, 1] - sensor.y)
+    in_range = reach <= matching_map.grid.params.max_range_m
     misses = None
-    if no_return_sensor_m is not None:
-        misses = pose.transform_points(as_points(no_return_sensor_m, "no_return_sensor_m"))
+    if no_return_m is not None:
+        misses = pose.transform_points(as_points(no_return_m, "no_return_m"))
+    origin = pose * sensor
     return matching_map.update(
-        pose.transform_points(points[in_range]), (pose.x, pose.y), no_return_endpoints=misses
+        pose.transform_points(points[in_range]), (origin.x, origin.y), no_return_endpoints=misses
     )
 
 
@@ -166,12 +174,15 @@ class Frontend:
         odom_pose: Pose2D | None = None,
         seq: int = 0,
         no_return_m: ArrayLike | None = None,
+        mount: Pose2D | None = None,
     ) -> FrontendOutput:
         """Track one scan (see the module docstring); never raises for bad scan content."""
         points = as_points(points_m, "points_m")
         misses = np.zeros((0, 2)) if no_return_m is None else as_points(no_return_m, "no_return_m")
         prediction = self._predict(stamp_s, odom_pose)
-        step = _Step(prediction, points, misses, float(stamp_s), odom_pose, seq)
+        step = _Step(
+            prediction, points, misses, float(stamp_s), odom_pose, seq, mount or IDENTITY
+        )
         if len(points) < self.settings.min_points:
             reason = f"{len(points)} valid points, need min_points={self.settings.min_points}"
             return self._finish(step, FrontendStatus.TOO_FEW_POINTS, None, reason)
@@ -251,7 +262,7 @@ class Frontend:
         inserted, insert_time_s = False, 0.0
         if status in ACCEPTED and self._filter.should_insert(step.stamp_s, pose):
             t0 = time.perf_counter()
-            insert_scan(self.map, step.points, pose, step.no_return)
+            insert_scan(self.map, step.points, pose, step.no_return, step.mount)
             insert_time_s = time.perf_counter() - t0
             self._filter.mark_inserted(step.stamp_s, pose)
             inserted = True

@@ -1,12 +1,15 @@
 """One entry point for every scan matcher: `match(source, target, initial_guess, method=...)`.
 
 Pose convention: the result `pose` is T_target_source, the motion that maps source points
-(sensor frame of the source scan) into the target's frame (the target scan's sensor frame for
-scan-to-scan, the map frame for scan-to-map). `initial_guess` follows the same convention.
-A point target is therefore one scan seen from its frame's origin: its returns also say that
-the beams' paths up to them were free, and the local methods refuse (POOR_FIT) a converged
-pose that puts too much of the source in that free space, a wrong basin (matching/trust.py).
-For a point set that is not one scan, pass `max_free_space_share=1.0` to skip that check.
+into the target's frame (the target scan's frame for scan-to-scan, the map frame for
+scan-to-map). `initial_guess` follows the same convention. Points are taken as given; a
+`LaserScan` gives its valid endpoints in the robot's frame (through its `mount`), so two
+mounted scans give the robot's motion, and a scan against a robot's map the robot's pose.
+A point target is one scan seen from its frame's origin (a `LaserScan` target: from its
+sensor): its returns also say that the beams' paths up to them were free, and the local
+methods refuse (POOR_FIT) a converged pose that puts too much of the source in that free space,
+a wrong basin (matching/trust.py). For a point set that is not one scan, pass
+`max_free_space_share=1.0` to skip that check.
 
 Each method lives in its own module and registers itself with `register_method`; this module
 validates inputs once so methods can assume clean (N, 2) finite arrays.
@@ -24,7 +27,7 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scanflow.geometry import Pose2D
+from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.scan import LaserScan
 
 
@@ -106,12 +109,14 @@ def _load_methods() -> None:
 
 
 def as_points(data: LaserScan | ArrayLike, name: str) -> NDArray[np.float64]:
-    """Validated (N, 2) float64 points; a LaserScan gives its valid endpoints. Drops NaN rows.
+    """Validated (N, 2) float64 points; a LaserScan gives its valid endpoints in the robot's
+    frame (its `mount` applied). Drops NaN rows.
     Always C-contiguous and writable (read-only arrays, as decoded from the wire, are copied):
     numba compiles each array type apart, so one type here means no compile on a service's
     first real scan after its warm-up."""
     if isinstance(data, LaserScan):
-        return data.points()
+        points = data.points()
+        return points if data.mount == IDENTITY else data.mount.transform_points(points)
     try:
         p = np.asarray(data, dtype=np.float64)
     except (TypeError, ValueError) as exc:
@@ -201,9 +206,32 @@ def match(
         raise MatchInputError(f"unknown method {method!r}; available: {known}")
     guess = as_pose(initial_guess)
     src = as_points(source, "source")
+    if isinstance(target, LaserScan) and target.mount != IDENTITY:
+        # Matched in the target's sensor frame, where its free space is seen from the origin.
+        t0 = time.perf_counter()
+        result = fn(src, target.points(), target.mount.inverse() * guess, **options)
+        return replace(
+            in_frame(target.mount, result), time_s=time.perf_counter() - t0
+        )
     tgt: Any = target
     if isinstance(target, LaserScan) or not hasattr(target, "likelihood_field"):
         tgt = as_points(target, "target")
     t0 = time.perf_counter()
     result = fn(src, tgt, guess, **options)
     return replace(result, time_s=time.perf_counter() - t0)
+
+
+def in_frame(frame: Pose2D, result: MatchResult) -> MatchResult:
+    """`result` (a pose in some frame b) re-expressed in frame a, `frame` being T_a_b: the pose
+    left-multiplied, its covariance and weak direction rotated with it (J = diag(R, 1))."""
+    jacobian = np.eye(3)
+    jacobian[:2, :2] = frame.rotation_matrix()
+    weak = result.weak_direction
+    if weak is not None:
+        weak = tuple(float(v) for v in jacobian @ np.asarray(weak))
+    return replace(
+        result,
+        pose=frame * result.pose,
+        covariance=jacobian @ result.covariance @ jacobian.T,
+        weak_direction=weak,
+    )

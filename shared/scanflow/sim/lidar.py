@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from scanflow.geometry import Pose2D, compose_arrays, transform_points_per_pose
+from scanflow.geometry import IDENTITY, Pose2D, compose_arrays, transform_points_per_pose
 from scanflow.scan import LaserScan
 from scanflow.sim.raycast import cast_rays
 from scanflow.sim.trajectory import Trajectory
@@ -78,18 +78,21 @@ def measure(
     rng: np.random.Generator,
     seq: int = 0,
     robot_id: str = "robot",
+    mount: Pose2D = IDENTITY,
 ) -> Measurement:
-    """Sweep starting at `stamp_s`: beam i cast at stamp_s + offset_i from the true pose then.
+    """Sweep starting at `stamp_s`: beam i cast at stamp_s + offset_i from the true pose then,
+    by a lidar mounted at `mount` on the robot (`true_pose` and `true_beam_poses` are the robot's).
 
     Dropouts are reported as NaN, rays that hit nothing as `range_max_m` (both masked by
-    LaserScan). `true_points` are the valid measured endpoints re-expressed in the frame of the
-    pose at `stamp_s` using the true per-beam poses: the exact target of deskewing.
+    LaserScan). `true_points` are the valid measured endpoints re-expressed in the robot's frame
+    at `stamp_s` using the true per-beam poses: the exact target of deskewing.
     """
     offsets_s = lidar.beam_offsets_s
     beam_poses = trajectory.pose_at(stamp_s + offsets_s)
+    sensor_poses = beam_poses if mount == IDENTITY else compose_arrays(beam_poses, mount.to_array())
     angles_rad = lidar.angle_min_rad + lidar.angle_increment_rad * np.arange(lidar.beams)
     ranges_m = cast_rays(
-        beam_poses[:, :2], beam_poses[:, 2] + angles_rad, segments, lidar.range_max_m
+        sensor_poses[:, :2], sensor_poses[:, 2] + angles_rad, segments, lidar.range_max_m
     )
     if lidar.range_noise_m > 0:
         ranges_m = ranges_m + rng.normal(0.0, lidar.range_noise_m, ranges_m.shape)
@@ -106,10 +109,11 @@ def measure(
         beam_time_offsets_s=offsets_s,
         robot_id=robot_id,
         seq=seq,
+        mount=mount,
     )
     valid = scan.valid_mask
     start = Pose2D.from_array(beam_poses[0])
-    relative = compose_arrays(start.inverse().to_array(), beam_poses[valid])
+    relative = compose_arrays(start.inverse().to_array(), sensor_poses[valid])
     true_points = transform_points_per_pose(
         relative[:, 0], relative[:, 1], relative[:, 2], scan.points(valid_only=True)
     )

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from scanflow.geometry import Pose2D
+from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.scan import LaserScan, Odometry
 from scanflow.sim.lidar import LidarModel, measure
 from scanflow.sim.odometry import odometry_poses
@@ -36,6 +36,7 @@ class SimConfig:
     odom_scale_error: float = 0.01
     odom_yaw_noise: float = 0.002
     robot_id: str = "robot"
+    mount: Pose2D = IDENTITY  # the lidar's pose on the robot (T_base_sensor)
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.duration_s) and self.duration_s > 0):
@@ -111,7 +112,8 @@ def simulate(config: SimConfig, trajectory: Trajectory | None = None) -> Iterato
     next_odom = 0
     for seq, stamp_s in enumerate(scan_stamps_s):
         m = measure(
-            lidar, trajectory, world.segments, float(stamp_s), lidar_rng, seq, config.robot_id
+            lidar, trajectory, world.segments, float(stamp_s), lidar_rng, seq, config.robot_id,
+            config.mount,
         )
         last_beam_s = m.scan.end_stamp_s
         first = next_odom

@@ -1,3 +1,4 @@
+import dataclasses
 import math
 from itertools import islice
 
@@ -68,6 +69,31 @@ def test_exact_on_simulator_with_noise_free_odometry():
     # Only the chord-vs-arc error of linear interpolation remains: v * w * dt^2 / 8.
     assert errors.max() <= 1.0 * math.pi * 0.02**2 / 8 + 1e-9
     assert np.concatenate(raw_errors).mean() > 100 * errors.mean()
+
+
+MOUNT = Pose2D(0.3, -0.1, math.radians(35.0))
+
+
+def test_mounted_lidar_is_exact_in_the_robots_frame():
+    """A lidar 30 cm off the turning axis: deskewing through the mount recovers the robot-frame
+    points; ignoring it (moving sensor-frame beams by the robot's motion) is far off."""
+    trajectory = ConstantVelocityTrajectory(Pose2D(7.5, 2.0, 0.0), 0.5, math.pi)
+    config = SimConfig(duration_s=1.0, fov_deg=360, mount=MOUNT, **QUIET)
+    buffer = OdometryBuffer()
+    errors, unmounted_errors = [], []
+    for frame in simulate(config, trajectory):
+        for sample in frame.odometry:
+            buffer.add_odometry(sample)
+        assert frame.scan.mount == MOUNT
+        result = deskew(frame.scan, buffer)
+        assert result.mount == MOUNT
+        errors.append(np.linalg.norm(result.points - frame.true_points, axis=1))
+        bare = deskew(dataclasses.replace(frame.scan, mount=Pose2D()), buffer)
+        unmounted = MOUNT.transform_points(bare.points)
+        unmounted_errors.append(np.linalg.norm(unmounted - frame.true_points, axis=1))
+    errors = np.concatenate(errors)
+    assert errors.max() <= 0.5 * math.pi * 0.02**2 / 8 + 1e-9  # chord vs arc, as unmounted
+    assert np.concatenate(unmounted_errors).mean() > 100 * errors.mean()
 
 
 def test_seed_formula_on_a_hand_computed_case():
@@ -255,3 +281,21 @@ def test_cli_style_run_reports_sources(tmp_path):
             buffer.add_odometry(sample)
         used.add(deskew(frame.scan, buffer).source_used)
     assert used == {"odometry"}
+
+
+@settings(max_examples=60, deadline=None)
+@given(poses, poses, st.integers(2, 400), st.sampled_from(("start", "middle", "end")))
+def test_zero_motion_puts_a_mounted_scan_at_its_mount(pose, mount, n, reference):
+    buffer = OdometryBuffer()
+    for t in np.arange(0.9, 1.4, 0.02):
+        buffer.add(t, pose)
+    ranges = np.where(np.arange(n) % 5 == 0, np.inf, np.linspace(0.5, 20.0, n))
+    scan = dataclasses.replace(_scan(n=n, ranges=ranges), mount=mount)
+    bare = deskew(dataclasses.replace(scan, mount=Pose2D()), buffer, reference)
+    for result in (deskew(scan, buffer, reference), deskew(scan, None, reference)):
+        np.testing.assert_allclose(result.points, mount.transform_points(scan.points()), atol=1e-9)
+        np.testing.assert_allclose(
+            result.no_return_points, mount.transform_points(bare.no_return_points), atol=1e-6
+        )
+        # Ranges and bearings are the sensor's, wherever it sits on the robot.
+        np.testing.assert_allclose(result.ranges_m, bare.ranges_m, atol=1e-9)

@@ -147,6 +147,22 @@ def test_no_return_beams_clear_up_to_the_clear_distance_only(settings: FrontendS
     assert not _cleared_along_x(plain, pose, np.arange(0.5, 9.0, 0.05)).any()
 
 
+def test_rays_start_at_the_mounted_sensor(settings: FrontendSettings) -> None:
+    """Points arrive in the robot's frame; the map traces every ray from the sensor's mount
+    (1.1 m off the robot's origin, turned), and clears no-return beams from there."""
+    mount = Pose2D(1.0, 0.5, 0.4)
+    pose = MAP_FROM_WORLD * START
+    sensor = pose * mount
+    behind = np.linspace(math.pi / 2, 3 * math.pi / 2, 181)
+    wall = mount.transform_points(3.0 * np.column_stack((np.cos(behind), np.sin(behind))))
+    beam_in_sensor = Pose2D(0.0, 0.0, -sensor.theta).transform_points([[NO_RETURN_RANGE_M, 0.0]])
+    frontend = Frontend(settings, initial_pose=pose)
+    out = frontend.process(wall, 0.0, None, 0, mount.transform_points(beam_in_sensor), mount)
+    assert out.inserted and out.pose == pose
+    assert _cleared_along_x(frontend, sensor, np.arange(0.0, 5.0, 0.05)).all()
+    assert not _cleared_along_x(frontend, sensor, np.arange(5.1, 9.0, 0.05)).any()
+
+
 def test_no_return_beams_are_not_matched(settings: FrontendSettings, scan_at: Scanner) -> None:
     truth = straight_path(START, 0.25, 4)  # each step beyond the motion filter's 0.2 m
     odom = odometry_with_drift(truth)
