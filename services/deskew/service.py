@@ -152,6 +152,7 @@ class DeskewService:
             dropped_count=result.beam_count - result.valid_count,
             no_return_points=result.no_return_points,
             odom_pose=stage.odometry_pose_at(result.reference_stamp_s),
+            mount=result.mount,
         )
         self.shell.put(keys.deskewed_scan(robot_id, self.shell.prefix), message.encode())
 

@@ -43,7 +43,10 @@ class Ingest:
         pacer = Pacer(s.rate, self.shell.stop_event)
         prefix = self.shell.prefix
         scans = 0
-        for event in source_events(s.log, s.robot_id, s.sim_duration_s, s.sim_seed, s.limit):
+        events = source_events(
+            s.log, s.robot_id, s.sim_duration_s, s.sim_seed, s.limit, s.mount_pose()
+        )
+        for event in events:
             if self.shell.stop_event.is_set():
                 break
             robot = event.robot_id

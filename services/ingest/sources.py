@@ -12,16 +12,21 @@ from collections import defaultdict
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
+from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.scan import LaserScan, Odometry
 
 Event = LaserScan | Odometry
 
 
-def sim_events(duration_s: float, seed: int, robot_id: str) -> Iterator[Event]:
-    """The built-in simulator: each frame's odometry samples, then its (distorted) scan."""
+def sim_events(
+    duration_s: float, seed: int, robot_id: str, mount: Pose2D = IDENTITY
+) -> Iterator[Event]:
+    """The built-in simulator (its lidar at `mount` on the robot): each frame's odometry
+    samples, then its (distorted) scan."""
     from scanflow.sim import SimConfig, simulate
 
-    for frame in simulate(SimConfig(duration_s=duration_s, seed=seed, robot_id=robot_id)):
+    config = SimConfig(duration_s=duration_s, seed=seed, robot_id=robot_id, mount=mount)
+    for frame in simulate(config):
         yield from frame.odometry
         yield frame.scan
 
@@ -49,6 +54,12 @@ def numbered(events: Iterable[Event]) -> Iterator[Event]:
         yield dataclasses.replace(event, seq=next(counters[(event.robot_id, type(event))]))
 
 
+def mounted(events: Iterable[Event], mount: Pose2D) -> Iterator[Event]:
+    """Every scan with its lidar declared at `mount` on the robot (odometry as it is)."""
+    for event in events:
+        yield dataclasses.replace(event, mount=mount) if isinstance(event, LaserScan) else event
+
+
 def limited(events: Iterable[Event], max_scans: int | None) -> Iterator[Event]:
     """Stop after `max_scans` scans (None: no limit), keeping the odometry before each."""
     scans = 0
@@ -61,11 +72,18 @@ def limited(events: Iterable[Event], max_scans: int | None) -> Iterator[Event]:
 
 
 def source_events(
-    log: str | None, robot_id: str, sim_duration_s: float, sim_seed: int, limit: int | None
+    log: str | None,
+    robot_id: str,
+    sim_duration_s: float,
+    sim_seed: int,
+    limit: int | None,
+    mount: Pose2D | None = None,
 ) -> Iterator[Event]:
-    """The numbered, limited stream of one replay of the configured source."""
+    """The numbered, limited stream of one replay of the configured source; `mount` (when
+    given) places the simulator's lidar, or overrides what a log says about its lidar."""
     if log is None:
-        raw = sim_events(sim_duration_s, sim_seed, robot_id)
+        raw = sim_events(sim_duration_s, sim_seed, robot_id, mount or IDENTITY)
     else:
         raw = log_events(log, robot_id)
+        raw = raw if mount is None else mounted(raw, mount)
     return numbered(limited(raw, limit))

@@ -59,7 +59,9 @@ class RobotMap:
         """The front end's own insertion of the scan (hits and no-return beams) at its pose;
         remembers the touched cells."""
         self.last_insert_seq = scan.seq
-        result = insert_scan(self.map, scan.points, scan.pose, scan.no_return_points)
+        result = insert_scan(
+            self.map, scan.points, scan.pose, scan.no_return_points, scan.mount
+        )
         if result.touched is not None:
             self.dirty = result.touched.union(self.dirty)
 

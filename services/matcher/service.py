@@ -85,6 +85,7 @@ class MatcherService:
                 message.odom_pose,
                 message.seq,
                 message.no_return_points,
+                message.mount,
             )
         self._publish(robot_id, message, out)
 
@@ -92,7 +93,8 @@ class MatcherService:
         prefix = self.shell.prefix
         if out.inserted:
             insert = MapInsertMessage(
-                robot_id, out.seq, out.stamp_s, out.pose, scan.points, scan.no_return_points
+                robot_id, out.seq, out.stamp_s, out.pose, scan.points, scan.no_return_points,
+                scan.mount,
             )
             self.shell.put(keys.map_key(robot_id, "insert", prefix), insert.encode())
         estimate = PoseEstimateMessage.from_result(out, robot_id, out.seq, out.stamp_s)

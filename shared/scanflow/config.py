@@ -8,10 +8,13 @@ down explicitly; the core library takes plain arguments and never reads the envi
 
 from __future__ import annotations
 
+import math
 from typing import Annotated, Literal
 
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+from scanflow.geometry import Pose2D
 
 
 def _split_csv(value: object) -> object:
@@ -114,9 +117,31 @@ class IngestSettings(ServiceSettings):
     replays: int = Field(1, ge=1, description="publish the source this many times in a row")
     sim_duration_s: float = Field(60.0, gt=0.0)
     sim_seed: int = 0
+    mount: Annotated[list[float], NoDecode] = Field(
+        default_factory=list,
+        description="the lidar's pose on the robot, 'x_m,y_m,yaw_deg' (T_base_laser): set on "
+        "every scan, over what the source says; the simulator mounts its lidar there; "
+        "empty = as the source says",
+    )
     stall_timeout_s: float = Field(10.0, gt=0.0, description="no pose for this long: resume")
     wait_subscribers_s: float = Field(60.0, ge=0.0, description="wait for a scan subscriber")
     drain_timeout_s: float = Field(60.0, ge=0.0, description="wait for the last pose at the end")
+
+    _split = field_validator("mount", mode="before")(_split_csv)
+
+    @field_validator("mount")
+    @classmethod
+    def _check_mount(cls, value: list[float]) -> list[float]:
+        if value and (len(value) != 3 or not all(math.isfinite(v) for v in value)):
+            raise ValueError(f"mount must be 3 finite numbers 'x_m,y_m,yaw_deg', got {value!r}")
+        return value
+
+    def mount_pose(self) -> Pose2D | None:
+        """`mount` as a pose (yaw in radians), None when unset."""
+        if not self.mount:
+            return None
+        x, y, yaw_deg = self.mount
+        return Pose2D(x, y, math.radians(yaw_deg))
 
 
 class DeskewSettings(KernelServiceSettings):

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import inspect
+import math
 
 import pytest
 from pydantic import ValidationError
 from pydantic_settings import BaseSettings
 from scanflow import config
+from scanflow.geometry import Pose2D
 
 
 @pytest.fixture(autouse=True)
@@ -126,3 +128,13 @@ def test_launch_pins_one_matcher_by_default_and_refuses_a_negative_count(clean_e
     clean_env.setenv("SCANFLOW_LAUNCH_MATCHER_CPUS", "-1")
     with pytest.raises(ValidationError, match="matcher_cpus"):
         config.LaunchSettings()
+
+
+def test_ingest_mount_is_x_y_and_yaw_in_degrees(clean_env) -> None:
+    assert config.IngestSettings().mount_pose() is None
+    clean_env.setenv("SCANFLOW_INGEST_MOUNT", "0.3,-0.1,90")
+    assert config.IngestSettings().mount_pose() == Pose2D(0.3, -0.1, math.pi / 2)
+    for bad in ("0.3,-0.1", "1,2,nan", "[1, 2, 3, 4]"):
+        clean_env.setenv("SCANFLOW_INGEST_MOUNT", bad)
+        with pytest.raises(ValidationError, match="mount"):
+            config.IngestSettings()

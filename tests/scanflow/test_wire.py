@@ -68,6 +68,7 @@ def scans(draw: st.DrawFn) -> LaserScan:
         frame_id=draw(texts),
         intensities=draw(st.none() | f32_any_bits(n)),
         seq=draw(counts),
+        mount=draw(poses),
     )
 
 
@@ -102,6 +103,7 @@ def deskewed_messages(draw: st.DrawFn) -> wire.DeskewedScanMessage:
         dropped_count=draw(st.integers(misses, beams)),
         no_return_points=draw(f64_points(misses)),
         odom_pose=draw(st.none() | poses),
+        mount=draw(poses),
     )
 
 
@@ -210,6 +212,7 @@ def map_inserts(draw: st.DrawFn) -> wire.MapInsertMessage:
         pose=draw(poses),
         points=draw(f64_points(draw(small_n))),
         no_return_points=draw(f64_points(draw(small_n))),
+        mount=draw(poses),
     )
 
 
@@ -300,7 +303,7 @@ def test_decoded_arrays_are_read_only() -> None:
 def test_every_payload_carries_type_and_version() -> None:
     data = wire.MapImageMessage("r", 1, "png", b"x").encode()
     assert msgpack.unpackb(data)["type"] == "map_image"
-    assert msgpack.unpackb(data)["v"] == wire.SCHEMA_VERSION == 2
+    assert msgpack.unpackb(data)["v"] == wire.SCHEMA_VERSION == 3
 
 
 def test_message_helpers_carry_match_results() -> None:
@@ -358,7 +361,7 @@ SCAN = wire.ScanMessage(LaserScan(np.array([1.0, np.nan, 3.0]), 0.0, 0.1, robot_
 
 
 def test_wrong_version_is_a_version_error() -> None:
-    for version in (1, 3):  # 1: before DeskewedScanMessage.no_return_points
+    for version in (1, 2, 4):  # 1: before no_return_points, 2: before the sensor mount
         with pytest.raises(wire.VersionError, match=rf"\.v: schema version {version}"):
             wire.decode_any(_payload(SCAN, v=version))
 

@@ -6,6 +6,7 @@ Reference: the plain `scanflow.pipeline.Pipeline` fed the same source events in 
 
 from __future__ import annotations
 
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -15,6 +16,7 @@ import pytest
 from scanflow import keys
 from scanflow.config import ServiceSettings
 from scanflow.frontend import FrontendOutput
+from scanflow.geometry import Pose2D
 from scanflow.maps.export import load_npz
 from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.pipeline import Pipeline
@@ -122,6 +124,21 @@ def test_simulated_run_equals_the_in_process_pipeline(pipeline):
     (path,) = bus.get(keys.trajectory("robot"))
     np.testing.assert_array_equal(path.poses, [o.pose.to_array() for o in expected])
     assert_map_queries(bus, grid, notices)
+
+
+def test_a_mounted_lidar_run_equals_the_in_process_pipeline(pipeline):
+    """The simulator's lidar off the robot's centre (SCANFLOW_INGEST_MOUNT): the mount travels
+    with raw scans, deskewed scans and map inserts, so poses and map equal in-process."""
+    launcher, bus = pipeline
+    poses = bus.record(keys.pose())
+    run_ingest(launcher, bus, SCANFLOW_INGEST_MOUNT="0.35,-0.1,25", **SIM)
+    mount = Pose2D(0.35, -0.1, math.radians(25.0))
+    expected, grid = in_process(source_events(None, "robot", SIM_S, 7, None, mount))
+    bus.wait_until(lambda: len(poses) >= len(expected), 30.0, "every pose")
+    assert_same_poses(poses, expected)
+    assert_served_map(bus, grid, len(expected))
+    unmounted, _ = in_process(source_events(None, "robot", SIM_S, 7, None))
+    assert [o.pose for o in expected] != [o.pose for o in unmounted]
 
 
 def test_full_inboxes_hold_the_pipeline_back_without_deadlock(launcher, bus, start):

@@ -7,9 +7,10 @@ and shape. Anything wrong with a payload raises a `DecodeError` (subclasses `Ver
 `SchemaError`, `PayloadTooLarge`) naming the field; building a message with bad fields raises
 `MessageError`. Decoded arrays are read-only views of the payload.
 
-Changing any message's fields bumps SCHEMA_VERSION (2: `DeskewedScanMessage.no_return_points`):
-readers refuse other versions with a VersionError, so services of two versions fail loudly
-instead of dropping or missing a field.
+Changing any message's fields bumps SCHEMA_VERSION (2: `DeskewedScanMessage.no_return_points`;
+3: the sensor `mount` on scans, deskewed scans and map inserts): readers refuse other versions
+with a VersionError, so services of two versions fail loudly instead of dropping or missing a
+field.
 """
 
 from scanflow.wire.base import Message, decode_any, message_types

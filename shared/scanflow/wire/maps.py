@@ -12,7 +12,7 @@ from typing import ClassVar, Literal, Self
 import numpy as np
 from numpy.typing import NDArray
 
-from scanflow.geometry import Pose2D
+from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.maps.grid import GridSpec
 from scanflow.wire.base import (
     Message,
@@ -36,7 +36,8 @@ class MapInsertMessage(Message):
     whatever the order of the pose stream beside it.
 
     `points` (hits) and `no_return_points` (beams that saw nothing: they clear free space) are
-    in the sensor frame at `stamp_s`, float64, bit for bit what the tracker inserted.
+    in the robot's frame at `stamp_s`, float64, bit for bit what the tracker inserted; `pose` is
+    the robot's and `mount` the sensor's pose on it, where the rays start.
     """
 
     TYPE = "map_insert"
@@ -47,6 +48,7 @@ class MapInsertMessage(Message):
         "pose": POSE,
         "points": array("<f8"),
         "no_return_points": array("<f8"),
+        "mount": POSE,
     }
     robot_id: str
     seq: int
@@ -54,12 +56,14 @@ class MapInsertMessage(Message):
     pose: Pose2D
     points: NDArray[np.float64]
     no_return_points: NDArray[np.float64]
+    mount: Pose2D = IDENTITY
 
     def __post_init__(self) -> None:
         check_text("robot_id", self.robot_id)
         object.__setattr__(self, "seq", check_count("seq", self.seq))
         object.__setattr__(self, "stamp_s", check_finite("stamp_s", self.stamp_s))
         check_pose("pose", self.pose)
+        check_pose("mount", self.mount)
         for name in ("points", "no_return_points"):
             object.__setattr__(
                 self, name, check_array(name, getattr(self, name), np.float64, (None, 2))

@@ -8,7 +8,7 @@ from typing import Any, ClassVar, Self
 import numpy as np
 from numpy.typing import NDArray
 
-from scanflow.geometry import Pose2D
+from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.scan import LaserScan, Odometry
 from scanflow.wire.base import (
     Message,
@@ -47,6 +47,7 @@ SCAN_WIRE: Schema = {
     "ranges_m": array("<f4"),
     "beam_time_offsets_s": optional(array("<f8")),
     "intensities": optional(array("<f4")),
+    "mount": POSE,
 }
 ODOM_WIRE: Schema = {
     "robot_id": TEXT,
@@ -99,7 +100,7 @@ class ScanMessage(Message):
 
 @dataclass(frozen=True, eq=False)
 class DeskewedScanMessage(Message):
-    """A scan after motion compensation: valid endpoints in the sensor frame at `stamp_s`.
+    """A scan after motion compensation: valid endpoints in the robot's frame at `stamp_s`.
 
     `points` travel as float64, bit for bit what the deskewer computed, so a front end fed
     from the bus sees exactly the input of the in-process pipeline (360 beams: 5.8 kB).
@@ -112,7 +113,8 @@ class DeskewedScanMessage(Message):
     `beam_count` is the raw scan's beam count and `dropped_count` its beams not in `points`
     (no-return and erroneous ones);
     `source_used` names the motion source the deskewer used (e.g. "odometry", "none"),
-    `times_assumed` is True when beam times came from the scan duration, not the driver.
+    `times_assumed` is True when beam times came from the scan duration, not the driver;
+    `mount` (schema version 3) is the raw scan's sensor pose on the robot: rays start there.
     """
 
     TYPE = "scan_deskewed"
@@ -127,6 +129,7 @@ class DeskewedScanMessage(Message):
         "dropped_count": INT,
         "no_return_points": array("<f8"),
         "odom_pose": optional(POSE),
+        "mount": POSE,
     }
     robot_id: str
     seq: int
@@ -138,11 +141,13 @@ class DeskewedScanMessage(Message):
     dropped_count: int
     no_return_points: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
     odom_pose: Pose2D | None = None
+    mount: Pose2D = IDENTITY
 
     def __post_init__(self) -> None:
         check_text("robot_id", self.robot_id)
         if self.odom_pose is not None:
             check_pose("odom_pose", self.odom_pose)
+        check_pose("mount", self.mount)
         object.__setattr__(self, "seq", check_count("seq", self.seq))
         object.__setattr__(self, "stamp_s", check_finite("stamp_s", self.stamp_s))
         points = check_array("points", self.points, np.float64, (None, 2))
