@@ -12,7 +12,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, model_validator
 from scanflow import keys
-from scanflow.geometry import Pose2D
+from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.scan import MAX_BEAMS, LaserScan, Odometry
 from scanflow.wire import MapMetaMessage, MatchResponse, PoseEstimateMessage
 
@@ -74,6 +74,9 @@ class ScanIn(BaseModel):
         None, max_length=MAX_BEAMS
     )
     frame_id: Annotated[str, Field(max_length=128)] = "laser"
+    mount: PoseIn | None = Field(
+        None, description="the lidar's pose on the robot (T_base_laser); omit: at its origin"
+    )
     seq: Seq | None = Field(None, description="omit to let the gateway number the scans")
 
     @model_validator(mode="after")
@@ -105,6 +108,7 @@ class ScanIn(BaseModel):
             frame_id=self.frame_id,
             intensities=self.intensities,
             seq=seq,
+            mount=self.mount.to_pose() if self.mount is not None else IDENTITY,
         )
 
 

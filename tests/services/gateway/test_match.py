@@ -51,6 +51,18 @@ def test_scan_to_scan_json(client, peer, auth):
     assert request.source.valid_count == 7
 
 
+def test_a_scans_mount_travels_with_it(client, peer, auth):
+    """The lidar's place on the robot reaches the matcher (omitted: the robot's origin)."""
+    seen: list[MatchRequest] = []
+    peer.answer(keys.scan_match(), echo_matcher(seen))
+    mounted = {**SCAN, "mount": {"x_m": 0.3, "y_m": -0.1, "theta_rad": 0.5}}
+    r = client.post("/api/v1/match", json={"source": mounted, "target": SCAN}, headers=auth)
+    assert r.status_code == 200, r.text
+    (request,) = seen
+    assert request.source.mount == Pose2D(0.3, -0.1, 0.5)
+    assert request.target.mount == Pose2D()
+
+
 def test_scan_to_map_goes_to_the_robots_matcher(client, peer, auth):
     seen: list[MatchRequest] = []
     peer.answer(keys.robot_match("r1"), echo_matcher(seen))
@@ -90,6 +102,7 @@ def test_match_needs_the_api_key(client, headers, status):
         ({"source": {**SCAN, "ranges_m": [1.0] * 1025}, "target": SCAN}, "ranges_m"),
         ({"source": {**SCAN, "angle_increment_rad": 5.0}, "target": SCAN}, "angle_increment_rad"),
         ({"source": SCAN, "target": SCAN, "initial_guess": {"x_m": 1e9}}, "x_m"),
+        ({"source": {**SCAN, "mount": {"theta_rad": "left"}}, "target": SCAN}, "mount"),
         ({"source": {**SCAN, "range_max_m": 0.05, "range_min_m": 0.1}, "target": SCAN},
          "range_max_m"),
     ],
