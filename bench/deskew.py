@@ -3,7 +3,8 @@
 `python -m bench.deskew [--json] [--repeats N]`. Accuracy: mean/max beam error against the
 simulator's undistorted ground truth, next to the uncompensated error. Speed: median and p90 wall
 time of one `deskew` call (odometry interpolation included) on fresh scans, plus CPU time (which a
-shared machine inflates less). `accuracy_run` is the hook to extend with the downstream match error.
+shared machine inflates less), and on the same scans with a mounted lidar (`MOUNT`).
+`accuracy_run` is the hook to extend with the downstream match error.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import json
 import math
 import time
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 from scanflow.deskew import ConstantVelocityModel, OdometryBuffer, PoseSource, deskew
@@ -22,6 +24,7 @@ from scanflow.sim import ConstantVelocityTrajectory, SimConfig, SimFrame, simula
 
 SPEED_MPS = 1.0
 YAW_RATE_RPS = math.pi  # 180 deg/s
+MOUNT = Pose2D(0.3, 0.1, 0.2)  # a lidar off the robot's origin: each beam's pose composed with it
 QUIET = {"range_noise_m": 0.0, "dropout_prob": 0.0, "odom_scale_error": 0.0, "odom_yaw_noise": 0.0}
 
 
@@ -130,11 +133,13 @@ def speed(beams: int, repeats: int) -> dict[str, dict[str, float]]:
         for sample in frame.odometry:
             buffer.add_odometry(sample)
     scans = [f.scan for f in frames[1:-1]]
-    for scan in scans:
+    mounted = [replace(s, mount=MOUNT) for s in scans]
+    for scan in scans + mounted:
         deskew(scan, buffer)  # compile, warm up, cache each scan's validity mask
     return {
         "deskew_only": _timings_us(scans, buffer, repeats, fresh=False),
         "with_scan_validity_mask": _timings_us(scans, buffer, repeats, fresh=True),
+        "deskew_only_mounted_lidar": _timings_us(mounted, buffer, repeats, fresh=False),
     }
 
 
