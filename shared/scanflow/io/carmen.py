@@ -19,6 +19,15 @@ and counted in `CarmenReader.skipped`):
   `pose` and `odom_pose` are None.
 - `ODOM x y theta tv rv accel ipc_ts host logger_ts` -> `Odometry` with velocity (tv, 0, rv).
 
+Mount (`LaserScan.mount`, the laser's pose on the robot; laser_pose = robot_pose * mount):
+- ROBOTLASER1: per record, `laser_pose` relative to `robot_pose` (beyond `MAX_MOUNT_OFFSET_M`
+  the line is malformed);
+- FLASER / RLASER / RAWLASER1: identity. The `robot_frontlaser_offset` / `robot_rearlaser_*`
+  PARAM lines are not applied: corrected logs store one pose for both laser and robot (the data
+  README), and on freiburg-079 (PARAM offset -0.04 m) the corrected poses fit the wheel
+  odometry no better with that offset than without. Declare a mount when it is known
+  (`dataclasses.replace(scan, mount=...)`, or `SCANFLOW_INGEST_MOUNT` for the services).
+
 Every record may also end with a single timestamp instead of `ipc_ts host logger_ts` (older
 loggers). Times: the logger timestamp is used as `stamp_s`; timestamps in real logs can be zero
 or out of order, so the order of lines, kept by this reader, is the order of events. Old-format
@@ -28,11 +37,11 @@ lasers carry no sweep timing, so `scan_duration_s` is 0 there.
 default) `range_max_m = min(50 m, detected sentinel, the record's own max range if it has one)`.
 50 m is what the logs' PARAM lines give as the laser's maximum range and lies below the
 81.8-81.9 m and 50-51.3 m sentinels seen in real logs; PARAM lines themselves are not trusted
-because their names and values disagree between CARMEN versions. A sentinel below 50 m (e.g.
-32.8 m, a SICK in millimetre mode) is detected from the first `SENTINEL_PRESCAN_RECORDS` laser
-records: the largest reading is a sentinel when the readings within 5 cm of it are many (>= 10)
-and at least three times as many as those in the metre below (real far returns thin out;
-a sentinel piles up). Pass `max_range_m` to impose a value and skip the detection.
+because their names and values disagree between CARMEN versions. A sentinel below 50 m
+(e.g. 32.8 m, a SICK in millimetre mode) is detected from the first `SENTINEL_PRESCAN_RECORDS`
+laser records: the largest reading is a sentinel when the readings within 5 cm of it are many
+(>= 10) and at least three times as many as those in the metre below (real far returns thin
+out; a sentinel piles up). Pass `max_range_m` to impose a value and skip the detection.
 
 Malformed lines never produce a scan: with `strict=True` they raise `CarmenFormatError` naming
 file and line; otherwise they are skipped, recorded in `CarmenReader.errors` and passed to
@@ -53,7 +62,7 @@ from typing import IO
 import numpy as np
 from numpy.typing import NDArray
 
-from scanflow.geometry import Pose2D
+from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.scan import LaserScan, Odometry, ScanError
 
 DEFAULT_MAX_RANGE_M = 50.0
@@ -63,6 +72,7 @@ SENTINEL_MIN_COUNT = 10
 SENTINEL_PEAK_RATIO = 3.0
 MAX_RECORDED_ERRORS = 1000
 MAX_READINGS = 100_000
+MAX_MOUNT_OFFSET_M = 5.0  # a laser farther than this from the robot's origin is a broken record
 
 OLD_LASER_TYPES = ("FLASER", "RLASER")
 NEW_LASER_TYPES = ("ROBOTLASER1", "RAWLASER1")
@@ -96,7 +106,8 @@ class CarmenLineError:
 class CarmenLaser:
     """A laser record: the scan, the stored laser pose and the stored odometry pose.
 
-    Both poses are None for RAWLASER1, which carries no pose.
+    Both poses are as the record stores them (None for RAWLASER1, which carries no pose); the
+    laser's pose on the robot is `scan.mount` (module docstring).
     """
 
     scan: LaserScan
@@ -209,6 +220,18 @@ class _Laser:
     pose: Pose2D | None
     odom_pose: Pose2D | None
     stamp_s: float
+    mount: Pose2D = IDENTITY
+
+
+def _mount(laser_pose: Pose2D, robot_pose: Pose2D) -> Pose2D:
+    """The laser's pose on the robot from a record's laser and robot poses (same frame)."""
+    mount = laser_pose.relative_to(robot_pose)
+    if mount.translation_norm() > MAX_MOUNT_OFFSET_M:
+        raise _LineError(
+            f"laser_pose is {mount.translation_norm():.3g} m from robot_pose, more than "
+            f"{MAX_MOUNT_OFFSET_M} m: not a laser mount"
+        )
+    return mount
 
 
 def _parse_old_laser(parts: list[str]) -> _Laser:
@@ -247,10 +270,12 @@ def _parse_new_laser(parts: list[str]) -> _Laser:
         raise _LineError(f"num_remissions must be 0 or n={n}, got {m}")
     rest = parts[10 + n + m :]
     pose = odom_pose = None
+    mount = IDENTITY
     if kind == "ROBOTLASER1":
         if len(rest) not in (12, 14):
             raise _LineError(f"expected {n + m + 24} tokens for n={n}, got {len(parts)}")
         pose, odom_pose = _pose(rest[0:3], "laser_pose"), _pose(rest[3:6], "robot_pose")
+        mount = _mount(pose, odom_pose)
         for token, field in zip(
             rest[6:11], ("tv", "rv", "forward_safety", "side_safety", "turn"), strict=True
         ):
@@ -258,7 +283,7 @@ def _parse_new_laser(parts: list[str]) -> _Laser:
         rest = rest[11:]
     return _Laser(
         ranges, start, step, max_range if max_range > 0 else math.inf,
-        remissions if m else None, pose, odom_pose, _stamp(rest),
+        remissions if m else None, pose, odom_pose, _stamp(rest), mount,
     )  # fmt: skip
 
 
@@ -366,6 +391,7 @@ class CarmenReader:
             frame_id=FRAME_IDS[kind],
             intensities=parsed.intensities,
             seq=seq,
+            mount=parsed.mount,
         )
         return CarmenLaser(scan, parsed.pose, parsed.odom_pose, line_no, kind)
 
@@ -407,14 +433,17 @@ class Keyframe:
 def load_keyframes(
     path: str | Path, robot_id: str = "robot", *, max_range_m: float | None = None
 ) -> list[Keyframe]:
-    """Front-laser records with poses, plus odometry chained from the raw wheel increments.
+    """Front-laser records with the robot's poses, plus odometry chained from the raw increments.
 
+    Both poses are the robot's (the frame every module works in), not the laser's: `true_pose`
+    is the record's stored laser pose moved back through the mount, `pose * inverse(mount)`.
     Corrected logs re-anchor the ODOM stream at every laser record, so the raw motion from
     record i to i+1 is `inverse(odom_pose_i) * (last ODOM before record i+1)` (the record's
     stored odom pose is the anchor; in corrected logs it equals the corrected pose, in raw logs
-    it is the odometry at the record). Chaining these increments from the first record's odom
-    pose gives the trajectory. When no ODOM lies between two records, the increment is the
-    difference of their stored odom poses. Rear lasers and RAWLASER1 (no pose) are left out.
+    it is the odometry at the record). These are wheel, so robot, motions; chaining them from
+    the first keyframe's `true_pose` gives the trajectory. When no ODOM lies between two
+    records, the increment is the difference of their stored odom poses. Rear lasers and
+    RAWLASER1 (no pose) are left out.
     """
     frames: list[Keyframe] = []
     prev_anchor: Pose2D | None = None
@@ -425,11 +454,12 @@ def load_keyframes(
             continue
         if rec.pose is None or rec.odom_pose is None or rec.record_type == "RLASER":
             continue
+        true_pose = rec.pose * rec.scan.mount.inverse()
         if prev_anchor is None:
-            odom = rec.odom_pose
+            odom = true_pose
         else:
             end = last_odom if last_odom is not None else rec.odom_pose
             odom = frames[-1].odom_pose * end.relative_to(prev_anchor)
-        frames.append(Keyframe(rec.scan, rec.pose, odom))
+        frames.append(Keyframe(rec.scan, true_pose, odom))
         prev_anchor, last_odom = rec.odom_pose, None
     return frames

@@ -12,6 +12,23 @@ By default (`topics=None`) all LaserScan and Odometry topics are read, and the t
 when the bag has no Odometry topic (so odometry is never counted twice).
 
 Frame names match with a leading "/" and a namespace ignored ("/robot1/odom" is "odom").
+
+Sensor mount (`LaserScan.mount`): the transform base_frame -> the scan's frame_id, composed
+through intermediate frames (base_link -> base_laser_link -> laser) and projected to the plane
+(x, y, yaw). Before streaming, a pre-pass reads every message on the `tf_static` topic(s) (few,
+latched, and may be recorded after the first scans; a later transform of a child frame replaces
+an earlier one), then, only when a scan topic's frame (that of its first message) is not yet
+placed, the `tf` topic(s) until it is: ROS 1 static_transform_publisher sends fixed transforms
+there. A child frame's first transform on `tf` is taken as fixed, and never overrides
+`tf_static`. Mounts do not depend on `topics` or on odometry; one tree serves the whole bag.
+The chain is walked up by tf2 names (leading "/" ignored) to the first frame whose bare name is
+`base_frame`. No chain to the base frame (or the scan frame is the base frame) -> identity.
+A scan is placed when its plane is level (within `MAX_TILT_RAD` of the base's plane; the small
+tilt is dropped) or upside down (rolled or pitched by pi), which is handled exactly by mirroring
+the scan: its angles are negated (`angle_increment_rad` < 0), so beams keep their order and
+times. Any other tilt has no 2D mount: such scans are skipped and recorded as errors naming the
+frame.
+
 The robot id is `robot_id` when given, else the first segment of a namespaced topic
 ("/robot1/scan" -> "robot1"), else "robot". Messages that make an invalid scan (e.g.
 range_max below range_min) are skipped and recorded in `BagReader.errors` (or raise
@@ -22,22 +39,27 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator, Sequence
+from contextlib import suppress
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.interfaces import Connection
 from rosbags.typesys import Stores, get_typestore
 
-from scanflow.geometry import Pose2D
+from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.scan import LaserScan, Odometry, ScanError
 
 SCAN_TYPE = "sensor_msgs/msg/LaserScan"
 ODOM_TYPE = "nav_msgs/msg/Odometry"
 TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")
 MAX_RECORDED_ERRORS = 1000
+STATIC_TF_TOPIC, TF_TOPIC = "tf_static", "tf"  # last segment of the tf topics' names
+DEFAULT_FRAME_ID = "laser"  # for scans with an empty header.frame_id
+MAX_TILT_RAD = math.radians(2.0)  # a projection error below 1 - cos(2 deg) = 0.06 %
 
 
 class BagFormatError(ValueError):
@@ -76,29 +98,118 @@ def _bare_frame(frame_id: str) -> str:
     return frame_id.rsplit("/", 1)[-1]
 
 
+def _tf_frame(frame_id: str) -> str:
+    """A frame name as tf2 compares them: without a leading "/"."""
+    return frame_id.lstrip("/")
+
+
+def transform_matrix(tf: Any) -> NDArray[np.float64]:
+    """geometry_msgs/Transform -> 4x4 homogeneous matrix (quaternion normalised)."""
+    q = np.array([tf.rotation.w, tf.rotation.x, tf.rotation.y, tf.rotation.z], dtype=np.float64)
+    t = np.array([tf.translation.x, tf.translation.y, tf.translation.z], dtype=np.float64)
+    norm = float(np.linalg.norm(q))
+    if not (np.all(np.isfinite(t)) and math.isfinite(norm) and norm > 0.0):
+        raise ValueError(f"transform is not finite or its quaternion is zero: {tf}")
+    w, x, y, z = q / norm
+    m = np.eye(4)
+    m[:3, :3] = (
+        (1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)),
+        (2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)),
+        (2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)),
+    )
+    m[:3, 3] = t
+    return m
+
+
+@dataclass(frozen=True)
+class Mount:
+    """A scan frame's place on the robot in 2D: its planar pose, and whether it is upside down."""
+
+    pose: Pose2D = IDENTITY
+    mirrored: bool = False
+
+
+def planar_mount(matrix: NDArray[np.float64], frame: str) -> Mount:
+    """The 2D mount of a 4x4 T_base_frame; ValueError naming `frame` if its plane is tilted.
+
+    Upside down, R = Rz(yaw) * diag(1, -1, -1): the scan is the mirrored one, turned by yaw.
+    Either way yaw is the heading of the sensor's x axis.
+    """
+    r = matrix[:3, :3]
+    level = math.cos(MAX_TILT_RAD)
+    if abs(r[2, 2]) < level:
+        tilt = math.degrees(math.acos(min(1.0, abs(r[2, 2]))))
+        raise ValueError(
+            f"scan frame {frame!r} is tilted {tilt:.1f} deg from the base frame's plane "
+            f"(more than {math.degrees(MAX_TILT_RAD):.1f} deg): no 2D mount represents it"
+        )
+    yaw = math.atan2(r[1, 0], r[0, 0])
+    return Mount(Pose2D(matrix[0, 3], matrix[1, 3], yaw), mirrored=bool(r[2, 2] < 0))
+
+
+class TransformTree:
+    """Fixed transforms parent -> child from tf messages, and the mounts they give scan frames."""
+
+    def __init__(self, base_frame: str) -> None:
+        self.base_frame = base_frame
+        self._links: dict[str, tuple[str, NDArray[np.float64]]] = {}
+
+    def add(self, msg: Any, *, override: bool) -> None:
+        """Take a TFMessage's transforms (all or, on a ValueError, none); `override` lets them
+        replace known child frames."""
+        links = {
+            _tf_frame(tf.child_frame_id): (
+                _tf_frame(tf.header.frame_id),
+                transform_matrix(tf.transform),
+            )
+            for tf in msg.transforms
+        }
+        for child, link in links.items():
+            if override or child not in self._links:
+                self._links[child] = link
+
+    def chain(self, frame_id: str) -> NDArray[np.float64] | None:
+        """T_base_frame (4x4) composed up the tree, or None when no chain reaches the base."""
+        frame, matrix, seen = _tf_frame(frame_id), np.eye(4), set()
+        while _bare_frame(frame) != self.base_frame:
+            if frame in seen or frame not in self._links:
+                return None
+            seen.add(frame)
+            frame, link = self._links[frame]
+            matrix = link @ matrix
+        return matrix
+
+    def mount(self, frame_id: str) -> Mount:
+        """The scan frame's 2D mount: identity without a chain; ValueError when it is tilted."""
+        matrix = self.chain(frame_id)
+        return Mount() if matrix is None else planar_mount(matrix, frame_id)
+
+
 def _topic_robot(topic: str) -> str:
     segments = [s for s in topic.split("/") if s]
     return segments[0] if len(segments) > 1 else "robot"
 
 
-def scan_from_msg(msg: Any, robot_id: str, seq: int) -> LaserScan:
+def scan_from_msg(msg: Any, robot_id: str, seq: int, mount: Mount = Mount()) -> LaserScan:
     """sensor_msgs/LaserScan -> LaserScan (see the module docstring for the field mapping)."""
     ranges = np.asarray(msg.ranges, dtype=np.float32)
     intensities = np.asarray(msg.intensities, dtype=np.float32)
     offsets = np.arange(ranges.size) * msg.time_increment if msg.time_increment > 0 else None
+    sign = -1.0 if mount.mirrored else 1.0
     return LaserScan(
         ranges_m=ranges,
-        angle_min_rad=msg.angle_min,
-        angle_increment_rad=msg.angle_increment,
+        angle_min_rad=sign * msg.angle_min,
+        angle_increment_rad=sign * msg.angle_increment,
         range_min_m=max(0.0, float(msg.range_min)),
         range_max_m=msg.range_max,
         stamp_s=stamp_to_s(msg.header.stamp),
         scan_duration_s=max(0.0, float(msg.scan_time)),
         beam_time_offsets_s=offsets,
         robot_id=robot_id,
-        frame_id=msg.header.frame_id or "laser",
+        frame_id=msg.header.frame_id or DEFAULT_FRAME_ID,
         intensities=intensities if intensities.size == ranges.size else None,
         seq=seq,
+        mount=mount.pose,
     )
 
 
@@ -152,6 +263,8 @@ class BagReader:
             raise BagFormatError(f"cannot open bag {self.path}: {exc}") from exc
         try:
             connections = self._selected(reader.connections)
+            tree = self._transform_tree(reader, connections)
+            mounts: dict[str, Mount] = {}
             counts = {SCAN_TYPE: 0, ODOM_TYPE: 0}
             for conn, time_ns, raw in reader.messages(connections=connections):
                 robot = self.robot_id or _topic_robot(conn.topic)
@@ -159,7 +272,10 @@ class BagReader:
                 try:
                     msg = reader.deserialize(raw, conn.msgtype)
                     if conn.msgtype == SCAN_TYPE:
-                        scan = scan_from_msg(msg, robot, counts[SCAN_TYPE])
+                        frame = msg.header.frame_id or DEFAULT_FRAME_ID
+                        if frame not in mounts:  # a tilted frame raises, uncached, every time
+                            mounts[frame] = tree.mount(frame)
+                        scan = scan_from_msg(msg, robot, counts[SCAN_TYPE], mounts[frame])
                         yield BagScan(scan, conn.topic, bag_time_s)
                         counts[SCAN_TYPE] += 1
                     elif conn.msgtype == ODOM_TYPE:
@@ -174,6 +290,44 @@ class BagReader:
                     self._report(f"{conn.topic} @ {bag_time_s:.9f} s: {exc}")
         finally:
             reader.close()
+
+    def _transform_tree(
+        self, reader: AnyReader, connections: Sequence[Connection]
+    ) -> TransformTree:
+        """The mounts' pre-pass (module docstring): tf_static, then tf until scans are placed."""
+        tree = TransformTree(self.base_frame)
+        tf_conns = [c for c in reader.connections if c.msgtype in TF_TYPES]
+        static = [c for c in tf_conns if c.topic.rsplit("/", 1)[-1] == STATIC_TF_TOPIC]
+        dynamic = [c for c in tf_conns if c.topic.rsplit("/", 1)[-1] == TF_TOPIC]
+        if static:  # an empty selection would read every message
+            for conn, time_ns, raw in reader.messages(connections=static):
+                self._add_transforms(reader, tree, conn, time_ns, raw, override=True)
+        frames = _first_scan_frames(reader, connections)
+
+        def placed() -> bool:
+            return all(tree.chain(frame) is not None for frame in frames)
+
+        if dynamic and not placed():
+            for conn, time_ns, raw in reader.messages(connections=dynamic):
+                self._add_transforms(reader, tree, conn, time_ns, raw, override=False)
+                if placed():
+                    break
+        return tree
+
+    def _add_transforms(
+        self,
+        reader: AnyReader,
+        tree: TransformTree,
+        conn: Connection,
+        time_ns: int,
+        raw: bytes,
+        *,
+        override: bool,
+    ) -> None:
+        try:
+            tree.add(reader.deserialize(raw, conn.msgtype), override=override)
+        except ValueError as exc:
+            self._report(f"{conn.topic} @ {time_ns * 1e-9:.9f} s: {exc}")
 
     def _tf_odometry(self, msg: Any, robot_id: str, seq: int) -> Iterator[Odometry]:
         for tf in msg.transforms:
@@ -191,6 +345,19 @@ class BagReader:
         self.error_count += 1
         if len(self.errors) < MAX_RECORDED_ERRORS:
             self.errors.append(reason)
+
+
+def _first_scan_frames(reader: AnyReader, connections: Sequence[Connection]) -> set[str]:
+    """The frame of each scan topic's first message: the frames the pre-pass must place."""
+    frames = set()
+    for conn in connections:
+        if conn.msgtype != SCAN_TYPE:
+            continue
+        for _, _, raw in reader.messages(connections=[conn]):
+            with suppress(ValueError):  # the main pass reports a broken message
+                frames.add(reader.deserialize(raw, SCAN_TYPE).header.frame_id or DEFAULT_FRAME_ID)
+            break
+    return frames
 
 
 def read_bag(path: str | Path, **options: Any) -> Iterator[BagScan | BagOdom]:

@@ -9,8 +9,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scanflow.geometry import Pose2D
+from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.io.carmen import (
+    MAX_MOUNT_OFFSET_M,
     CarmenFormatError,
     CarmenLaser,
     CarmenOdom,
@@ -267,6 +268,9 @@ def _random_pose(rng: np.random.Generator, step: float) -> Pose2D:
     return Pose2D(*rng.uniform(-step, step, 2), rng.uniform(-0.5, 0.5))
 
 
+MOUNT = Pose2D(0.3, -0.1, 0.2)
+
+
 def test_keyframe_odometry_chains_the_raw_increments(tmp_path: Path) -> None:
     """A log written the way corrected logs are: the ODOM stream re-anchored at every record."""
     rng = np.random.default_rng(11)
@@ -286,6 +290,7 @@ def test_keyframe_odometry_chains_the_raw_increments(tmp_path: Path) -> None:
             lines.append(odom_line(corrected * sample.relative_to(raw[i]), stamp=i + 0.5))
     frames = load_keyframes(write_log(tmp_path, lines))
     assert [f.true_pose for f in frames] == true
+    assert {f.scan.mount for f in frames} == {IDENTITY}
     for a, b, ra, rb in zip(frames, frames[1:], raw, raw[1:], strict=False):
         got = b.odom_pose.relative_to(a.odom_pose).to_array()
         np.testing.assert_allclose(got, rb.relative_to(ra).to_array(), atol=1e-9)
@@ -314,3 +319,62 @@ def test_keyframes_of_a_real_log_follow_the_ground_truth(real_log) -> None:
     # Odometry drifts, but step by step it agrees with the corrected poses to decimetres.
     assert np.median([e.translation_norm() for e in errors]) < 0.15
     assert np.median([abs(e.theta) for e in errors]) < 0.1
+
+
+# Sensor mounts: per record for ROBOTLASER1; FLASER / RLASER carry none (PARAM not applied).
+
+
+def robotlaser_at(laser: Pose2D, robot: Pose2D, stamp: float = 3.0) -> str:
+    return (
+        f"ROBOTLASER1 0 -1.5 3.0 0.5 30.0 0.01 0 3 1.0 2.0 3.0 0 {_pose_tokens(laser)} "
+        f"{_pose_tokens(robot)} 0.5 0.1 0.2 0.3 0.0 {stamp!r} host {stamp!r}"
+    )
+
+
+def test_robotlaser1_mount_is_the_laser_pose_relative_to_the_robot(tmp_path: Path) -> None:
+    robot = Pose2D(3.0, -1.0, 2.0)
+    laser = robot * MOUNT
+    (rec,) = list(read_carmen(write_log(tmp_path, [robotlaser_at(laser, robot)])))
+    np.testing.assert_allclose(rec.scan.mount.to_array(), MOUNT.to_array(), atol=1e-12)
+    assert rec.pose == laser and rec.odom_pose == robot  # stored poses unchanged
+    (frame,) = load_keyframes(write_log(tmp_path, [robotlaser_at(laser, robot)]))
+    np.testing.assert_allclose(frame.true_pose.to_array(), robot.to_array(), atol=1e-12)
+
+
+def test_robotlaser1_mount_beyond_the_limit_is_malformed(tmp_path: Path) -> None:
+    robot = Pose2D(1.0, 1.0, 0.5)
+    far = robotlaser_at(robot * Pose2D(MAX_MOUNT_OFFSET_M + 0.5, 0.0, 0.0), robot)
+    reader = CarmenReader(write_log(tmp_path, [far, robotlaser_at(robot, robot)]))
+    (rec,) = list(reader)
+    assert rec.line_no == 2 and rec.scan.mount.translation_norm() < 1e-12
+    assert [e.line_no for e in reader.errors] == [1] and "laser_pose" in reader.errors[0].reason
+    with pytest.raises(CarmenFormatError, match=r"test\.log:1: .*laser_pose"):
+        list(read_carmen(write_log(tmp_path, [far]), strict=True))
+
+
+def test_flaser_and_rlaser_ignore_the_param_offsets(tmp_path: Path) -> None:
+    """PARAM laser offsets are not applied (module docstring): the mount stays identity."""
+    scan = flaser([1.0] * 180, Pose2D())
+    lines = [
+        "PARAM robot_frontlaser_offset 0.3 nohost 0",
+        "PARAM robot_rearlaser_angular_offset 3.14159 nohost 0",
+        scan,
+        scan.replace("FLASER", "RLASER", 1),
+    ]
+    reader = CarmenReader(write_log(tmp_path, lines))
+    assert [r.scan.mount for r in reader] == [IDENTITY, IDENTITY]
+    assert reader.error_count == 0 and reader.skipped["PARAM"] == 2
+
+
+@pytest.mark.parametrize(
+    "name", ["aces-corrected.log.gz", "intel-corrected.log.gz", "freiburg-079-corrected.log.gz"]
+)
+def test_real_logs_are_at_the_origin_and_keyframes_keep_the_stored_poses(real_log, name) -> None:
+    """FLASER logs carry no mount (freiburg-079's PARAM offset is not applied): the keyframes
+    are the stored poses, bit for bit."""
+    path = real_log(name)
+    stored = [r.pose for r in read_carmen(path) if isinstance(r, CarmenLaser)]
+    frames = load_keyframes(path)
+    assert {f.scan.mount for f in frames} == {IDENTITY}
+    assert [f.true_pose for f in frames] == stored
+    assert frames[0].odom_pose == stored[0]

@@ -2,22 +2,62 @@
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Callable
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-from scanflow.geometry import Pose2D
+from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.io.detect import detect_format, open_log, record_payload
-from scanflow.io.rosbag import BagFormatError, BagOdom, BagScan, read_bag
+from scanflow.io.rosbag import (
+    MAX_TILT_RAD,
+    BagFormatError,
+    BagOdom,
+    BagReader,
+    BagScan,
+    TransformTree,
+    read_bag,
+)
 
 SCAN, ODOM, TF = "sensor_msgs/msg/LaserScan", "nav_msgs/msg/Odometry", "tf2_msgs/msg/TFMessage"
 N_BEAMS = 8
+Vec3 = tuple[float, float, float]
+Link = tuple[str, str, Vec3, Vec3]  # parent, child, translation, (roll, pitch, yaw)
+
+
+def quaternion_xyzw(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
+    """The quaternion of Rz(yaw) * Ry(pitch) * Rx(roll) (the ROS RPY convention)."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return (
+        sr * cp * cy - cr * sp * sy,
+        cr * sp * cy + sr * cp * sy,
+        cr * cp * sy - sr * sp * cy,
+        cr * cp * cy + sr * sp * sy,
+    )
+
+
+def rpy_matrix(xyz: Vec3, rpy: Vec3) -> np.ndarray:
+    """4x4 transform from elementary rotations, independent of any quaternion code."""
+    (cr, sr), (cp, sp), (cy, sy) = ((math.cos(a), math.sin(a)) for a in rpy)
+    rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+    rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+    m = np.eye(4)
+    m[:3, :3] = rz @ ry @ rx
+    m[:3, 3] = xyz
+    return m
 
 
 class MessageFactory:
@@ -38,9 +78,11 @@ class MessageFactory:
         extra = {"seq": 0} if self.ros1 else {}
         return self._t("std_msgs/msg/Header")(stamp=stamp, frame_id=frame_id, **extra)
 
-    def scan(self, stamp_s: float, ranges: np.ndarray, time_increment: float) -> Any:
+    def scan(
+        self, stamp_s: float, ranges: np.ndarray, time_increment: float, frame: str = "base_laser"
+    ) -> Any:
         return self._t(SCAN)(
-            header=self.header(stamp_s, "base_laser"),
+            header=self.header(stamp_s, frame),
             angle_min=-1.5,
             angle_max=1.5,
             angle_increment=3.0 / (N_BEAMS - 1),
@@ -55,6 +97,24 @@ class MessageFactory:
     def _quat(self, yaw: float) -> Any:
         q = self._t("geometry_msgs/msg/Quaternion")
         return q(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))
+
+    def static_tf(self, stamp_s: float, links: list[Link]) -> Any:
+        """A TFMessage with 3D transforms (parent, child, xyz, roll-pitch-yaw)."""
+        stamped = self._t("geometry_msgs/msg/TransformStamped")
+        transforms = [
+            stamped(
+                header=self.header(stamp_s, parent),
+                child_frame_id=child,
+                transform=self._t("geometry_msgs/msg/Transform")(
+                    translation=self._vec("geometry_msgs/msg/Vector3", *xyz),
+                    rotation=self._t("geometry_msgs/msg/Quaternion")(
+                        **dict(zip("xyzw", quaternion_xyzw(*rpy), strict=True))
+                    ),
+                ),
+            )
+            for parent, child, xyz, rpy in links
+        ]
+        return self._t(TF)(transforms=transforms)
 
     def _vec(self, name: str, x: float, y: float, z: float) -> Any:
         return self._t(name)(x=x, y=y, z=z)
@@ -228,3 +288,236 @@ def test_broken_bag_raises_a_format_error(tmp_path: Path) -> None:
     path.write_bytes(b"#ROSBAG V2.0\n" + b"\x00" * 64)
     with pytest.raises(BagFormatError, match=r"broken\.bag"):
         list(read_bag(path))
+
+
+# Sensor mounts from tf: bags written with a /tf_static (or /tf) chain down to the scan frame.
+
+Build = Callable[[MessageFactory], Any]
+BAG_KINDS = ["ros1", "ros2-sqlite3", "ros2-mcap"]
+
+
+def write_records(tmp_path: Path, kind: str, records: list[tuple[str, str, float, Build]]) -> Path:
+    """A bag of one kind holding (topic, type, bag time, message builder) records."""
+    tmp_path.mkdir(parents=True, exist_ok=True)
+    if kind == "ros1":
+        store = get_typestore(Stores.ROS1_NOETIC)
+        store.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", TF))
+        writer: Any = Writer1(tmp_path / "mount.bag")
+        serialize = store.serialize_ros1
+    else:
+        store = get_typestore(Stores.ROS2_HUMBLE)
+        plugin = StoragePlugin.MCAP if kind.endswith("mcap") else StoragePlugin.SQLITE3
+        writer = Writer2(tmp_path / "mount_bag", version=9, storage_plugin=plugin)
+        serialize = store.serialize_cdr
+    factory = MessageFactory(store)
+    with writer:
+        conns: dict[str, Any] = {}
+        for topic, msgtype, stamp, build in records:
+            if topic not in conns:
+                conns[topic] = writer.add_connection(topic, msgtype, typestore=store)
+            writer.write(conns[topic], int(stamp * 1e9), serialize(build(factory), msgtype))
+    return writer.path
+
+
+def scans_and_odometry(frame: str = "laser") -> list[tuple[str, str, float, Build]]:
+    """Three scans in `frame` at 100.0, 100.1, 100.2 s and an odom -> base_link tf after each."""
+    out: list[tuple[str, str, float, Build]] = []
+    for i in range(3):
+        t = 100.0 + 0.1 * i
+        ranges = np.linspace(1.0, 4.0, N_BEAMS) + i
+        out.append(("/scan", SCAN, t, lambda f, t=t, r=ranges: f.scan(t, r, 0.001, frame)))
+        pose = Pose2D(0.1 * i, 0.0, 0.05 * i)
+        out.append(("/tf", TF, t + 0.01, lambda f, t=t, p=pose: f.tf(t, p, "odom", "base_link")))
+    return out
+
+
+def static_tf(stamp: float, links: list[Link], topic: str = "/tf_static") -> tuple:
+    return (topic, TF, stamp, lambda f: f.static_tf(stamp, links))
+
+
+def read_scans(path: Path, **options: Any) -> tuple[list[BagScan], BagReader]:
+    reader = BagReader(path, **options)
+    return [r for r in reader if isinstance(r, BagScan)], reader
+
+
+def base_points(scan_angles: np.ndarray, ranges: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+    """Beam endpoints in the sensor plane moved into the base frame in 3D, seen from above."""
+    sensor = np.column_stack((ranges * np.cos(scan_angles), ranges * np.sin(scan_angles)))
+    homogeneous = np.column_stack((sensor, np.zeros(len(sensor)), np.ones(len(sensor))))
+    return (homogeneous @ matrix.T)[:, :2]
+
+
+CHAIN: list[Link] = [
+    ("/base_link", "base_laser_link", (0.2, 0.05, 0.3), (0.0, 0.0, 0.3)),
+    ("base_laser_link", "laser", (0.1, -0.02, 0.05), (0.0, 0.0, -0.5)),
+]
+
+
+@pytest.mark.parametrize("kind", BAG_KINDS)
+def test_mount_is_the_static_chain_even_when_recorded_after_scans(
+    tmp_path: Path, kind: str
+) -> None:
+    # Each link in its own /tf_static message, both after the first scan in bag time.
+    records = [*scans_and_odometry(), static_tf(100.05, CHAIN[:1]), static_tf(100.15, CHAIN[1:])]
+    path = write_records(tmp_path, kind, sorted(records, key=lambda r: r[2]))
+    scans, reader = read_scans(path)
+    expected = Pose2D(0.2, 0.05, 0.3) * Pose2D(0.1, -0.02, -0.5)
+    assert len(scans) == 3 and reader.error_count == 0
+    for rec in scans:
+        np.testing.assert_allclose(rec.scan.mount.to_array(), expected.to_array(), atol=1e-12)
+        assert rec.scan.angle_increment_rad > 0
+    odoms = [r for r in read_bag(path) if isinstance(r, BagOdom)]
+    assert len(odoms) == 3  # odom -> base_link on /tf is still the odometry
+
+
+def test_no_transform_to_the_scan_frame_gives_identity(bag: Path) -> None:
+    # The shared sample bags hold only odom -> base_link and map -> odom.
+    assert all(r.scan.mount == IDENTITY for r in read_bag(bag) if isinstance(r, BagScan))
+
+
+def test_scan_in_the_base_frame_gives_identity(tmp_path: Path) -> None:
+    records = [*scans_and_odometry("base_link"), static_tf(99.0, CHAIN)]
+    scans, _ = read_scans(write_records(tmp_path, "ros2-sqlite3", records))
+    assert [r.scan.mount for r in scans] == [IDENTITY] * 3
+
+
+def test_namespaced_chain_stops_at_the_bare_base_frame(tmp_path: Path) -> None:
+    links: list[Link] = [
+        ("robot1/base_link", "robot1/laser", (0.3, 0.0, 0.1), (0.0, 0.0, 0.2)),
+        ("robot2/base_link", "robot2/laser", (-0.3, 0.0, 0.1), (0.0, 0.0, 0.0)),
+    ]
+    records = [*scans_and_odometry("/robot1/laser"), static_tf(99.0, links)]
+    scans, _ = read_scans(write_records(tmp_path, "ros2-mcap", records))
+    assert {r.scan.mount for r in scans} == {Pose2D(0.3, 0.0, 0.2)}
+
+
+@pytest.mark.parametrize("kind", ["ros1", "ros2-sqlite3"])
+def test_fixed_transform_on_tf_first_one_wins_and_tf_static_overrides(
+    tmp_path: Path, kind: str
+) -> None:
+    """ROS 1 static_transform_publisher sends base_link -> laser on /tf, over and over."""
+    first = ("base_link", "laser", (0.25, 0.0, 0.2), (0.0, 0.0, 0.1))
+    later = ("base_link", "laser", (0.5, 0.5, 0.2), (0.0, 0.0, 1.0))
+    records = [
+        *scans_and_odometry(),
+        static_tf(100.02, [first], "/tf"),
+        static_tf(100.12, [later], "/tf"),
+    ]
+    ordered = sorted(records, key=lambda r: r[2])
+    scans, _ = read_scans(write_records(tmp_path / "a", kind, ordered))
+    assert {r.scan.mount for r in scans} == {Pose2D(0.25, 0.0, 0.1)}
+    static = ("base_link", "laser", (-0.1, 0.0, 0.2), (0.0, 0.0, math.pi / 2))
+    ordered = sorted([*records, static_tf(100.3, [static])], key=lambda r: r[2])
+    scans, _ = read_scans(write_records(tmp_path / "b", kind, ordered))
+    assert {r.scan.mount for r in scans} == {Pose2D(-0.1, 0.0, math.pi / 2)}
+
+
+@pytest.mark.parametrize(
+    ("xyz", "rpy", "mirrored"),
+    [
+        ((0.3, -0.1, 0.4), (0.0, 0.0, 0.7), False),
+        ((0.3, -0.1, 0.4), (0.01, -0.01, 0.7), False),  # within MAX_TILT_RAD: the plane's yaw
+        ((0.2, 0.1, 0.5), (math.pi, 0.0, 0.4), True),  # upside down: rolled
+        ((0.2, 0.1, 0.5), (0.0, math.pi, -2.0), True),  # upside down: pitched
+    ],
+)
+def test_mounted_beams_land_where_the_3d_transform_puts_them(
+    tmp_path: Path, xyz: Vec3, rpy: Vec3, mirrored: bool
+) -> None:
+    link = ("base_link", "laser", xyz, rpy)
+    records = [*scans_and_odometry(), static_tf(99.0, [link])]
+    scans, reader = read_scans(write_records(tmp_path, "ros2-sqlite3", records))
+    assert len(scans) == 3 and reader.error_count == 0
+    # As the factory writes them: float32 fields.
+    angles = -1.5 + np.arange(N_BEAMS) * float(np.float32(3.0 / (N_BEAMS - 1)))
+    tilt = (rpy[0] % math.pi) ** 2 + (rpy[1] % math.pi) ** 2  # 0 when level or upside down
+    for rec in scans:
+        scan = rec.scan
+        assert (scan.angle_increment_rad < 0) == mirrored
+        np.testing.assert_allclose(scan.time_offsets_s, np.arange(N_BEAMS) * 0.001, rtol=1e-6)
+        got = scan.mount.transform_points(scan.points())
+        want = base_points(angles, scan.ranges_m.astype(np.float64), rpy_matrix(xyz, rpy))
+        # Exact when level or flipped; a small tilt errs by second order: range * tilt^2.
+        np.testing.assert_allclose(got, want, atol=1e-9 + float(scan.ranges_m.max()) * tilt)
+
+
+def test_tilted_scan_frame_is_an_error_naming_it(tmp_path: Path) -> None:
+    link = ("base_link", "tilted_laser", (0.2, 0.0, 0.3), (0.0, MAX_TILT_RAD + 0.05, 0.0))
+    path = write_records(
+        tmp_path, "ros2-sqlite3", [*scans_and_odometry("tilted_laser"), static_tf(99.0, [link])]
+    )
+    scans, reader = read_scans(path)
+    assert scans == [] and reader.error_count == 3
+    assert all("'tilted_laser'" in e and "tilted" in e for e in reader.errors)
+    assert len([r for r in read_bag(path) if isinstance(r, BagOdom)]) == 3
+    with pytest.raises(BagFormatError, match="tilted_laser"):
+        list(read_bag(path, strict=True))
+
+
+def test_broken_static_transform_is_reported(tmp_path: Path) -> None:
+    def zero_quaternion(f: MessageFactory) -> Any:
+        msg = f.static_tf(99.0, CHAIN[:1])
+        rotation = msg.transforms[0].transform.rotation
+        rotation.x = rotation.y = rotation.z = rotation.w = 0.0
+        return msg
+
+    records = [*scans_and_odometry(), ("/tf_static", TF, 99.0, zero_quaternion)]
+    scans, reader = read_scans(write_records(tmp_path, "ros2-sqlite3", records))
+    assert len(scans) == 3 and reader.error_count == 1
+    assert "/tf_static" in reader.errors[0] and "quaternion" in reader.errors[0]
+
+
+def _tf_message(links: list[tuple[str, str, np.ndarray]]) -> Any:
+    """A duck-typed TFMessage (what TransformTree reads) from 4x4 matrices."""
+    transforms = []
+    for parent, child, m in links:
+        x, y, z, w = _matrix_quaternion(m[:3, :3])
+        transforms.append(
+            SimpleNamespace(
+                header=SimpleNamespace(frame_id=parent),
+                child_frame_id=child,
+                transform=SimpleNamespace(
+                    translation=SimpleNamespace(x=m[0, 3], y=m[1, 3], z=m[2, 3]),
+                    rotation=SimpleNamespace(x=x, y=y, z=z, w=w),
+                ),
+            )
+        )
+    return SimpleNamespace(transforms=transforms)
+
+
+def _matrix_quaternion(r: np.ndarray) -> tuple[float, float, float, float]:
+    """(x, y, z, w) of a rotation matrix, from the eigenvector of its 4x4 symmetric form."""
+    k = np.array(
+        [
+            [r[0, 0] - r[1, 1] - r[2, 2], r[1, 0] + r[0, 1], r[2, 0] + r[0, 2], r[2, 1] - r[1, 2]],
+            [r[1, 0] + r[0, 1], r[1, 1] - r[0, 0] - r[2, 2], r[2, 1] + r[1, 2], r[0, 2] - r[2, 0]],
+            [r[2, 0] + r[0, 2], r[2, 1] + r[1, 2], r[2, 2] - r[0, 0] - r[1, 1], r[1, 0] - r[0, 1]],
+            [r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1], r[0, 0] + r[1, 1] + r[2, 2]],
+        ]
+    )
+    _, vectors = np.linalg.eigh(k / 3.0)
+    return tuple(vectors[:, -1])
+
+
+LEVEL_OR_FLIPPED_LINK = st.tuples(
+    st.tuples(*[st.floats(-2.0, 2.0)] * 3),
+    st.sampled_from([(0.0, 0.0), (math.pi, 0.0), (0.0, math.pi)]),
+    st.floats(-math.pi, math.pi),
+)
+
+
+@given(st.lists(LEVEL_OR_FLIPPED_LINK, min_size=1, max_size=4))
+def test_any_level_or_flipped_chain_places_the_scan_plane_exactly(links: list) -> None:
+    """Composed through up to four links, each level or upside down, the mount (and mirroring)
+    puts points of the sensor's plane where the 3D chain does."""
+    frames = ["base_link"] + [f"f{i}" for i in range(len(links))]
+    matrices = [rpy_matrix(xyz, (*rp, yaw)) for xyz, rp, yaw in links]
+    tree = TransformTree("base_link")
+    tree.add(_tf_message(list(zip(frames[:-1], frames[1:], matrices, strict=True))), override=True)
+    mount = tree.mount(frames[-1])
+    chain = functools.reduce(np.matmul, matrices)
+    points = np.array([[1.0, 0.0], [0.0, 2.0], [-1.5, 0.5]])
+    sensor = points * [1.0, -1.0] if mount.mirrored else points
+    want = base_points(np.arctan2(points[:, 1], points[:, 0]), np.hypot(*points.T), chain)
+    np.testing.assert_allclose(mount.pose.transform_points(sensor), want, atol=1e-9)
+    assert mount.mirrored == (chain[2, 2] < 0)
