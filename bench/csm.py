@@ -90,7 +90,7 @@ def run(log: Path, pairs: int) -> dict[str, object]:
         a, b = frames[i], frames[i + 1]
         guess = b.odom_pose.relative_to(a.odom_pose)
         truth = b.true_pose.relative_to(a.true_pose)
-        src, tgt = b.scan.points(), a.scan.points()
+        src, tgt = b.scan.robot_points(), a.scan.robot_points()
         t_bnb, t_exh, same_search = search_times(src, tgt, guess)
         fast, tf = timed(match, src, tgt, guess, method="csm", **WINDOW)
         ref, te = timed(match, src, tgt, guess, method="csm_exhaustive", **WINDOW)

@@ -65,7 +65,7 @@ def accuracy_run(
             continue
         result = deskew(frame.scan, source)
         used.add(result.source_used)
-        raw.append(np.linalg.norm(frame.scan.points() - frame.true_points, axis=1))
+        raw.append(np.linalg.norm(frame.scan.robot_points() - frame.true_points, axis=1))
         fixed.append(np.linalg.norm(result.points - frame.true_points, axis=1))
     raw_m, fixed_m = np.concatenate(raw), np.concatenate(fixed)
     return {

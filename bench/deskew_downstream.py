@@ -38,7 +38,7 @@ def pair_errors(speed_mps: float, yaw_dps: float, duration_s: float, seed: int,
             stage.add_odometry(sample)
         odom_pose = stage.odometry_pose_at(frame.scan.stamp_s)
         current = {
-            "raw": frame.scan.points(),
+            "raw": frame.scan.robot_points(),
             "deskewed": stage.process(frame.scan).points,
             "truth": frame.true_pose,
             "odom": odom_pose,

@@ -100,7 +100,7 @@ def chained_icp(frames: list[Keyframe]) -> NDArray[np.float64]:
     for prev, cur in tqdm(itertools.pairwise(frames), total=len(frames) - 1, desc="icp chain",
                           file=sys.stderr, leave=False):
         guess = cur.odom_pose.relative_to(prev.odom_pose)
-        result = match(cur.scan.points(), prev.scan.points(), guess, method="icp")
+        result = match(cur.scan.robot_points(), prev.scan.robot_points(), guess, method="icp")
         poses.append(poses[-1] * (result.pose if result.ok else guess))
     return poses_array(poses)
 

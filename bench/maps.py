@@ -241,8 +241,8 @@ def view_refresh(
     views = ("field0", "pyramid", "maxpool", "ndt", "overlapping")
     samples_ms: dict[str, list[float]] = {view: [] for view in views}
     for i, frame in enumerate(frames):
-        pose = frame.true_pose
-        world.update(pose.transform_points(frame.scan.points()), (pose.x, pose.y))
+        pose, sensor = frame.true_pose, frame.true_pose * frame.scan.mount
+        world.update(pose.transform_points(frame.scan.robot_points()), (sensor.x, sensor.y))
         # Views read after every scan, as a front end would: each refresh covers one scan.
         field0_s = timed(lambda: world.likelihood_field(0))
         times = {

@@ -77,8 +77,8 @@ def keyframe_pairs(
 def pair_of(frames: list[Keyframe], i: int, j: int) -> Pair:
     """Source scan j against target scan i, with their true and odometry motions."""
     return Pair(
-        frames[j].scan.points(),
-        frames[i].scan.points(),
+        frames[j].scan.robot_points(),
+        frames[i].scan.robot_points(),
         frames[j].true_pose.relative_to(frames[i].true_pose),
         frames[j].odom_pose.relative_to(frames[i].odom_pose),
         i,

@@ -55,8 +55,8 @@ def real_pairs(log: Path, pairs: int) -> dict[str, object]:
         a, b = frames[i], frames[i + 1]
         jobs.append(
             (
-                b.scan.points(),
-                a.scan.points(),
+                b.scan.robot_points(),
+                a.scan.robot_points(),
                 b.odom_pose.relative_to(a.odom_pose),
                 b.true_pose.relative_to(a.true_pose),
             )
@@ -122,7 +122,7 @@ def ndt_on_map(log: Path, scans: int | None) -> dict[str, object]:
     kept, rebuilt = Runs(), Runs()
     differences = []
     for i, frame in enumerate(frames):
-        pose, source = frame.true_pose, frame.scan.points()
+        pose, source = frame.true_pose, frame.scan.robot_points()
         if i > 0:
             before = frames[i - 1]
             guess = before.true_pose * frame.odom_pose.relative_to(before.odom_pose)

@@ -180,6 +180,12 @@ class LaserScan:
             r, a = r[m], a[m]
         return np.column_stack((r * np.cos(a), r * np.sin(a)))
 
+    def robot_points(self) -> NDArray[np.float64]:
+        """Valid beam endpoints (N, 2) in the robot's frame (`mount` applied), not deskewed:
+        what matching and mapping see of a scan taken standing still."""
+        points = self.points()
+        return points if self.mount == IDENTITY else self.mount.transform_points(points)
+
     def with_ranges(self, ranges_m: ArrayLike) -> LaserScan:
         """A copy with other ranges (same layout and timing)."""
         return LaserScan(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -162,3 +163,13 @@ def test_ranges_are_held_contiguous_and_writable_whatever_comes_in() -> None:
         np.testing.assert_array_equal(ranges, incoming)
     fitting = np.full(8, 4.0, dtype=np.float32)
     assert make_scan(fitting).ranges_m is fitting
+
+
+def test_robot_points_apply_the_mount() -> None:
+    scan = LaserScan(np.array([1.0, np.nan, 2.0], np.float32), 0.0, math.pi / 2, range_max_m=10.0)
+    np.testing.assert_allclose(scan.robot_points(), scan.points())
+    mounted = dataclasses.replace(scan, mount=Pose2D(0.5, 0.0, math.pi / 2))
+    np.testing.assert_allclose(mounted.robot_points(), [[0.5, 1.0], [0.5, -2.0]], atol=1e-12)
+    assert mounted.with_ranges(mounted.ranges_m).mount == mounted.mount
+    with pytest.raises(ScanError, match="mount"):
+        LaserScan(np.ones(3, np.float32), 0.0, 0.1, mount=(0.5, 0.0, 0.0))

@@ -46,7 +46,7 @@ def simulate_command(
         if previous is not None:
             distance_m += frame.true_pose.relative_to(previous).translation_norm()
         previous = frame.true_pose
-        raw = frame.scan.points()
+        raw = frame.scan.robot_points()
         before_m.append(float(np.linalg.norm(raw - frame.true_points, axis=1).mean()))
         after_m.append(float(np.linalg.norm(result.points - frame.true_points, axis=1).mean()))
     summary = {

@@ -115,8 +115,7 @@ def as_points(data: LaserScan | ArrayLike, name: str) -> NDArray[np.float64]:
     numba compiles each array type apart, so one type here means no compile on a service's
     first real scan after its warm-up."""
     if isinstance(data, LaserScan):
-        points = data.points()
-        return points if data.mount == IDENTITY else data.mount.transform_points(points)
+        return data.robot_points()
     try:
         p = np.asarray(data, dtype=np.float64)
     except (TypeError, ValueError) as exc:
