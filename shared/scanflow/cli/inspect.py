@@ -17,6 +17,7 @@ from scanflow.io.detect import detect_format, open_log, record_payload
 from scanflow.scan import LaserScan, Odometry
 
 MAX_LISTED_ERRORS = 10
+MAX_LISTED_MOUNTS = 10  # distinct lidar mounts (x m, y m, yaw deg; mm / 0.01 deg) listed
 
 
 @dataclass
@@ -38,6 +39,7 @@ class LogSummary:
     no_return_m: set[float] = field(default_factory=set)
     scan_stamp_min_s: float = math.inf
     scan_stamp_max_s: float = -math.inf
+    mounts: set[tuple[float, float, float]] = field(default_factory=set)
 
     def add_scan(self, scan: LaserScan) -> None:
         self.scans += 1
@@ -58,6 +60,9 @@ class LogSummary:
             self.span_max_rad = max(self.span_max_rad, abs(last - first))
         self.scan_stamp_min_s = min(self.scan_stamp_min_s, scan.stamp_s)
         self.scan_stamp_max_s = max(self.scan_stamp_max_s, scan.stamp_s)
+        if len(self.mounts) < MAX_LISTED_MOUNTS:  # per-record mounts may differ by rounding
+            m = scan.mount
+            self.mounts.add((round(m.x, 3), round(m.y, 3), round(math.degrees(m.theta), 2)))
 
     def add_odometry(self, odom: Odometry) -> None:
         self.odometry += 1
@@ -86,6 +91,7 @@ class LogSummary:
                 "mean": round(self.valid_range_sum_m / valid_total, 6) if valid_total else None,
             },
             "no_return_at_m": sorted(_finite_or_none(v) for v in self.no_return_m if v < math.inf),
+            "lidar_mounts_m_m_deg": sorted(list(m) for m in self.mounts),
         }
 
 

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import math
 import os
 import subprocess
 import sys
@@ -13,6 +15,9 @@ import pytest
 from rosbags.rosbag2 import Writer
 from rosbags.typesys import Stores, get_typestore
 from scanflow.cli import _register, app
+from scanflow.cli.inspect import LogSummary
+from scanflow.geometry import Pose2D
+from scanflow.scan import LaserScan
 from typer.testing import CliRunner
 
 _register()
@@ -49,6 +54,15 @@ def test_json_on_the_aces_log() -> None:
     assert out["malformed"] == 0
     assert 0 < out["dropped_beam_fraction"] < 0.05
     assert out["range_m"]["max"] < 50.0 <= max(out["no_return_at_m"])
+    assert out["lidar_mounts_m_m_deg"] == [[0.0, 0.0, 0.0]]
+
+
+def test_the_lidar_mounts_are_listed() -> None:
+    summary = LogSummary()
+    scan = LaserScan(np.ones(4, np.float32), 0.0, 0.1, range_max_m=10.0)
+    for mount in (Pose2D(0.2, -0.05, math.radians(90.0)), Pose2D(0.2, -0.0500001, math.pi / 2)):
+        summary.add_scan(dataclasses.replace(scan, mount=mount))
+    assert summary.to_dict()["lidar_mounts_m_m_deg"] == [[0.2, -0.05, 90.0]]
 
 
 def test_text_output_on_the_aces_log() -> None:
