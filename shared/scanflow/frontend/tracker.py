@@ -100,20 +100,19 @@ def insert_scan(
     points_m: ArrayLike,
     pose: Pose2D,
     no_return_m: ArrayLike | None = None,
-    mount: Pose2D | None = None,
+    mount: Pose2D = IDENTITY,
 ) -> InsertResult:
     """Insert a scan's endpoints (robot frame) within the grid's max range of the sensor, and
     clear along its no-return beams (up to the grid's no_return_clear_m), the robot at `pose`
     (T_map_base) and the sensor at `mount` on it: the one insertion the front end and the map
     server both use."""
     points = as_points(points_m, "points_m")
-    sensor = mount if mount is not None else IDENTITY
-    reach = np.hypot(points[:, 0] - sensor.x, points[:, 1] - sensor.y)
+    reach = np.hypot(points[:, 0] - mount.x, points[:, 1] - mount.y)
     in_range = reach <= matching_map.grid.params.max_range_m
     misses = None
     if no_return_m is not None:
         misses = pose.transform_points(as_points(no_return_m, "no_return_m"))
-    origin = pose * sensor
+    origin = pose * mount
     return matching_map.update(
         pose.transform_points(points[in_range]), (origin.x, origin.y), no_return_endpoints=misses
     )
@@ -174,15 +173,13 @@ class Frontend:
         odom_pose: Pose2D | None = None,
         seq: int = 0,
         no_return_m: ArrayLike | None = None,
-        mount: Pose2D | None = None,
+        mount: Pose2D = IDENTITY,
     ) -> FrontendOutput:
         """Track one scan (see the module docstring); never raises for bad scan content."""
         points = as_points(points_m, "points_m")
         misses = np.zeros((0, 2)) if no_return_m is None else as_points(no_return_m, "no_return_m")
         prediction = self._predict(stamp_s, odom_pose)
-        step = _Step(
-            prediction, points, misses, float(stamp_s), odom_pose, seq, mount or IDENTITY
-        )
+        step = _Step(prediction, points, misses, float(stamp_s), odom_pose, seq, mount)
         if len(points) < self.settings.min_points:
             reason = f"{len(points)} valid points, need min_points={self.settings.min_points}"
             return self._finish(step, FrontendStatus.TOO_FEW_POINTS, None, reason)

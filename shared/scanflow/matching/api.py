@@ -205,18 +205,17 @@ def match(
         raise MatchInputError(f"unknown method {method!r}; available: {known}")
     guess = as_pose(initial_guess)
     src = as_points(source, "source")
-    if isinstance(target, LaserScan) and target.mount != IDENTITY:
-        # Matched in the target's sensor frame, where its free space is seen from the origin.
-        t0 = time.perf_counter()
-        result = fn(src, target.points(), target.mount.inverse() * guess, **options)
-        return replace(
-            in_frame(target.mount, result), time_s=time.perf_counter() - t0
-        )
     tgt: Any = target
-    if isinstance(target, LaserScan) or not hasattr(target, "likelihood_field"):
+    sensor = IDENTITY  # the frame the method runs in, in the target's: T_target_sensor
+    if isinstance(target, LaserScan):
+        # In the target scan's sensor frame, where its free space is seen from the origin.
+        sensor, tgt = target.mount, target.points()
+        guess = guess if sensor == IDENTITY else sensor.inverse() * guess
+    elif not hasattr(target, "likelihood_field"):
         tgt = as_points(target, "target")
     t0 = time.perf_counter()
     result = fn(src, tgt, guess, **options)
+    result = result if sensor == IDENTITY else in_frame(sensor, result)
     return replace(result, time_s=time.perf_counter() - t0)
 
 
