@@ -46,6 +46,8 @@ class MatchStatus(StrEnum):
     # Converged, but the aligned source contradicts the target: too many of its points lie
     # where the target scan saw free space (a wrong basin). See matching/trust.py.
     POOR_FIT = "poor_fit"
+    # A global search found distinct poses that explain the scan about equally well.
+    AMBIGUOUS = "ambiguous"
 
 
 class MatchInputError(ValueError):

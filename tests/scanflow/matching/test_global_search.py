@@ -1,0 +1,112 @@
+"""Whole-map search: found anywhere with no guess, ambiguity reported, bad input named."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scanflow.frontend import insert_scan
+from scanflow.geometry import Pose2D
+from scanflow.maps.matching_map import MatchingMap
+from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
+from scanflow.matching import MatchStatus
+from scanflow.matching.global_search import localise_globally
+from scanflow.sim import cast_rays, get_world
+
+# Map frame turned against the world, so walls do not lie along cell boundaries.
+MAP_FROM_WORLD = Pose2D(0.37, -0.21, 0.4)
+
+
+def cast(
+    segments: np.ndarray, pose: Pose2D, noise_m: float = 0.0, seed: int = 0, beams: int = 360
+) -> np.ndarray:
+    """Endpoints (robot frame) of a full-circle scan from `pose` (world), 12 m range."""
+    angles = np.arange(beams) * (2 * math.pi / beams)
+    ranges = cast_rays(np.tile([pose.x, pose.y], (beams, 1)), angles + pose.theta, segments, 12.0)
+    ranges = ranges + np.random.default_rng(seed).normal(0.0, noise_m, beams)
+    ok = np.isfinite(ranges)
+    return np.column_stack((ranges[ok] * np.cos(angles[ok]), ranges[ok] * np.sin(angles[ok])))
+
+
+def mapped(segments: np.ndarray, poses: list[Pose2D]) -> MatchingMap:
+    """A 5 cm map of `segments` from full-circle scans taken at `poses` (world frame)."""
+    world = MatchingMap(OccupancyGrid(OccupancyParams(resolution_m=0.05)))
+    for pose in poses:
+        insert_scan(world, cast(segments, pose), MAP_FROM_WORLD * pose)
+    return world
+
+
+@pytest.fixture(scope="module")
+def rooms_map() -> MatchingMap:
+    stops = [Pose2D(float(x), float(y), 0.0) for x, y in get_world("rooms").waypoints]
+    return mapped(get_world("rooms").segments, stops)
+
+
+def random_pose_near(waypoints: np.ndarray, rng: np.random.Generator) -> Pose2D:
+    x, y = waypoints[rng.integers(len(waypoints))] + rng.uniform(-1.0, 1.0, 2)
+    return Pose2D(float(x), float(y), float(rng.uniform(-math.pi, math.pi)))
+
+
+def is_near(estimate: Pose2D, truth: Pose2D) -> bool:
+    error = estimate.relative_to(MAP_FROM_WORLD * truth)
+    return error.translation_norm() < 0.05 and abs(error.theta) < math.radians(1.0)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_scan_anywhere_in_an_asymmetric_room_is_found_without_a_guess(room, seed):
+    world = mapped(room, [Pose2D(0.0, 0.0, 0.0), Pose2D(-2.5, -1.5, 0.0), Pose2D(2.5, 2.0, 0.0)])
+    rng = np.random.default_rng(seed)
+    truth = Pose2D(float(rng.uniform(-3.0, 0.5)), float(rng.uniform(-0.8, 2.5)),
+                   float(rng.uniform(-math.pi, math.pi)))
+    found = localise_globally(cast(room, truth, noise_m=0.01, seed=seed), world)
+    assert found.status is MatchStatus.OK, found.message
+    assert is_near(found.pose, truth)
+    assert found.method == "global+gn" and found.time_s > 0
+    assert found.extra["candidates"][0] == found.pose
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_in_six_alike_rooms_it_is_right_or_says_ambiguous_never_silently_wrong(rooms_map, seed):
+    rng = np.random.default_rng(seed)
+    truth = random_pose_near(get_world("rooms").waypoints, rng)
+    found = localise_globally(cast(get_world("rooms").segments, truth, 0.01, seed), rooms_map)
+    if found.ok:
+        assert is_near(found.pose, truth)
+    else:  # the true pose is among the rivals it names
+        assert found.status is MatchStatus.AMBIGUOUS, found.message
+        assert any(is_near(pose, truth) for pose in found.extra["candidates"])
+
+
+def test_a_symmetric_room_is_ambiguous_not_a_silent_guess():
+    # A bare 6 m x 4 m box looks the same turned by 180 degrees about its centre.
+    box = np.array([[0, 0, 6, 0], [6, 0, 6, 4], [6, 4, 0, 4], [0, 4, 0, 0]], dtype=np.float64)
+    world = mapped(box, [Pose2D(3.0, 2.0, 0.0), Pose2D(1.5, 1.0, 0.0), Pose2D(4.5, 3.0, 0.0)])
+    scan = cast(box, Pose2D(2.0, 1.5, 0.3))
+    found = localise_globally(scan, world)
+    assert found.status is MatchStatus.AMBIGUOUS and not found.ok
+    assert "ambiguous" in found.message
+    first, second = found.extra["candidates"][:2]
+    centre = MAP_FROM_WORLD * Pose2D(3.0, 2.0, 0.0)
+    # The two answers are each other's half-turn about the box's centre.
+    half_turn = centre * Pose2D(0.0, 0.0, math.pi) * centre.inverse()
+    gap = (half_turn * first).relative_to(second)
+    assert gap.translation_norm() < 0.1 and abs(gap.theta) < math.radians(2.0)
+
+
+def test_with_a_strict_enough_bar_the_same_room_is_not_ambiguous():
+    box = np.array([[0, 0, 6, 0], [6, 0, 6, 4], [6, 4, 0, 4], [0, 4, 0, 0]], dtype=np.float64)
+    world = mapped(box, [Pose2D(3.0, 2.0, 0.0)])
+    found = localise_globally(cast(box, Pose2D(2.0, 1.5, 0.3)), world, candidates=1)
+    assert found.status is MatchStatus.OK  # one candidate: no rival to compare with
+
+
+def test_bad_input_gets_a_status_or_a_named_error(rooms_map):
+    empty = MatchingMap(OccupancyGrid(OccupancyParams()))
+    scan = cast(get_world("rooms").segments, Pose2D(2.5, 2.0, 0.0))
+    assert localise_globally(scan, empty).status is MatchStatus.EMPTY_MAP
+    assert localise_globally(scan[:2], rooms_map).status is MatchStatus.TOO_FEW_POINTS
+    with pytest.raises(ValueError, match="ambiguity_ratio"):
+        localise_globally(scan, rooms_map, ambiguity_ratio=1.5)
+    with pytest.raises(ValueError, match="level"):
+        localise_globally(scan, rooms_map, level=-1)
