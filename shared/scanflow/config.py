@@ -28,6 +28,21 @@ def _split_csv(value: object) -> object:
     return value
 
 
+def _check_pose(value: list[float]) -> list[float]:
+    """A pose setting: empty (unset) or 'x_m,y_m,yaw_deg', all finite."""
+    if value and (len(value) != 3 or not all(math.isfinite(v) for v in value)):
+        raise ValueError(f"must be 3 finite numbers 'x_m,y_m,yaw_deg', got {value!r}")
+    return value
+
+
+def _pose_of(value: list[float]) -> Pose2D | None:
+    """A checked pose setting as a pose (yaw in radians), None when unset."""
+    if not value:
+        return None
+    x, y, yaw_deg = value
+    return Pose2D(x, y, math.radians(yaw_deg))
+
+
 class ZenohSettings(BaseSettings):
     """How a process joins the Zenoh network (SCANFLOW_ZENOH_*)."""
 
@@ -128,20 +143,11 @@ class IngestSettings(ServiceSettings):
     drain_timeout_s: float = Field(60.0, ge=0.0, description="wait for the last pose at the end")
 
     _split = field_validator("mount", mode="before")(_split_csv)
-
-    @field_validator("mount")
-    @classmethod
-    def _check_mount(cls, value: list[float]) -> list[float]:
-        if value and (len(value) != 3 or not all(math.isfinite(v) for v in value)):
-            raise ValueError(f"mount must be 3 finite numbers 'x_m,y_m,yaw_deg', got {value!r}")
-        return value
+    _check_mount = field_validator("mount")(_check_pose)
 
     def mount_pose(self) -> Pose2D | None:
         """`mount` as a pose (yaw in radians), None when unset."""
-        if not self.mount:
-            return None
-        x, y, yaw_deg = self.mount
-        return Pose2D(x, y, math.radians(yaw_deg))
+        return _pose_of(self.mount)
 
 
 class DeskewSettings(KernelServiceSettings):
@@ -247,3 +253,28 @@ class FrontendSettings(BaseSettings):
     insert_max_interval_s: float = Field(
         5.0, gt=0.0, description="motion filter: insert anyway after this long"
     )
+    prior_map: str = Field(
+        "", description="localise on this map (.npz, or a map_server .yaml); '' = map from scratch"
+    )
+    initial_pose: Annotated[list[float], NoDecode] = Field(
+        default_factory=list,
+        description="the robot's start, 'x_m,y_m,yaw_deg' in the map frame; empty = unknown: "
+        "searched over the whole prior map (the map's origin without one)",
+    )
+    update_map: bool = Field(
+        True, description="insert accepted scans; false = localise only (needs a prior map)"
+    )
+    global_level: int = Field(
+        1, ge=0, le=4, description="map pyramid level of the whole-map search (cells x 2**level)"
+    )
+    global_after_rejections: int = Field(
+        0, ge=0, description="search the whole map after this many rejected scans in a row "
+        "(a kidnapped or lost robot); 0 = never"
+    )
+
+    _split = field_validator("initial_pose", mode="before")(_split_csv)
+    _check_initial_pose = field_validator("initial_pose")(_check_pose)
+
+    def start_pose(self) -> Pose2D | None:
+        """`initial_pose` as a pose (yaw in radians), None when unknown."""
+        return _pose_of(self.initial_pose)

@@ -15,6 +15,7 @@ from tqdm import tqdm
 
 from scanflow.cli import app
 from scanflow.config import FrontendSettings
+from scanflow.frontend.prior import PriorMapError, frontend_start
 from scanflow.geometry import Pose2D
 from scanflow.io.carmen import load_keyframes
 from scanflow.io.detect import detect_format, open_log
@@ -57,12 +58,22 @@ def run_command(
     seed: int = typer.Option(0, help="simulator seed"),
     limit: int | None = typer.Option(None, min=1, help="stop after this many scans"),
     as_json: bool = typer.Option(False, "--json", help="print the summary as JSON"),
+    prior_map: Annotated[
+        Path | None,
+        typer.Option("--prior-map", help="localise on this map (.npz or map_server .yaml)"),
+    ] = None,
 ) -> None:
     """Track scans into a map in one process; settings from SCANFLOW_FRONTEND_*."""
     if log is not None and not log.exists():
         raise typer.BadParameter(f"no log at {log}", param_hint="--log")
     settings = FrontendSettings()
-    pipeline = Pipeline(settings)
+    if prior_map is not None:
+        settings = settings.model_copy(update={"prior_map": str(prior_map)})
+    try:
+        initial_pose, grid = frontend_start(settings)
+    except PriorMapError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--prior-map") from exc
+    pipeline = Pipeline(settings, initial_pose=initial_pose, grid=grid)
     outputs = _log_outputs(pipeline, log) if log is not None else _sim_outputs(
         pipeline, duration, seed
     )
@@ -88,6 +99,7 @@ def run_command(
     frontend = pipeline.frontend
     summary: dict[str, object] = {
         "source": str(log) if log is not None else "simulator",
+        "prior_map": settings.prior_map or None,
         "method": settings.method,
         "scans": scans,
         "statuses": statuses,

@@ -61,6 +61,7 @@ class MotionPredictor:
                 raise ValueError(f"{name} must be finite and > 0, got {value!r}")
         self.max_odom_step_m = float(max_odom_step_m)
         self.max_odom_step_rad = float(max_odom_step_rad)
+        self.cv_horizon_s = cv_horizon_s
         self._velocity = ConstantVelocityModel(max_horizon_s=cv_horizon_s)
         self._last_pose: Pose2D | None = None
         self._last_odom: Pose2D | None = None
@@ -102,3 +103,9 @@ class MotionPredictor:
         self._last_pose = pose
         # A scan without odometry breaks the chain: the next increment needs both ends.
         self._last_odom = odom_pose
+
+    def restart(self, stamp_s: float, pose: Pose2D, odom_pose: Pose2D | None) -> None:
+        """Record a pose that is not a motion from the last one (found by a whole-map search):
+        the velocity is forgotten, so the jump is not extrapolated."""
+        self._velocity = ConstantVelocityModel(max_horizon_s=self.cv_horizon_s)
+        self.update(stamp_s, pose, odom_pose)

@@ -19,8 +19,13 @@ Per scan:
 3. accepted: the pose is the match, the map gets the scan when the motion filter allows it;
    rejected (or too few points): the pose is the prediction with its covariance grown by the
    motion since the last accepted match, the map is untouched, the status and message say why.
-The first usable scan initialises the map at `initial_pose`. The front end never raises for a
-bad scan; it reports it and carries on. Memory: the map plus 32 bytes of trajectory per scan.
+The first usable scan initialises the map at `initial_pose`. Given a prior map (`grid`) and
+no `initial_pose`, the first usable scan is instead searched for over the whole map and every
+heading (`scanflow.matching.global_search`): LOCALISED when found, else rejected until a scan
+is; with `settings.global_after_rejections` = n, the same whole-map search runs after n
+rejected scans in a row (a kidnapped or lost robot). `settings.update_map` = False localises
+on the prior map without changing it. The front end never raises for a bad scan; it reports it
+and carries on. Memory: the map plus 32 bytes of trajectory per scan.
 """
 
 from __future__ import annotations
@@ -43,19 +48,24 @@ from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.occupancy import InsertResult, OccupancyGrid, OccupancyParams
 from scanflow.matching import MatchResult, match
 from scanflow.matching.api import as_points
+from scanflow.matching.global_search import localise_globally
 
 
 class FrontendStatus(StrEnum):
     """What the front end did with a scan. The first three mean the pose is a match."""
 
     INITIALISED = "initialised"
+    LOCALISED = "localised"  # found by the whole-map search
     TRACKED = "tracked"
     RECOVERED = "recovered"
     REJECTED = "rejected"
     TOO_FEW_POINTS = "too_few_points"
 
 
-ACCEPTED = frozenset({FrontendStatus.INITIALISED, FrontendStatus.TRACKED, FrontendStatus.RECOVERED})
+ACCEPTED = frozenset({
+    FrontendStatus.INITIALISED, FrontendStatus.LOCALISED, FrontendStatus.TRACKED,
+    FrontendStatus.RECOVERED,
+})
 
 
 @dataclass(frozen=True, eq=False)
@@ -143,6 +153,8 @@ class Frontend:
         self.settings = s
         self.initial_pose = initial_pose or Pose2D()
         self.map = MatchingMap(grid if grid is not None else OccupancyGrid(occupancy_params(s)))
+        if not s.update_map and self.map.is_empty:
+            raise ValueError("update_map=False (localise only) needs a non-empty prior map")
         self.trajectory = TrajectoryStore()
         self._limits = AcceptanceLimits(
             max_correction_m=s.max_correction_m,
@@ -159,6 +171,9 @@ class Frontend:
             s.insert_min_distance_m, math.radians(s.insert_min_angle_deg), s.insert_max_interval_s
         )
         self._initialised = not self.map.is_empty
+        # A prior map and no start: the first scan is searched for over the whole map.
+        self._lost = self._initialised and initial_pose is None
+        self._rejections = 0  # rejected scans in a row
         self._covariance = np.zeros((3, 3))
 
     @property
@@ -187,7 +202,10 @@ class Frontend:
             self._initialised = True
             return self._finish(step, FrontendStatus.INITIALISED, None, "map initialised")
         t0 = time.perf_counter()
-        result, status, note = self._match(points, prediction.pose)
+        if self._lost or 0 < self.settings.global_after_rejections <= self._rejections:
+            result, status, note = self._localise_globally(points)
+        else:
+            result, status, note = self._match(points, prediction.pose)
         step.match_time_s = time.perf_counter() - t0
         return self._finish(step, status, result, note)
 
@@ -213,6 +231,21 @@ class Frontend:
             return found, status, f"{note}: {reason}"
         # Rejected: the search's optimum when it found one, else the local match.
         return (found if found.ok else result), status, f"{reason}; {note}"
+
+    def _localise_globally(
+        self, points: NDArray[np.float64]
+    ) -> tuple[MatchResult, FrontendStatus, str]:
+        """The whole-map search, refined with settings.method: LOCALISED if it passes the
+        match checks (all but the correction from a prediction, which it has none of)."""
+        s = self.settings
+        found = localise_globally(points, self.map, refine=s.method, level=s.global_level)
+        reason = rejection_reason(found, found.pose, self._limits)
+        if reason:
+            return found, FrontendStatus.REJECTED, f"whole-map search: {reason}"
+        self._lost = False
+        return found, FrontendStatus.LOCALISED, (
+            f"localised by a whole-map search in {found.time_s:.2f} s"
+        )
 
     def relocalise(
         self, points_m: ArrayLike, guess: Pose2D
@@ -247,6 +280,10 @@ class Frontend:
         self, step: _Step, status: FrontendStatus, result: MatchResult | None, note: str
     ) -> FrontendOutput:
         """Adopt the match (accepted) or the prediction (rejected), insert if due, report."""
+        if status is FrontendStatus.REJECTED:
+            self._rejections += 1
+        elif status in ACCEPTED:
+            self._rejections = 0
         if status in ACCEPTED:
             pose = step.prediction.pose if result is None else result.pose
             self._covariance = np.zeros((3, 3)) if result is None else result.covariance
@@ -254,10 +291,14 @@ class Frontend:
             # The map is not touched; uncertainty grows with the motion since the last match.
             pose = step.prediction.pose
             self._covariance = self._covariance + self._motion_noise(step.prediction.motion)
-        self._predictor.update(step.stamp_s, pose, step.odom_pose)
+        if status is FrontendStatus.LOCALISED:
+            self._predictor.restart(step.stamp_s, pose, step.odom_pose)
+        else:
+            self._predictor.update(step.stamp_s, pose, step.odom_pose)
         self.trajectory.append(step.stamp_s, pose)
         inserted, insert_time_s = False, 0.0
-        if status in ACCEPTED and self._filter.should_insert(step.stamp_s, pose):
+        due = status in ACCEPTED and self.settings.update_map
+        if due and self._filter.should_insert(step.stamp_s, pose):
             t0 = time.perf_counter()
             insert_scan(self.map, step.points, pose, step.no_return, step.mount)
             insert_time_s = time.perf_counter() - t0

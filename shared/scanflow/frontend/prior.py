@@ -1,0 +1,37 @@
+"""Where a front end starts: the prior map and start pose its settings name (file I/O here,
+so that the tracker itself stays pure)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from scanflow.config import FrontendSettings
+from scanflow.frontend.tracker import occupancy_params
+from scanflow.geometry import Pose2D
+from scanflow.maps.export import load_map
+from scanflow.maps.occupancy import OccupancyGrid
+
+
+class PriorMapError(ValueError):
+    """The prior map a setting names cannot be used (missing, unreadable or empty)."""
+
+
+def load_prior_map(settings: FrontendSettings) -> OccupancyGrid | None:
+    """The grid of `settings.prior_map` (a fresh copy per call), None when unset."""
+    if not settings.prior_map:
+        return None
+    path = Path(settings.prior_map)
+    if not path.is_file():
+        raise PriorMapError(f"prior_map: no file at {path}")
+    try:
+        grid = load_map(path, occupancy_params(settings))
+    except (OSError, ValueError, KeyError) as exc:
+        raise PriorMapError(f"prior_map {path}: {exc}") from exc
+    if grid.is_empty:
+        raise PriorMapError(f"prior_map {path}: the map has no occupied cell")
+    return grid
+
+
+def frontend_start(settings: FrontendSettings) -> tuple[Pose2D | None, OccupancyGrid | None]:
+    """(initial_pose, grid) for `Frontend(settings, initial_pose, grid)` as the settings say."""
+    return settings.start_pose(), load_prior_map(settings)
