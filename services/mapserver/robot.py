@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from scanflow.frontend import insert_scan
 from scanflow.frontend.trajectory import TrajectoryStore
 from scanflow.geometry import Pose2D
 from scanflow.maps.grid import CellBox
 from scanflow.maps.matching_map import MatchingMap
-from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
+from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.wire import MapChangedMessage, MapInsertMessage, PoseEstimateMessage
 
 from services.mapserver.snapshot import Snapshot
@@ -21,11 +23,13 @@ class RobotMap:
     """
 
     def __init__(
-        self, robot_id: str, snap: Snapshot | None = None, params: OccupancyParams | None = None
+        self, robot_id: str, new_grid: Callable[[], OccupancyGrid], snap: Snapshot | None = None
     ) -> None:
-        """`params`: the new map's (the matcher's front end settings); a snapshot keeps its own."""
+        """`new_grid`: a robot's starting map (the matchers' prior map, or an empty grid with
+        their resolution), also after a reset; a snapshot is resumed as it was saved."""
         self.robot_id = robot_id
-        self.map = MatchingMap(snap.grid if snap else OccupancyGrid(params))
+        self.new_grid = new_grid
+        self.map = MatchingMap(snap.grid if snap else new_grid())
         self.trajectory = TrajectoryStore()
         if snap is not None:
             for stamp_s, row in zip(snap.stamps_s, snap.poses, strict=True):
@@ -42,8 +46,8 @@ class RobotMap:
         return (self.map.revision, self.last_seq)
 
     def reset(self) -> None:
-        """The robot's stream restarted (a replay): start an empty map and trajectory."""
-        self.map = MatchingMap(OccupancyGrid(self.map.grid.params))
+        """The robot's stream restarted (a replay): start its map and trajectory afresh."""
+        self.map = MatchingMap(self.new_grid())
         self.trajectory = TrajectoryStore()
         self.last_seq = -1
         self.last_insert_seq = -1

@@ -15,6 +15,8 @@ import zenoh
 from scanflow import keys
 from scanflow.config import FrontendSettings, MapServerSettings, ZenohSettings
 from scanflow.frontend import default_settings, occupancy_params
+from scanflow.frontend.prior import load_prior_map
+from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.warmup import warm_up
 from scanflow.wire import MapInsertMessage, Message, PoseEstimateMessage
 
@@ -39,7 +41,9 @@ class MapServer:
         """`frontend_settings`: the matchers' (their map resolution), default the documented."""
         self.settings = settings
         frontend = frontend_settings if frontend_settings is not None else default_settings()
+        self.frontend_settings = frontend
         self.params = occupancy_params(frontend)
+        load_prior_map(frontend)  # a bad prior map stops the start, naming the file
         self.data_dir = Path(settings.data_dir)
         self.shell = ServiceShell("mapserver", settings, zenoh_settings)
         self.robots: dict[str, RobotMap] = {}
@@ -48,7 +52,7 @@ class MapServer:
         for reason in skipped:
             self.shell.log.warning("%s; starting that robot afresh", reason)
         for snap in snapshots:
-            self.robots[snap.robot_id] = RobotMap(snap.robot_id, snap)
+            self.robots[snap.robot_id] = RobotMap(snap.robot_id, self.new_grid, snap)
             self.shell.seqs.resume(f"{snap.robot_id}/pose", snap.last_seq)
             self.shell.log.info("robot %s: resumed at seq %d", snap.robot_id, snap.last_seq)
         self._last_notice_s = 0.0
@@ -72,7 +76,7 @@ class MapServer:
         robot_id = message.robot_id
         robot = self.robots.get(robot_id)
         if robot is None:
-            robot = self.robots[robot_id] = RobotMap(robot_id, params=self.params)
+            robot = self.robots[robot_id] = RobotMap(robot_id, self.new_grid)
         if isinstance(message, MapInsertMessage):  # sparse seqs: gaps are not misses
             restarted = message.seq <= robot.last_insert_seq
         else:
@@ -89,6 +93,11 @@ class MapServer:
             self.shell.counters.add("inserted")
         else:
             robot.apply(message)
+
+    def new_grid(self) -> OccupancyGrid:
+        """A new robot's map: the prior map the matchers start on, else an empty grid."""
+        prior = load_prior_map(self.frontend_settings)
+        return prior if prior is not None else OccupancyGrid(self.params)
 
     def idle(self) -> None:
         """Publish change notices at the configured rate; snapshot at the configured interval."""

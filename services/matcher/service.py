@@ -6,9 +6,10 @@ in publication order, and no other service's output on its link (a full inbox bl
 link, and two matchers subscribed to each other's poses could wait on each other).
 Per scan it publishes the pose estimate; for each scan the front end put into its map it first
 publishes that scan (no-return beams included) with the pose it went in at on `map/insert`, so
-the map server inserts exactly the same scans at the same poses. A robot first seen mid-stream
-(this matcher restarted) resumes from the map server: its map snapshot and last pose seed the
-front end. Match requests are answered
+the map server inserts exactly the same scans at the same poses. A new robot starts on the
+prior map when SCANFLOW_FRONTEND_PRIOR_MAP names one (the map server starts from the same
+file). A robot first seen mid-stream (this matcher restarted) resumes from the map server: its
+map snapshot and last pose seed the front end. Match requests are answered
 on `<prefix>/match` (any scans) and `<prefix>/<robot>/match` (also against that robot's
 current map).
 """
@@ -23,6 +24,7 @@ import zenoh
 from scanflow import keys
 from scanflow.config import FrontendSettings, MatcherSettings, ZenohSettings
 from scanflow.frontend import Frontend, FrontendOutput
+from scanflow.frontend.prior import frontend_start, load_prior_map
 from scanflow.geometry import Pose2D
 from scanflow.maps.export import grid_from_npz
 from scanflow.maps.matching_map import MatchingMap
@@ -56,6 +58,7 @@ class MatcherService:
     ) -> None:
         self.settings = settings
         self.frontend_settings = frontend_settings
+        load_prior_map(frontend_settings)  # a bad prior map stops the start, naming the file
         self.shell = ServiceShell("matcher", settings, zenoh_settings)
         self.frontends: dict[str, Frontend] = {}
         self.lock = threading.Lock()  # the worker updates maps that match requests read
@@ -110,7 +113,7 @@ class MatcherService:
             return frontend
         new = self._seeded(robot_id) if frontend is None and seq > 0 else None
         if new is None:
-            new = Frontend(self.frontend_settings)
+            new = Frontend(self.frontend_settings, *frontend_start(self.frontend_settings))
         if frontend is None:
             self.shell.serve(keys.robot_match(robot_id, self.shell.prefix), self._on_match)
         with self.lock:

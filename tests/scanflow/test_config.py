@@ -138,3 +138,13 @@ def test_ingest_mount_is_x_y_and_yaw_in_degrees(clean_env) -> None:
         clean_env.setenv("SCANFLOW_INGEST_MOUNT", bad)
         with pytest.raises(ValidationError, match="mount"):
             config.IngestSettings()
+
+
+def test_frontend_initial_pose_is_x_y_and_yaw_in_degrees_or_unknown(clean_env) -> None:
+    assert config.FrontendSettings().start_pose() is None
+    clean_env.setenv("SCANFLOW_FRONTEND_INITIAL_POSE", "1.5,-2,180")
+    assert config.FrontendSettings().start_pose() == Pose2D(1.5, -2.0, math.pi)
+    for bad in ("1,2", "1,2,inf"):
+        clean_env.setenv("SCANFLOW_FRONTEND_INITIAL_POSE", bad)
+        with pytest.raises(ValidationError, match="initial_pose"):
+            config.FrontendSettings()

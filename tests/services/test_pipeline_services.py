@@ -14,10 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 from scanflow import keys
-from scanflow.config import ServiceSettings
-from scanflow.frontend import FrontendOutput
+from scanflow.config import FrontendSettings, ServiceSettings
+from scanflow.frontend import FrontendOutput, FrontendStatus
+from scanflow.frontend.prior import frontend_start
 from scanflow.geometry import Pose2D
-from scanflow.maps.export import load_npz
+from scanflow.maps.export import load_npz, save_map
 from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.pipeline import Pipeline
 from scanflow.scan import LaserScan
@@ -33,9 +34,12 @@ SIM = {"SCANFLOW_INGEST_SIM_DURATION_S": str(SIM_S), "SCANFLOW_INGEST_SIM_SEED":
 LOG_SCANS = 40
 
 
-def in_process(events) -> tuple[list[FrontendOutput], OccupancyGrid]:
-    """(per-scan front end outputs, final grid) of the in-process pipeline on `events`."""
-    pipeline = Pipeline()
+def in_process(
+    events, pipeline: Pipeline | None = None
+) -> tuple[list[FrontendOutput], OccupancyGrid]:
+    """(per-scan front end outputs, final grid) of the in-process pipeline (default: a new
+    `Pipeline()`) on `events`."""
+    pipeline = pipeline or Pipeline()
     outputs = []
     for event in events:
         if isinstance(event, LaserScan):
@@ -139,6 +143,39 @@ def test_a_mounted_lidar_run_equals_the_in_process_pipeline(pipeline):
     assert_served_map(bus, grid, len(expected))
     unmounted, _ = in_process(source_events(None, "robot", SIM_S, 7, None))
     assert [o.pose for o in expected] != [o.pose for o in unmounted]
+
+
+def test_localising_on_a_prior_map_equals_the_in_process_pipeline(
+    launcher, bus, start, tmp_path
+):
+    """SCANFLOW_FRONTEND_PRIOR_MAP and UPDATE_MAP=false on matcher and map server: the robot is
+    found on the map by the whole-map search, tracked on it as in-process, and the map served
+    is the prior map, unchanged."""
+    _, prior = in_process(source_events(None, "robot", SIM_S, 7, None))
+    path = save_map(prior, tmp_path / "prior.npz")
+    env = {"SCANFLOW_FRONTEND_PRIOR_MAP": str(path), "SCANFLOW_FRONTEND_UPDATE_MAP": "false"}
+    start("deskew", **ODOM_WAIT)
+    for name in ("matcher", "mapserver"):
+        start(name, **env)
+    poses = bus.record(keys.pose())
+    run_ingest(launcher, bus, **SIM)
+    settings = FrontendSettings.model_construct(prior_map=str(path), update_map=False)
+    start_pose, grid = frontend_start(settings)
+    pipeline = Pipeline(settings, initial_pose=start_pose, grid=grid)
+    expected, _ = in_process(source_events(None, "robot", SIM_S, 7, None), pipeline)
+    assert expected[0].status is FrontendStatus.LOCALISED
+    assert all(o.accepted and not o.inserted for o in expected)
+    bus.wait_until(lambda: len(poses) >= len(expected), 30.0, "every pose")
+    assert_same_poses(poses, expected)
+    assert_served_map(bus, prior, len(expected))
+
+
+def test_a_bad_prior_map_stops_the_matcher_naming_it(launcher, tmp_path):
+    missing = tmp_path / "nowhere.npz"
+    proc = launcher.start("matcher", SCANFLOW_FRONTEND_PRIOR_MAP=str(missing))
+    proc.wait(60.0)
+    assert proc.returncode != 0
+    assert f"prior_map: no file at {missing}" in launcher.log_text("matcher")
 
 
 def test_full_inboxes_hold_the_pipeline_back_without_deadlock(launcher, bus, start):

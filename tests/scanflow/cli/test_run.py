@@ -30,3 +30,26 @@ def test_run_rejects_a_missing_log(tmp_path: Path) -> None:
     _register()
     result = CliRunner().invoke(app, ["run", "--log", str(tmp_path / "nope.log")])
     assert result.exit_code == 2 and "no log at" in result.output
+
+
+def test_run_localises_on_a_prior_map_without_changing_it(tmp_path: Path, monkeypatch) -> None:
+    _register()
+    args = ["run", "--duration", "3", "--json"]
+    first = CliRunner().invoke(app, [*args, "--map-out", str(tmp_path)])
+    assert first.exit_code == 0, first.output
+    monkeypatch.setenv("SCANFLOW_FRONTEND_UPDATE_MAP", "false")
+    again = CliRunner().invoke(app, [*args, "--prior-map", str(tmp_path / "map.npz")])
+    assert again.exit_code == 0, again.output
+    mapped, localised = json.loads(first.output), json.loads(again.output)
+    assert localised["statuses"].get("localised") == 1
+    assert "initialised" not in localised["statuses"]
+    assert localised["inserted"] == 0 and localised["prior_map"].endswith("map.npz")
+    # The same run, now placed on its own earlier map: it ends where it ended then.
+    gap = [a - b for a, b in zip(localised["final_pose"], mapped["final_pose"], strict=True)]
+    assert abs(gap[0]) < 0.1 and abs(gap[1]) < 0.1 and abs(gap[2]) < 0.02
+
+
+def test_run_names_a_missing_prior_map(tmp_path: Path) -> None:
+    _register()
+    result = CliRunner().invoke(app, ["run", "--prior-map", str(tmp_path / "none.npz")])
+    assert result.exit_code == 2 and "no file at" in result.output
