@@ -1,0 +1,47 @@
+"""bench.localisation: the success figures and the CLI end to end on a real log."""
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from bench.localisation import rates
+
+REPO = Path(__file__).resolve().parents[2]
+DATA = Path(os.environ.get("SCANFLOW_DATA_DIR", REPO / ".." / "shared" / "data"))
+LOG = DATA / "aces-corrected.log.gz"
+
+
+def test_rates_count_both_bars() -> None:
+    errs = [(0.01, math.radians(0.1)), (0.07, math.radians(0.2)), (0.02, math.radians(0.9)),
+            (0.5, 0.0)]
+    r = rates(errs)
+    assert r["success_5cm_0.5deg"] == 0.25 and r["success_10cm_1deg"] == 0.75
+    assert r["t50_m"] == pytest.approx(0.045)
+
+
+def test_bad_arguments_are_named() -> None:
+    out = subprocess.run([sys.executable, "-m", "bench.localisation", "--data", "x.gz",
+                          "--queries", "0"], capture_output=True, text=True, cwd=REPO)
+    assert out.returncode == 2 and "--queries must be >= 1" in out.stderr
+
+
+@pytest.mark.skipif(not LOG.exists(), reason=f"real log {LOG} not available")
+def test_bench_localisation_json_on_a_real_log() -> None:
+    out = subprocess.run(
+        [sys.executable, "-m", "bench.localisation", "--data", str(LOG), "--limit", "40",
+         "--queries", "3", "--json"], capture_output=True, text=True, cwd=REPO,
+    )
+    assert out.returncode == 0, out.stderr
+    report = json.loads(out.stdout)
+    assert set(report["global"]) == {"level_1", "level_0_baseline"}
+    for g in report["global"].values():
+        assert g["queries"] == 3 and 0.0 <= g["success_5cm_0.5deg"] <= g["success_10cm_1deg"] <= 1
+    localise, slam = report["tracking"]["localise"], report["tracking"]["slam_baseline"]
+    assert localise["scans"] == slam["scans"] == 20
+    assert localise["statuses"]["localised"] == 1 and "initialised" not in localise["statuses"]
+    assert slam["statuses"]["initialised"] == 1
