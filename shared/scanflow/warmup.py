@@ -50,9 +50,9 @@ def warm_up(methods: bool = False) -> int:
     if methods:
         target = MOTION.transform_points(points)
         for method in available_methods():
-            match(points, target, None, method=method)
-            try:
-                match(points, frontend.map, pose, method=method)
-            except MatchInputError:  # no map form (svd: known correspondences only)
-                continue
+            for goal, guess in ((target, None), (frontend.map, pose)):
+                try:
+                    match(points, goal, guess, method=method)
+                except MatchInputError:  # svd takes no map, global no points
+                    continue
     return count

@@ -119,11 +119,12 @@ source = scan.points
 target = wire(MapInsertMessage("gap", 0, 0.0, Pose2D(), Pose2D(-0.1, 0.05, 0.03)
                                .transform_points(source), np.zeros((0, 2)))).points
 for method in available_methods():
-    match(source, target, None, method=method)
-    try:
-        match(scans[-1], pipeline.frontend.map, pipeline.frontend.pose, method=method)
-    except MatchInputError:
-        pass
+    on_map = (scans[-1], pipeline.frontend.map, pipeline.frontend.pose)
+    for operand, goal, guess in ((source, target, None), on_map):
+        try:
+            match(operand, goal, guess, method=method)
+        except MatchInputError:  # svd takes no map, global no points
+            pass
 compiled = sorted(n for n, k in kernels.items() if len(k.signatures) > before[n])
 print(json.dumps({"kernels": len(kernels), "compiled": compiled,
                   "recovered": statuses.count(FrontendStatus.RECOVERED)}))

@@ -131,4 +131,11 @@ def test_junk_on_every_key_is_counted_and_match_requests_are_answered(pipeline):
     to_map = MatchRequest(method="gn", source=scans[0], target=MapRef("robot"))
     (answer,) = bus.get(keys.robot_match("robot"), payload=to_map.encode())
     assert answer.error == "", answer
+    # Where on the robot's map is this scan, with no guess: the whole-map search by name.
+    anywhere = MatchRequest(method="global", source=scans[0], target=MapRef("robot"))
+    (answer,) = bus.get(keys.robot_match("robot"), payload=anywhere.encode())
+    assert answer.error == "" and answer.status in ("ok", "ambiguous"), answer
+    not_a_map = MatchRequest(method="global", source=scans[1], target=scans[0])
+    (answer,) = bus.get(keys.scan_match(), payload=not_a_map.encode())
+    assert "must be a MatchingMap" in answer.error
     assert launcher.exited() == {} or set(launcher.exited()) == {"ingest"}

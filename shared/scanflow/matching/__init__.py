@@ -5,6 +5,7 @@ One module per method; importing this package registers all of them.
 
 from scanflow.matching import (  # noqa: F401  (importing registers the methods)
     csm,
+    global_search,
     gn,
     hybrid,
     icp,

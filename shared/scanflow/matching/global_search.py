@@ -7,6 +7,8 @@ refined with a local method on the full-resolution pyramid and the best refined 
 (Cartographer's global localisation, with Olson's candidate list). Symmetric places (two
 identical rooms) give two poses that explain the scan equally well: when a distinct runner-up
 scores within `ambiguity_ratio` of the best, the result is AMBIGUOUS, never a silent guess.
+Behind `match(source, a_map, method="global", **options)` too (the guess is not used), so a
+match request can ask where a scan lies on a robot's map.
 """
 
 from __future__ import annotations
@@ -14,12 +16,22 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import replace
+from typing import Any
 
-from numpy.typing import ArrayLike
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from scanflow.geometry import Pose2D
 from scanflow.maps.matching_map import MatchingMap
-from scanflow.matching.api import MatchResult, MatchStatus, as_points, failed, match
+from scanflow.matching.api import (
+    MatchInputError,
+    MatchResult,
+    MatchStatus,
+    as_points,
+    failed,
+    match,
+    register_method,
+)
 from scanflow.matching.csm import (
     build_candidates,
     default_angular_step_rad,
@@ -109,3 +121,16 @@ def localise_globally(
             ),
         )
     return result
+
+
+@register_method(GLOBAL_METHOD)
+def match_global(
+    source: NDArray[np.float64], target: object, guess: Pose2D, **options: Any
+) -> MatchResult:
+    """`localise_globally` as a `match()` method; `guess` is not used: the whole map is."""
+    if not isinstance(target, MatchingMap):
+        raise MatchInputError(
+            f"method {GLOBAL_METHOD!r} searches a map: the target must be a MatchingMap, "
+            f"got {type(target).__name__}"
+        )
+    return localise_globally(source, target, **options)

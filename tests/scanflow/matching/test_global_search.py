@@ -10,7 +10,7 @@ from scanflow.frontend import insert_scan
 from scanflow.geometry import Pose2D
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
-from scanflow.matching import MatchStatus
+from scanflow.matching import MatchInputError, MatchStatus, available_methods, match
 from scanflow.matching.global_search import localise_globally
 from scanflow.sim import cast_rays, get_world
 
@@ -110,3 +110,14 @@ def test_bad_input_gets_a_status_or_a_named_error(rooms_map):
         localise_globally(scan, rooms_map, ambiguity_ratio=1.5)
     with pytest.raises(ValueError, match="level"):
         localise_globally(scan, rooms_map, level=-1)
+
+
+def test_match_runs_the_search_by_name_and_refuses_a_point_target(room):
+    world = mapped(room, [Pose2D(0.0, 0.0, 0.0)])
+    truth = Pose2D(-1.0, 1.2, 2.0)
+    scan = cast(room, truth)
+    found = match(scan, world, Pose2D(3.0, -2.0, -1.0), method="global")  # the guess is unused
+    assert found.ok and is_near(found.pose, truth) and found.method == "global+gn"
+    assert "global" in available_methods()
+    with pytest.raises(MatchInputError, match="must be a MatchingMap"):
+        match(scan, scan, method="global")
