@@ -268,8 +268,8 @@ class FrontendSettings(BaseSettings):
         1, ge=0, le=4, description="map pyramid level of the whole-map search (cells x 2**level)"
     )
     global_after_rejections: int = Field(
-        3, ge=0, description="search the whole map after this many rejected scans in a row "
-        "(a kidnapped or lost robot); 0 = never"
+        3, ge=0, description="search the whole map after every this many rejected scans in a "
+        "row (a kidnapped or lost robot); 0 = never"
     )
 
     _split = field_validator("initial_pose", mode="before")(_split_csv)

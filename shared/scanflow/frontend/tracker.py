@@ -22,7 +22,7 @@ Per scan:
 The first usable scan initialises the map at `initial_pose`. Given a prior map (`grid`) and
 no `initial_pose`, the first usable scan is instead searched for over the whole map and every
 heading (`scanflow.matching.global_search`): LOCALISED when found, else rejected until a scan
-is; with `settings.global_after_rejections` = n, the same whole-map search runs after n
+is; with `settings.global_after_rejections` = n, the same whole-map search runs after every n
 rejected scans in a row (a kidnapped or lost robot). `settings.update_map` = False localises
 on the prior map without changing it. The front end never raises for a bad scan; it reports it
 and carries on. Memory: the map plus 32 bytes of trajectory per scan.
@@ -202,7 +202,7 @@ class Frontend:
             self._initialised = True
             return self._finish(step, FrontendStatus.INITIALISED, None, "map initialised")
         t0 = time.perf_counter()
-        if self._lost or 0 < self.settings.global_after_rejections <= self._rejections:
+        if self._lost or self._search_due():
             result, status, note = self._localise_globally(points)
         else:
             result, status, note = self._match(points, prediction.pose)
@@ -231,6 +231,13 @@ class Frontend:
             return found, status, f"{note}: {reason}"
         # Rejected: the search's optimum when it found one, else the local match.
         return (found if found.ok else result), status, f"{reason}; {note}"
+
+    def _search_due(self) -> bool:
+        """After every `global_after_rejections` rejected scans in a row (each search costs
+        about a second on a building's map, so a robot that stays lost does not pay it on
+        every scan)."""
+        n = self.settings.global_after_rejections
+        return n > 0 and self._rejections > 0 and self._rejections % n == 0
 
     def _localise_globally(
         self, points: NDArray[np.float64]

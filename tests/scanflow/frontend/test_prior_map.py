@@ -92,6 +92,13 @@ def test_a_kidnapped_robot_is_found_again_after_n_rejections(
     assert [o.status for o in outs[:2]] == [FrontendStatus.REJECTED] * 2
     assert outs[2].status is FrontendStatus.LOCALISED and near(outs[2].pose, away[2])
     assert outs[3].status is FrontendStatus.TRACKED and near(outs[3].pose, away[3])
+    # Lost for good (a map of elsewhere): a search every second rejection, not on every scan.
+    lost = Frontend(kidnap, initial_pose=MAP_FROM_WORLD * START, grid=prior_grid(scan_at))
+    far_away = [np.column_stack((np.full(40, 30.0), np.linspace(-5.0, 5.0, 40)))] * 6
+    outs = [lost.process(points, 0.1 * i, None, i) for i, points in enumerate(far_away)]
+    searched = ["whole-map search" in o.message for o in outs]
+    assert searched == [False, False, True, False, True, False]
+    assert all(o.status is FrontendStatus.REJECTED for o in outs)
     # Without the setting it stays lost.
     never = kidnap.model_copy(update={"global_after_rejections": 0})
     stays = Frontend(never, initial_pose=MAP_FROM_WORLD * START, grid=prior_grid(scan_at))
