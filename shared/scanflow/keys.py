@@ -9,6 +9,7 @@ Layout (``<prefix>`` defaults to ``scanflow``; ``<robot>`` is a robot id):
 | <prefix>/<robot>/scan/deskewed        | pub/sub    | DeskewedScanMessage            |
 | <prefix>/<robot>/pose                 | pub/sub    | PoseEstimateMessage            |
 | <prefix>/<robot>/match                | queryable  | MatchRequest -> MatchResponse  |
+| <prefix>/<robot>/initial_pose         | queryable  | InitialPoseMessage (echoed)    |
 | <prefix>/<robot>/map/meta             | queryable  | MapMetaMessage                 |
 | <prefix>/<robot>/map/image            | queryable  | MapImageMessage (png/pgm/yaml) |
 | <prefix>/<robot>/map/region           | queryable  | MapRegionMessage               |
@@ -88,6 +89,10 @@ def pose(robot: str = "*", prefix: str = DEFAULT_PREFIX) -> str:
 
 def robot_match(robot: str = "*", prefix: str = DEFAULT_PREFIX) -> str:
     return _key(robot, "match", prefix)
+
+
+def initial_pose(robot: str = "*", prefix: str = DEFAULT_PREFIX) -> str:
+    return _key(robot, "initial_pose", prefix)
 
 
 def scan_match(prefix: str = DEFAULT_PREFIX) -> str:

@@ -230,6 +230,7 @@ STRATEGIES: dict[str, st.SearchStrategy[wire.Message]] = {
     "map_changed": map_changes(),
     "map_insert": map_inserts(),
     "service_stats": service_stats,
+    "initial_pose": st.builds(wire.InitialPoseMessage, ids, poses),
 }
 
 
@@ -682,6 +683,7 @@ def _examples() -> list[wire.Message]:
         wire.MapInsertMessage("r", 3, 2.0, Pose2D(1, 2, 3), scan.points(), scan.points()[:2] * 3),
         wire.MapInsertMessage("r", 3, 2.0, Pose2D(1, 2, 3), scan.points(), scan.points()[:2] * 3),
         wire.ServiceStatsMessage("deskew", "a", 1.0, {"in": 3}, {"lag_s": 0.5}),
+        wire.InitialPoseMessage("r", Pose2D(1.5, -2.0, 0.3)),
     ]
 
 

@@ -104,6 +104,13 @@ class MotionPredictor:
         # A scan without odometry breaks the chain: the next increment needs both ends.
         self._last_odom = odom_pose
 
+    def place(self, pose: Pose2D) -> None:
+        """Put the robot at `pose` by decree (an operator's initial pose): velocity and the
+        odometry chain are forgotten, so the next scan is predicted at `pose` itself."""
+        self._velocity = ConstantVelocityModel(max_horizon_s=self.cv_horizon_s)
+        self._last_pose = pose
+        self._last_odom = None
+
     def restart(self, stamp_s: float, pose: Pose2D, odom_pose: Pose2D | None) -> None:
         """Record a pose that is not a motion from the last one (found by a whole-map search):
         the velocity is forgotten, so the jump is not extrapolated."""

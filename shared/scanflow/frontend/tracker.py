@@ -232,6 +232,19 @@ class Frontend:
         # Rejected: the search's optimum when it found one, else the local match.
         return (found if found.ok else result), status, f"{reason}; {note}"
 
+    def set_pose(self, pose: Pose2D) -> None:
+        """An operator's word for where the robot is (ROS's /initialpose): the next scan is
+        matched from `pose` (before the first scan: the start). No whole-map search is pending
+        any more."""
+        if not all(math.isfinite(v) for v in (pose.x, pose.y, pose.theta)):
+            raise ValueError(f"pose must be finite, got {pose}")
+        self._lost = False
+        self._rejections = 0
+        if self._predictor.last_pose is None:
+            self.initial_pose = pose
+        else:
+            self._predictor.place(pose)
+
     def _search_due(self) -> bool:
         """After every `global_after_rejections` rejected scans in a row (each search costs
         about a second on a building's map, so a robot that stays lost does not pay it on

@@ -23,6 +23,7 @@ from scanflow.wire.errors import (
     VersionError,
 )
 from scanflow.wire.estimates import (
+    InitialPoseMessage,
     MapRef,
     MatchRequest,
     MatchResponse,
@@ -47,6 +48,7 @@ __all__ = [
     "SCHEMA_VERSION",
     "DecodeError",
     "DeskewedScanMessage",
+    "InitialPoseMessage",
     "MapChangedMessage",
     "MapImageMessage",
     "MapInsertMessage",

@@ -115,6 +115,21 @@ class PoseEstimateMessage(Message):
         )
 
 
+@dataclass(frozen=True, eq=False)
+class InitialPoseMessage(Message):
+    """Where a robot is, by an operator's word (ROS's /initialpose): its tracker matches the
+    next scan from `pose` (map frame); the tracker echoes the message once it took it."""
+
+    TYPE = "initial_pose"
+    WIRE: ClassVar[Schema] = {"robot_id": TEXT, "pose": POSE}
+    robot_id: str
+    pose: Pose2D
+
+    def __post_init__(self) -> None:
+        check_text("robot_id", self.robot_id)
+        check_pose("pose", self.pose)
+
+
 @dataclass(frozen=True)
 class MapRef:
     """A match target that is the map the mapserver keeps for `robot_id` (scan-to-map)."""

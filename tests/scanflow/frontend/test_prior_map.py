@@ -133,3 +133,24 @@ def test_a_bad_prior_map_is_named(tmp_path, settings: FrontendSettings, content,
         path.write_bytes(content)
     with pytest.raises(PriorMapError, match=named):
         load_prior_map(settings.model_copy(update={"prior_map": str(path)}))
+
+
+def test_an_operators_pose_replaces_the_search_and_puts_a_lost_robot_back(
+    settings: FrontendSettings, scan_at: Scanner
+) -> None:
+    frontend = Frontend(settings, grid=prior_grid(scan_at))
+    frontend.set_pose(MAP_FROM_WORLD * START)  # before the first scan: the start
+    first = frontend.process(scan_at(START), 0.0)
+    assert first.status is FrontendStatus.TRACKED and near(first.pose, START)
+    # Carried off, no search, no fallback: lost, until told where it is.
+    stay_lost = settings.model_copy(update={"global_after_rejections": 0, "fallback_method": ""})
+    lost = Frontend(stay_lost, initial_pose=MAP_FROM_WORLD * START, grid=prior_grid(scan_at))
+    lost.process(scan_at(START), 0.0)
+    away = path_from(KIDNAPPED_TO, 3)
+    assert lost.process(scan_at(away[0]), 1.0).status is FrontendStatus.REJECTED
+    lost.set_pose(MAP_FROM_WORLD * away[0] * Pose2D(0.15, -0.1, 0.05))  # roughly there
+    back = lost.process(scan_at(away[1]), 1.1)
+    assert back.status is FrontendStatus.TRACKED and near(back.pose, away[1])
+    assert back.prediction_source == "hold"  # the decreed pose, not a velocity from the jump
+    with pytest.raises(ValueError, match="finite"):
+        lost.set_pose(Pose2D(math.inf, 0.0, 0.0))
