@@ -9,7 +9,9 @@ publishes that scan (no-return beams included) with the pose it went in at on `m
 the map server inserts exactly the same scans at the same poses. A new robot starts on the
 prior map when SCANFLOW_FRONTEND_PRIOR_MAP names one (the map server starts from the same
 file). A robot first seen mid-stream (this matcher restarted) resumes from the map server: its
-map snapshot and last pose seed the front end. Match requests are answered
+map snapshot and last pose seed the front end. An operator's pose on `<prefix>/<robot>/
+initial_pose` (InitialPoseMessage, echoed once taken) puts the robot there: its next scan is
+matched from it, or, for a robot not seen yet, its first scan. Match requests are answered
 on `<prefix>/match` (any scans) and `<prefix>/<robot>/match` (also against that robot's
 current map).
 """
@@ -31,6 +33,7 @@ from scanflow.maps.matching_map import MatchingMap
 from scanflow.warmup import warm_up
 from scanflow.wire import (
     DeskewedScanMessage,
+    InitialPoseMessage,
     MapImageMessage,
     MapInsertMessage,
     MatchRequest,
@@ -61,12 +64,14 @@ class MatcherService:
         load_prior_map(frontend_settings)  # a bad prior map stops the start, naming the file
         self.shell = ServiceShell("matcher", settings, zenoh_settings)
         self.frontends: dict[str, Frontend] = {}
+        self.initial_poses: dict[str, Pose2D] = {}  # operators' poses for robots not seen yet
         self.lock = threading.Lock()  # the worker updates maps that match requests read
         prefix = self.shell.prefix
         self.shell.subscribe(
             keys.deskewed_scan("*", prefix), "scan", DeskewedScanMessage.decode
         )
         self.shell.serve(keys.scan_match(prefix), self._on_match)
+        self.shell.serve(keys.initial_pose("*", prefix), self._on_initial_pose)
         self.shell.add_stats(lambda: {"robots": len(self.frontends)})
 
     def owns(self, robot_id: str) -> bool:
@@ -113,7 +118,10 @@ class MatcherService:
             return frontend
         new = self._seeded(robot_id) if frontend is None and seq > 0 else None
         if new is None:
-            new = Frontend(self.frontend_settings, *frontend_start(self.frontend_settings))
+            start, grid = frontend_start(self.frontend_settings)
+            with self.lock:
+                start = self.initial_poses.pop(robot_id, start)
+            new = Frontend(self.frontend_settings, start, grid)
         if frontend is None:
             self.shell.serve(keys.robot_match(robot_id, self.shell.prefix), self._on_match)
         with self.lock:
@@ -145,6 +153,29 @@ class MatcherService:
             if reply.ok is not None:
                 return decode_any(reply.ok.payload.to_bytes())
         return None
+
+    def _on_initial_pose(self, query: zenoh.Query) -> None:
+        """Put an owned robot at the operator's pose (kept for its first scan if not seen yet);
+        other shards' robots are left to their matcher, which answers instead."""
+        payload = query.payload
+        if payload is None:
+            raise ValueError("an initial pose query needs an InitialPoseMessage payload")
+        message = InitialPoseMessage.decode(payload.to_bytes())
+        robot_id = keys.check_robot_id(message.robot_id)
+        key = keys.initial_pose(robot_id, self.shell.prefix)
+        if str(query.key_expr) != key:
+            raise ValueError(f"initial pose for {robot_id!r} must be sent on {key}")
+        if not self.owns(robot_id):
+            return
+        with self.lock:
+            frontend = self.frontends.get(robot_id)
+            if frontend is None:
+                self.initial_poses[robot_id] = message.pose
+            else:
+                frontend.set_pose(message.pose)
+        self.shell.counters.add("initial_poses")
+        self.shell.log.info("robot %s: placed at %s by request", robot_id, message.pose)
+        query.reply(key, message.encode())
 
     # -- match requests -------------------------------------------------------------------
     def _map_of(self, robot_id: str) -> MatchingMap | None:

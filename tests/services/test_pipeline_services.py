@@ -22,7 +22,7 @@ from scanflow.maps.export import load_npz, save_map
 from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.pipeline import Pipeline
 from scanflow.scan import LaserScan
-from scanflow.wire import MapImageMessage, PoseEstimateMessage
+from scanflow.wire import InitialPoseMessage, MapImageMessage, PoseEstimateMessage
 
 from services.common.process import available_cpus
 from services.ingest.sources import source_events
@@ -145,29 +145,58 @@ def test_a_mounted_lidar_run_equals_the_in_process_pipeline(pipeline):
     assert [o.pose for o in expected] != [o.pose for o in unmounted]
 
 
-def test_localising_on_a_prior_map_equals_the_in_process_pipeline(
-    launcher, bus, start, tmp_path
-):
-    """SCANFLOW_FRONTEND_PRIOR_MAP and UPDATE_MAP=false on matcher and map server: the robot is
-    found on the map by the whole-map search, tracked on it as in-process, and the map served
-    is the prior map, unchanged."""
+@pytest.fixture
+def on_prior_map(launcher, bus, start, tmp_path):
+    """Deskew, and matcher and map server localising (UPDATE_MAP=false) on a prior map: the
+    simulator's own run mapped in-process. Yields (launcher, bus, prior map file, its grid)."""
     _, prior = in_process(source_events(None, "robot", SIM_S, 7, None))
     path = save_map(prior, tmp_path / "prior.npz")
     env = {"SCANFLOW_FRONTEND_PRIOR_MAP": str(path), "SCANFLOW_FRONTEND_UPDATE_MAP": "false"}
     start("deskew", **ODOM_WAIT)
     for name in ("matcher", "mapserver"):
         start(name, **env)
-    poses = bus.record(keys.pose())
-    run_ingest(launcher, bus, **SIM)
+    return launcher, bus, path, prior
+
+
+def localising(path: Path, initial_pose: Pose2D | None) -> Pipeline:
     settings = FrontendSettings.model_construct(prior_map=str(path), update_map=False)
     start_pose, grid = frontend_start(settings)
-    pipeline = Pipeline(settings, initial_pose=start_pose, grid=grid)
-    expected, _ = in_process(source_events(None, "robot", SIM_S, 7, None), pipeline)
+    return Pipeline(settings, initial_pose=initial_pose or start_pose, grid=grid)
+
+
+def test_localising_on_a_prior_map_equals_the_in_process_pipeline(on_prior_map):
+    """SCANFLOW_FRONTEND_PRIOR_MAP and UPDATE_MAP=false on matcher and map server: the robot is
+    found on the map by the whole-map search, tracked on it as in-process, and the map served
+    is the prior map, unchanged."""
+    launcher, bus, path, prior = on_prior_map
+    poses = bus.record(keys.pose())
+    run_ingest(launcher, bus, **SIM)
+    expected, _ = in_process(source_events(None, "robot", SIM_S, 7, None), localising(path, None))
     assert expected[0].status is FrontendStatus.LOCALISED
     assert all(o.accepted and not o.inserted for o in expected)
     bus.wait_until(lambda: len(poses) >= len(expected), 30.0, "every pose")
     assert_same_poses(poses, expected)
     assert_served_map(bus, prior, len(expected))
+
+
+def test_an_operators_pose_on_the_bus_starts_the_robot_there(on_prior_map):
+    """An InitialPoseMessage for a robot not seen yet: the matcher echoes it, and the robot's
+    first scan is matched from it (no whole-map search), exactly as in-process."""
+    launcher, bus, path, _ = on_prior_map
+    told = Pose2D(0.12, -0.08, 0.04)  # roughly where the simulated robot starts
+    request = InitialPoseMessage("robot", told).encode()
+    (echo,) = bus.get(keys.initial_pose("robot"), payload=request)
+    assert isinstance(echo, InitialPoseMessage) and echo.pose == told
+    assert bus.stats("matcher").counters["initial_poses"] == 1
+    with pytest.raises(AssertionError, match="must be sent on scanflow/robot/initial_pose"):
+        bus.get(keys.initial_pose("other"), payload=request)  # another robot's key: refused
+    poses = bus.record(keys.pose())
+    run_ingest(launcher, bus, **SIM)
+    expected, _ = in_process(source_events(None, "robot", SIM_S, 7, None), localising(path, told))
+    assert expected[0].status is FrontendStatus.TRACKED
+    assert expected[0].pose.translation_norm() < 0.05
+    bus.wait_until(lambda: len(poses) >= len(expected), 30.0, "every pose")
+    assert_same_poses(poses, expected)
 
 
 def test_a_bad_prior_map_stops_the_matcher_naming_it(launcher, tmp_path):

@@ -1,4 +1,5 @@
-"""Latest pose, pose at a time (SE(2) interpolation) and trajectory (JSON or TUM) of a robot.
+"""Latest pose, pose at a time (SE(2) interpolation) and trajectory (JSON or TUM) of a robot;
+PUT an operator's pose (ROS's /initialpose) to the robot's tracker.
 
 Poses come from the gateway's bounded cache of the estimates on the bus; times and ranges the
 cache no longer covers are answered from the map server's full trajectory.
@@ -10,15 +11,16 @@ import math
 from typing import Annotated, Literal
 
 import numpy as np
-from fastapi import APIRouter, HTTPException, Query
+from fastapi import APIRouter, Depends, HTTPException, Query
 from fastapi.responses import PlainTextResponse
 from numpy.typing import NDArray
 from scanflow import keys
-from scanflow.wire import TrajectoryMessage
+from scanflow.wire import InitialPoseMessage, TrajectoryMessage
 
 from services.gateway.backend import BackendError, ZenohBackend
-from services.gateway.deps import API_PREFIX, Backend, Robot
-from services.gateway.models import PoseOut, TimedPose, TrajectoryOut
+from services.gateway.deps import API_PREFIX, Backend, Robot, require_key
+from services.gateway.models import PoseIn, PoseOut, TimedPose, TrajectoryOut
+from services.gateway.routers.match import ANSWERS
 from services.gateway.tracks import estimate_arrays, pose_at
 
 router = APIRouter(prefix=API_PREFIX, tags=["poses"])
@@ -55,6 +57,19 @@ async def get_pose(robot: Robot, backend: Backend, t: TimeParam = None) -> PoseO
         span = f"{stamps[0]}..{stamps[-1]}" if len(stamps) else "empty"
         raise HTTPException(404, f"t={t} is outside the trajectory of {robot!r} ({span})")
     return PoseOut.from_trajectory(robot, found[0], t, found[1])
+
+
+@router.put(
+    "/robots/{robot}/pose", response_model=PoseIn, responses=ANSWERS,
+    dependencies=[Depends(require_key)],
+    summary="Tell the robot's tracker where it is now (map frame): its next scan is matched "
+    "from there (before its first scan: the start)",
+)
+async def put_pose(robot: Robot, body: PoseIn, backend: Backend) -> PoseIn:
+    message = InitialPoseMessage(robot, body.to_pose())
+    replies = await backend.aquery(keys.initial_pose(robot, backend.prefix), message.encode())
+    taken = InitialPoseMessage.decode(replies[0].payload)  # the tracker's echo
+    return PoseIn(x_m=taken.pose.x, y_m=taken.pose.y, theta_rad=taken.pose.theta)
 
 
 async def _full_trajectory(

@@ -1,4 +1,5 @@
-"""Pose queries: latest, interpolated at t, trajectory (cache and map server), TUM text."""
+"""Pose queries: latest, interpolated at t, trajectory (cache and map server), TUM text; an
+operator's pose PUT to the tracker."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import math
 import numpy as np
 import pytest
 from scanflow import keys
-from scanflow.wire import TrajectoryMessage
+from scanflow.wire import InitialPoseMessage, TrajectoryMessage
 
 
 def test_latest_pose_comes_from_the_bus(client, publish_poses):
@@ -80,3 +81,29 @@ def test_replayed_stream_restarts_the_cache(client, publish_poses):
     robots = client.get("/api/v1/robots").json()["robots"]
     (r1,) = [r for r in robots if r["robot_id"] == "r1"]
     assert r1["restarts"] == 1 and r1["poses_cached"] == 1 and r1["last_pose"]["x_m"] == 9.0
+
+
+def test_an_operators_pose_reaches_the_tracker_and_comes_back_as_taken(client, peer, auth):
+    seen: list[InitialPoseMessage] = []
+
+    def tracker(query) -> bytes:
+        seen.append(InitialPoseMessage.decode(query.payload.to_bytes()))
+        return query.payload.to_bytes()
+
+    peer.answer(keys.initial_pose("r1"), tracker)
+    pose = {"x_m": 2.5, "y_m": -1.0, "theta_rad": 0.4}
+    r = client.put("/api/v1/robots/r1/pose", json=pose, headers=auth)
+    assert r.status_code == 200, r.text
+    assert r.json() == pytest.approx(pose)
+    (message,) = seen
+    assert message.robot_id == "r1"
+    assert message.pose.to_array() == pytest.approx([2.5, -1.0, 0.4])
+
+
+def test_an_operators_pose_needs_the_key_a_tracker_and_a_valid_body(client, auth):
+    pose = {"x_m": 1.0, "y_m": 0.0, "theta_rad": 0.0}
+    assert client.put("/api/v1/robots/r1/pose", json=pose).status_code == 401
+    r = client.put("/api/v1/robots/nobody/pose", json=pose, headers=auth)
+    assert r.status_code == 503 and "initial_pose" in r.json()["detail"]
+    r = client.put("/api/v1/robots/r1/pose", json={"x_m": "far"}, headers=auth)
+    assert r.status_code == 422 and "x_m" in r.text

@@ -57,6 +57,7 @@ def _answer_everything(peer) -> None:
     peer.answer(keys.trajectory("*"), lambda q: TrajectoryMessage(
         _robot(q), np.array([0.0, 1.0]), np.zeros((2, 3))).encode())
     peer.answer(keys.stats("*", "*"), lambda q: ServiceStatsMessage("deskew", "0", 0.0).encode())
+    peer.answer(keys.initial_pose("*"), lambda q: q.payload.to_bytes())  # the tracker's echo
 
 
 def test_api_conforms(peer, backend, settings):
