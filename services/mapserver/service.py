@@ -15,7 +15,7 @@ import zenoh
 from scanflow import keys
 from scanflow.config import FrontendSettings, MapServerSettings, ZenohSettings
 from scanflow.frontend import default_settings, occupancy_params
-from scanflow.frontend.prior import load_prior_map
+from scanflow.frontend.prior import FrontendStart
 from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.warmup import warm_up
 from scanflow.wire import MapInsertMessage, Message, PoseEstimateMessage
@@ -41,9 +41,8 @@ class MapServer:
         """`frontend_settings`: the matchers' (their map resolution), default the documented."""
         self.settings = settings
         frontend = frontend_settings if frontend_settings is not None else default_settings()
-        self.frontend_settings = frontend
         self.params = occupancy_params(frontend)
-        load_prior_map(frontend)  # a bad prior map stops the start, naming the file
+        self.start = FrontendStart(frontend)  # a bad prior map stops the start here
         self.data_dir = Path(settings.data_dir)
         self.shell = ServiceShell("mapserver", settings, zenoh_settings)
         self.robots: dict[str, RobotMap] = {}
@@ -96,7 +95,7 @@ class MapServer:
 
     def new_grid(self) -> OccupancyGrid:
         """A new robot's map: the prior map the matchers start on, else an empty grid."""
-        prior = load_prior_map(self.frontend_settings)
+        prior = self.start.grid()
         return prior if prior is not None else OccupancyGrid(self.params)
 
     def idle(self) -> None:

@@ -26,7 +26,7 @@ import zenoh
 from scanflow import keys
 from scanflow.config import FrontendSettings, MatcherSettings, ZenohSettings
 from scanflow.frontend import Frontend, FrontendOutput
-from scanflow.frontend.prior import frontend_start, load_prior_map
+from scanflow.frontend.prior import FrontendStart
 from scanflow.geometry import Pose2D
 from scanflow.maps.export import grid_from_npz
 from scanflow.maps.matching_map import MatchingMap
@@ -61,7 +61,7 @@ class MatcherService:
     ) -> None:
         self.settings = settings
         self.frontend_settings = frontend_settings
-        load_prior_map(frontend_settings)  # a bad prior map stops the start, naming the file
+        self.start = FrontendStart(frontend_settings)  # a bad prior map stops the start here
         self.shell = ServiceShell("matcher", settings, zenoh_settings)
         self.frontends: dict[str, Frontend] = {}
         self.initial_poses: dict[str, Pose2D] = {}  # operators' poses for robots not seen yet
@@ -118,10 +118,9 @@ class MatcherService:
             return frontend
         new = self._seeded(robot_id) if frontend is None and seq > 0 else None
         if new is None:
-            start, grid = frontend_start(self.frontend_settings)
             with self.lock:
-                start = self.initial_poses.pop(robot_id, start)
-            new = Frontend(self.frontend_settings, start, grid)
+                pose = self.initial_poses.pop(robot_id, self.start.pose)
+            new = Frontend(self.frontend_settings, pose, self.start.grid())
         if frontend is None:
             self.shell.serve(keys.robot_match(robot_id, self.shell.prefix), self._on_match)
         with self.lock:

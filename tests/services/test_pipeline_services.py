@@ -16,7 +16,7 @@ import pytest
 from scanflow import keys
 from scanflow.config import FrontendSettings, ServiceSettings
 from scanflow.frontend import FrontendOutput, FrontendStatus
-from scanflow.frontend.prior import frontend_start
+from scanflow.frontend.prior import FrontendStart
 from scanflow.geometry import Pose2D
 from scanflow.maps.export import load_npz, save_map
 from scanflow.maps.occupancy import OccupancyGrid
@@ -160,8 +160,8 @@ def on_prior_map(launcher, bus, start, tmp_path):
 
 def localising(path: Path, initial_pose: Pose2D | None) -> Pipeline:
     settings = FrontendSettings.model_construct(prior_map=str(path), update_map=False)
-    start_pose, grid = frontend_start(settings)
-    return Pipeline(settings, initial_pose=initial_pose or start_pose, grid=grid)
+    start = FrontendStart(settings)
+    return Pipeline(settings, initial_pose=initial_pose or start.pose, grid=start.grid())
 
 
 def test_localising_on_a_prior_map_equals_the_in_process_pipeline(on_prior_map):

@@ -15,7 +15,7 @@ from tqdm import tqdm
 
 from scanflow.cli import app
 from scanflow.config import FrontendSettings
-from scanflow.frontend.prior import PriorMapError, frontend_start
+from scanflow.frontend.prior import FrontendStart, PriorMapError
 from scanflow.geometry import Pose2D
 from scanflow.io.carmen import load_keyframes
 from scanflow.io.detect import detect_format, open_log
@@ -70,10 +70,10 @@ def run_command(
     if prior_map is not None:
         settings = settings.model_copy(update={"prior_map": str(prior_map)})
     try:
-        initial_pose, grid = frontend_start(settings)
+        start = FrontendStart(settings)
     except PriorMapError as exc:
         raise typer.BadParameter(str(exc), param_hint="--prior-map") from exc
-    pipeline = Pipeline(settings, initial_pose=initial_pose, grid=grid)
+    pipeline = Pipeline(settings, initial_pose=start.pose, grid=start.grid())
     outputs = _log_outputs(pipeline, log) if log is not None else _sim_outputs(
         pipeline, duration, seed
     )

@@ -3,6 +3,7 @@ so that the tracker itself stays pure)."""
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 
 from scanflow.config import FrontendSettings
@@ -17,7 +18,7 @@ class PriorMapError(ValueError):
 
 
 def load_prior_map(settings: FrontendSettings) -> OccupancyGrid | None:
-    """The grid of `settings.prior_map` (a fresh copy per call), None when unset."""
+    """The grid of `settings.prior_map`, None when unset."""
     if not settings.prior_map:
         return None
     path = Path(settings.prior_map)
@@ -32,6 +33,14 @@ def load_prior_map(settings: FrontendSettings) -> OccupancyGrid | None:
     return grid
 
 
-def frontend_start(settings: FrontendSettings) -> tuple[Pose2D | None, OccupancyGrid | None]:
-    """(initial_pose, grid) for `Frontend(settings, initial_pose, grid)` as the settings say."""
-    return settings.start_pose(), load_prior_map(settings)
+class FrontendStart:
+    """The start pose and prior map the settings name, read once (a bad file fails here, at
+    start-up, not when a robot first appears); every robot gets a copy of the map of its own."""
+
+    def __init__(self, settings: FrontendSettings) -> None:
+        self.pose: Pose2D | None = settings.start_pose()
+        self._grid = load_prior_map(settings)
+
+    def grid(self) -> OccupancyGrid | None:
+        """A fresh copy of the prior map (None without one): robots never share a grid."""
+        return None if self._grid is None else copy.deepcopy(self._grid)

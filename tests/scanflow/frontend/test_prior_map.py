@@ -1,5 +1,5 @@
 """Front end on a prior map: start found over the whole map, localise-only, a kidnapped robot;
-`frontend_start` reading the settings' map."""
+`FrontendStart` reading the settings' map once."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 from numpy.typing import NDArray
 from scanflow.config import FrontendSettings
 from scanflow.frontend import Frontend, FrontendStatus, insert_scan
-from scanflow.frontend.prior import PriorMapError, frontend_start, load_prior_map
+from scanflow.frontend.prior import FrontendStart, PriorMapError, load_prior_map
 from scanflow.geometry import Pose2D
 from scanflow.maps.export import save_map
 from scanflow.maps.matching_map import MatchingMap
@@ -107,16 +107,20 @@ def test_a_kidnapped_robot_is_found_again_after_n_rejections(
     assert all(o.status is FrontendStatus.REJECTED for o in lost)
 
 
-def test_frontend_start_reads_the_prior_map_and_start_from_the_settings(
+def test_frontend_start_reads_the_prior_map_once_and_hands_out_copies(
     tmp_path, settings: FrontendSettings, scan_at: Scanner
 ) -> None:
     grid = prior_grid(scan_at)
     path = save_map(grid, tmp_path / "office.npz")
     given = settings.model_copy(update={"prior_map": str(path), "initial_pose": [1.0, 2.0, 90.0]})
-    pose, loaded = frontend_start(given)
-    assert pose == Pose2D(1.0, 2.0, math.pi / 2)
-    np.testing.assert_array_equal(loaded.log_odds, grid.log_odds)
-    assert frontend_start(settings) == (None, None)
+    start = FrontendStart(given)
+    path.unlink()  # read at start-up: later robots do not need the file
+    first, second = start.grid(), start.grid()
+    assert start.pose == Pose2D(1.0, 2.0, math.pi / 2)
+    np.testing.assert_array_equal(first.log_odds, grid.log_odds)
+    assert first is not second and not np.shares_memory(first.log_odds, second.log_odds)
+    none = FrontendStart(settings)
+    assert none.pose is None and none.grid() is None
     yaml = save_map(grid, tmp_path / "office.yaml")  # the map_server form loads too
     assert load_prior_map(settings.model_copy(update={"prior_map": str(yaml)})) is not None
 
