@@ -114,6 +114,8 @@ for out in outputs[-30:]:
         ins = wire(MapInsertMessage("gap", est.seq, est.stamp_s, est.pose, scan.points,
                                     scan.no_return_points))
         insert_scan(served, ins.points, ins.pose, ins.no_return_points)
+# A scan with one return and one no-return beam: one-ray broadcasts (read-only) in the insert.
+insert_scan(served, np.array([[1.5, 0.5]]), tracker.pose, np.array([[20.0, -3.0]]))
 tracker.relocalise(scan.points, tracker.pose * Pose2D(0.5, 0.3, 0.35))
 source = scan.points
 target = wire(MapInsertMessage("gap", 0, 0.0, Pose2D(), Pose2D(-0.1, 0.05, 0.03)

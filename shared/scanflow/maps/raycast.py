@@ -52,8 +52,10 @@ def mark_rays(
     The start cell is always marked, the end cell only with `include_end`. Every start and end
     cell must lie inside `box` (then so does every cell between them).
     """
-    start = np.ascontiguousarray(start_cells, dtype=np.int64).reshape(-1, 2)
-    end = np.ascontiguousarray(end_cells, dtype=np.int64).reshape(-1, 2)
+    # Contiguous and writable, always: a one-row broadcast (one ray) is already contiguous but
+    # read-only, and numba compiles each array type apart (seconds, on a service's hot path).
+    start = np.require(start_cells, np.int64, ["C", "W"]).reshape(-1, 2)
+    end = np.require(end_cells, np.int64, ["C", "W"]).reshape(-1, 2)
     if start.shape != end.shape:
         raise ValueError(f"start_cells shape {start.shape} != end_cells shape {end.shape}")
     if mask.shape != box.shape or mask.dtype != np.bool_:
