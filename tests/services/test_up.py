@@ -3,28 +3,32 @@ all cleanly (every service, the gateway too, reports exit 0, and so does `scanfl
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
+from scanflow.maps.export import load_map
 
 from services.common.launch import free_port
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 
-@pytest.mark.parametrize("stop_signal", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
-def test_up_runs_the_simulator_through_and_stops_cleanly(tmp_path, stop_signal):
-    out = tmp_path / "up.out"
-    data = tmp_path / "data"
-    cmd = [
+def up_command(data, *extra: str) -> list[str]:
+    return [
         sys.executable, "-m", "scanflow", "up", "--rate", "0", "--limit", "15",
         "--port", str(free_port()), "--zenoh-port", str(free_port()), "--data-dir", str(data),
+        *extra,
     ]
+
+
+def run_until_ingest_is_done(cmd: list[str], out, stop_signal, env=None) -> subprocess.Popen:
     with out.open("wb") as sink:
-        proc = subprocess.Popen(cmd, stdout=sink, stderr=subprocess.STDOUT)
+        proc = subprocess.Popen(cmd, stdout=sink, stderr=subprocess.STDOUT, env=env)
         try:
             deadline = time.monotonic() + 120
             while "ingest exited with code 0" not in out.read_text():
@@ -34,6 +38,14 @@ def test_up_runs_the_simulator_through_and_stops_cleanly(tmp_path, stop_signal):
         finally:
             proc.send_signal(stop_signal)
             proc.wait(60)
+    return proc
+
+
+@pytest.mark.parametrize("stop_signal", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_up_runs_the_simulator_through_and_stops_cleanly(tmp_path, stop_signal):
+    out = tmp_path / "up.out"
+    data = tmp_path / "data"
+    proc = run_until_ingest_is_done(up_command(data), out, stop_signal)
     text = out.read_text()
     assert proc.returncode == 0, text
     for line in ("gateway:  http://127.0.0.1:", f"data dir: {data}", "Ctrl-C stops everything."):
@@ -41,3 +53,24 @@ def test_up_runs_the_simulator_through_and_stops_cleanly(tmp_path, stop_signal):
     for service in ("ingest", "gateway", "mapserver", "matcher", "deskew", "router"):
         assert f"  {service}: exit 0" in text, text
     assert (data / "robot.snapshot.npz").exists()
+
+
+def test_up_on_a_prior_map_localises_without_changing_it(tmp_path):
+    maps, data, out = tmp_path / "maps", tmp_path / "data", tmp_path / "up.out"
+    subprocess.run([sys.executable, "-m", "scanflow", "run", "--duration", "3", "--json",
+                    "--map-out", str(maps)], check=True, capture_output=True)
+    env = {**os.environ, "SCANFLOW_FRONTEND_UPDATE_MAP": "false"}
+    cmd = up_command(data, "--prior-map", str(maps / "map.npz"))
+    proc = run_until_ingest_is_done(cmd, out, signal.SIGINT, env)
+    text = out.read_text()
+    assert proc.returncode == 0, text
+    assert f"map:      every robot starts on {maps / 'map.npz'}" in text
+    # The map server started the robot on the prior map, and localising inserted nothing.
+    served = load_map(data / "robot.snapshot.npz")
+    np.testing.assert_array_equal(served.log_odds, load_map(maps / "map.npz").log_odds)
+
+
+def test_up_names_a_missing_prior_map(tmp_path):
+    cmd = up_command(tmp_path / "data", "--prior-map", str(tmp_path / "none.npz"))
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and "no file at" in done.stderr

@@ -22,6 +22,10 @@ def up(
     zenoh_port: Annotated[int, typer.Option(help="router TCP port on 127.0.0.1")] = 7447,
     data_dir: Annotated[Path, typer.Option(help="map snapshots")] = Path("scanflow-data"),
     limit: Annotated[int | None, typer.Option(help="publish at most this many scans")] = None,
+    prior_map: Annotated[
+        Path | None,
+        typer.Option("--prior-map", help="start every robot on this map (.npz or .yaml)"),
+    ] = None,
 ) -> None:
     """Start the whole pipeline as local processes; stop them all on Ctrl-C or SIGTERM.
     Exits 0 when every service stopped cleanly, else 1 naming the ones that did not."""
@@ -36,6 +40,10 @@ def up(
         settings["SCANFLOW_INGEST_LOG"] = str(log.resolve())
     if limit is not None:
         settings["SCANFLOW_INGEST_LIMIT"] = str(limit)
+    if prior_map is not None:
+        if not prior_map.is_file():
+            raise typer.BadParameter(f"no file at {prior_map}", param_hint="--prior-map")
+        settings["SCANFLOW_FRONTEND_PRIOR_MAP"] = str(prior_map.resolve())
     log_dir = Path(tempfile.mkdtemp(prefix="scanflow-up-"))
     launcher = Launcher.local(log_dir, zenoh_port, **settings)
     stopping = False
@@ -57,6 +65,8 @@ def up(
                 launcher.wait_healthy(PIPELINE)
             launcher.start(name)
         typer.echo(f"source:   {log or 'built-in simulator'} at rate {rate}")
+        if prior_map is not None:
+            typer.echo(f"map:      every robot starts on {prior_map.resolve()}")
         typer.echo(f"gateway:  http://127.0.0.1:{port}/")
         typer.echo(f"zenoh:    tcp/127.0.0.1:{zenoh_port} (SCANFLOW_ZENOH_CONNECT)")
         typer.echo(f"data dir: {data_dir.resolve()}")
