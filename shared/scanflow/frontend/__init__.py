@@ -5,6 +5,9 @@
     out = frontend.process(points_m, stamp_s, odom_pose, seq, no_return_m, mount)  # FrontendOutput
     out.pose, out.covariance, out.status, out.inserted ...
     frontend.map (MatchingMap, the robot's map), frontend.trajectory.save_tum(path)
+    Frontend(settings, initial_pose=None, grid=prior)  # on a prior map, start searched for
+    frontend.set_pose(pose)                    # an operator's pose (ROS's /initialpose)
+    FrontendStart(settings).pose, .grid()      # scanflow.frontend.prior: what the settings name
     insert_scan(matching_map, points_m, pose, no_return_m, mount)  # the map insertion (map servers)
 
 See `scanflow.frontend.tracker` for what happens to each scan.

@@ -52,7 +52,7 @@ from scanflow.matching.global_search import localise_globally
 
 
 class FrontendStatus(StrEnum):
-    """What the front end did with a scan. The first three mean the pose is a match."""
+    """What the front end did with a scan. The first four mean the pose is a match."""
 
     INITIALISED = "initialised"
     LOCALISED = "localised"  # found by the whole-map search
