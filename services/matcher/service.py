@@ -112,19 +112,22 @@ class MatcherService:
     # -- robots ---------------------------------------------------------------------------
     def _frontend(self, robot_id: str, seq: int, fresh: bool = False) -> Frontend:
         """The robot's front end; created on first sight (seeded from the map server when the
-        stream is already under way), replaced by a fresh one when the stream restarts."""
+        stream is already under way), replaced by a fresh one when the stream restarts. An
+        operator's pose sent before it existed is applied as it is stored (one lock: a pose
+        arriving meanwhile finds it)."""
         frontend = self.frontends.get(robot_id)
         if frontend is not None and not fresh:
             return frontend
         new = self._seeded(robot_id) if frontend is None and seq > 0 else None
         if new is None:
-            with self.lock:
-                pose = self.initial_poses.pop(robot_id, self.start.pose)
-            new = Frontend(self.frontend_settings, pose, self.start.grid())
+            new = Frontend(self.frontend_settings, self.start.pose, self.start.grid())
         if frontend is None:
             self.shell.serve(keys.robot_match(robot_id, self.shell.prefix), self._on_match)
         with self.lock:
             self.frontends[robot_id] = new
+            told = self.initial_poses.pop(robot_id, None)
+            if told is not None:
+                new.set_pose(told)
         return new
 
     def _seeded(self, robot_id: str) -> Frontend | None:
