@@ -25,4 +25,12 @@ def main() -> None:
 
 def _register() -> None:
     # Subcommand modules attach themselves to `app` on import.
-    from scanflow.cli import inspect, run, serve, simulate, up, version  # noqa: F401
+    from scanflow.cli import (  # noqa: F401
+        calibrate,
+        inspect,
+        run,
+        serve,
+        simulate,
+        up,
+        version,
+    )
