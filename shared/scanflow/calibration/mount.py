@@ -82,10 +82,12 @@ def _fit(
 ) -> tuple[NDArray[np.float64], float]:
     """(t_X, phi_X) of the constrained least squares."""
     a1, a2, b = _design(robot, sensor)
-    pinv = np.linalg.pinv(a1)
-    project = np.eye(len(b)) - a1 @ pinv  # removes what t_X can explain
-    m = a2.T @ project @ a2
-    g = a2.T @ project @ b
+    # t_X = N^-1 A1' (b - A2 u) with N = A1' A1 (2 x 2); what is left is quadratic in u.
+    # Normal equations only: memory stays O(n), not the (2n)^2 projector.
+    n_inv = np.linalg.pinv(a1.T @ a1)
+    cross = a2.T @ a1
+    m = a2.T @ a2 - cross @ n_inv @ cross.T
+    g = a2.T @ b - cross @ n_inv @ (a1.T @ b)
     # f(phi) = u' M u - 2 g' u on the unit circle: coarse grid, then two finer ones.
     best, span = 0.0, math.pi
     for steps in (3600, 2001, 2001):
@@ -95,7 +97,7 @@ def _fit(
         best = float(phi[np.argmin(cost)])
         span = 4.0 * (2.0 * span / (steps - 1))
     u = np.array([math.cos(best), math.sin(best)])
-    return pinv @ (b - a2 @ u), best
+    return n_inv @ (a1.T @ (b - a2 @ u)), best
 
 
 def _residuals(
