@@ -18,6 +18,7 @@ current map).
 
 from __future__ import annotations
 
+import copy
 import io
 import threading
 
@@ -30,12 +31,14 @@ from scanflow.frontend.prior import FrontendStart
 from scanflow.geometry import Pose2D
 from scanflow.maps.export import grid_from_npz
 from scanflow.maps.matching_map import MatchingMap
+from scanflow.matching.global_search import GLOBAL_METHOD
 from scanflow.warmup import warm_up
 from scanflow.wire import (
     DeskewedScanMessage,
     InitialPoseMessage,
     MapImageMessage,
     MapInsertMessage,
+    MapRef,
     MatchRequest,
     PoseEstimateMessage,
     TrajectoryMessage,
@@ -189,8 +192,16 @@ class MatcherService:
         if payload is None:
             raise ValueError("a match query needs a MatchRequest payload")
         request = MatchRequest.decode(payload.to_bytes())
-        with self.lock:
-            response = answer(request, self._map_of)
+        if request.method == GLOBAL_METHOD and isinstance(request.target, MapRef):
+            # A whole-map search takes seconds: it runs on a copy of the map (2 ms to take),
+            # so the robot's tracking goes on meanwhile instead of waiting for the lock.
+            with self.lock:
+                live = self._map_of(request.target.robot_id)
+                snapshot = None if live is None else MatchingMap(copy.deepcopy(live.grid))
+            response = answer(request, lambda _robot_id: snapshot)
+        else:
+            with self.lock:
+                response = answer(request, self._map_of)
         self.shell.counters.add("match_requests")
         query.reply(query.key_expr, response.encode())
 
