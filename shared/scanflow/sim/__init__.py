@@ -6,7 +6,7 @@ embedded default the whole product runs on when no log is given.
 
 from scanflow.sim.lidar import LidarModel, measure
 from scanflow.sim.odometry import odometry_poses
-from scanflow.sim.raycast import cast_rays
+from scanflow.sim.raycast import cast_rays, static_scan
 from scanflow.sim.run import SimConfig, SimFrame, simulate
 from scanflow.sim.trajectory import (
     ConstantVelocityTrajectory,
@@ -30,5 +30,6 @@ __all__ = [
     "measure",
     "odometry_poses",
     "simulate",
+    "static_scan",
     "tour_trajectory",
 ]

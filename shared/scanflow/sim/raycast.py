@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from scanflow.geometry import Pose2D
+
 _PARALLEL_EPS = 1e-12
 
 
@@ -32,3 +34,23 @@ def cast_rays(
     distance = np.where(hit, t, np.inf).min(axis=1)
     distance[distance > range_max_m] = np.inf
     return distance
+
+
+def static_scan(
+    segments: NDArray[np.float64],
+    pose: Pose2D,
+    angles_rad: NDArray[np.float64],
+    range_max_m: float,
+    noise_m: float = 0.0,
+    rng: np.random.Generator | None = None,
+) -> NDArray[np.float64]:
+    """Valid endpoints (N, 2), in the sensor's own frame, of a scan taken standing still at
+    `pose` (world) with beams at `angles_rad`: no motion distortion, optional Gaussian range
+    noise (drawn from `rng`, seed 0 by default). Rays that hit nothing are left out."""
+    ranges = cast_rays(np.tile([pose.x, pose.y], (len(angles_rad), 1)), angles_rad + pose.theta,
+                       segments, range_max_m)
+    if noise_m > 0:
+        ranges = ranges + (rng or np.random.default_rng(0)).normal(0.0, noise_m, ranges.shape)
+    ok = np.isfinite(ranges)
+    a = angles_rad[ok]
+    return np.column_stack((ranges[ok] * np.cos(a), ranges[ok] * np.sin(a)))

@@ -8,18 +8,14 @@ import numpy as np
 import pytest
 from scanflow.calibration import estimate_mount, paired_motions
 from scanflow.geometry import Pose2D
-from scanflow.sim import cast_rays, get_world
+from scanflow.sim import get_world, static_scan
 
 
 def sensor_scan(laser: Pose2D, beams: int = 360) -> np.ndarray:
     """Endpoints in the lidar's own frame of a 270 deg scan from `laser` (world), 1 cm noise."""
     angles = np.radians(np.linspace(-135.0, 135.0, beams))
-    ranges = cast_rays(np.tile([laser.x, laser.y], (beams, 1)), angles + laser.theta,
-                       get_world("rooms").segments, 20.0)
     rng = np.random.default_rng(int(1000 * (laser.x + 2 * laser.y)) % 2**32)
-    ranges = ranges + rng.normal(0.0, 0.01, beams)
-    ok = np.isfinite(ranges)
-    return np.column_stack((ranges[ok] * np.cos(angles[ok]), ranges[ok] * np.sin(angles[ok])))
+    return static_scan(get_world("rooms").segments, laser, angles, 20.0, 0.01, rng)
 
 
 def tour(count: int) -> list[Pose2D]:

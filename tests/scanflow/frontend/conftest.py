@@ -9,7 +9,7 @@ import pytest
 from numpy.typing import NDArray
 from scanflow.config import FrontendSettings
 from scanflow.geometry import Pose2D
-from scanflow.sim import cast_rays, get_world
+from scanflow.sim import get_world, static_scan
 
 BEAMS = 360
 RANGE_MAX_M = 12.0
@@ -17,12 +17,8 @@ RANGE_MAX_M = 12.0
 
 def scan_points(pose: Pose2D, beams: int = BEAMS) -> NDArray[np.float64]:
     """Valid endpoints (sensor frame) of a full-circle scan taken at `pose` in `rooms`."""
-    segments = get_world("rooms").segments
     angles = np.arange(beams) * (2 * np.pi / beams)
-    ranges = cast_rays(np.tile([pose.x, pose.y], (beams, 1)), angles + pose.theta, segments,
-                       RANGE_MAX_M)
-    ok = np.isfinite(ranges)
-    return np.column_stack((ranges[ok] * np.cos(angles[ok]), ranges[ok] * np.sin(angles[ok])))
+    return static_scan(get_world("rooms").segments, pose, angles, RANGE_MAX_M)
 
 
 @pytest.fixture

@@ -12,7 +12,7 @@ from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
 from scanflow.matching import MatchInputError, MatchStatus, available_methods, match
 from scanflow.matching.global_search import localise_globally
-from scanflow.sim import cast_rays, get_world
+from scanflow.sim import get_world, static_scan
 
 # Map frame turned against the world, so walls do not lie along cell boundaries.
 MAP_FROM_WORLD = Pose2D(0.37, -0.21, 0.4)
@@ -23,10 +23,7 @@ def cast(
 ) -> np.ndarray:
     """Endpoints (robot frame) of a full-circle scan from `pose` (world), 12 m range."""
     angles = np.arange(beams) * (2 * math.pi / beams)
-    ranges = cast_rays(np.tile([pose.x, pose.y], (beams, 1)), angles + pose.theta, segments, 12.0)
-    ranges = ranges + np.random.default_rng(seed).normal(0.0, noise_m, beams)
-    ok = np.isfinite(ranges)
-    return np.column_stack((ranges[ok] * np.cos(angles[ok]), ranges[ok] * np.sin(angles[ok])))
+    return static_scan(segments, pose, angles, 12.0, noise_m, np.random.default_rng(seed))
 
 
 def mapped(segments: np.ndarray, poses: list[Pose2D]) -> MatchingMap:

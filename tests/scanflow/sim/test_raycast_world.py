@@ -2,7 +2,8 @@ import math
 
 import numpy as np
 import pytest
-from scanflow.sim import WORLDS, cast_rays, get_world, tour_trajectory
+from scanflow.geometry import Pose2D
+from scanflow.sim import WORLDS, cast_rays, get_world, static_scan, tour_trajectory
 
 
 def _square(half_m: float) -> np.ndarray:
@@ -15,6 +16,19 @@ def test_rays_from_centre_of_square_room_hit_at_exact_distances():
     distance = cast_rays(np.zeros((angles.size, 2)), angles, _square(2.0), 30.0)
     expected = 2.0 / np.maximum(np.abs(np.cos(angles)), np.abs(np.sin(angles)))
     np.testing.assert_allclose(distance, expected, rtol=1e-12)
+
+
+def test_a_static_scan_is_in_the_sensors_frame_with_misses_left_out():
+    pose = Pose2D(0.5, -0.5, 0.7)  # in a 4 m square, walls 1.5 m ahead and 2.5 m behind in x
+    angles = np.radians(np.arange(0.0, 360.0, 1.0))
+    points = static_scan(_square(2.0), pose, angles, 30.0)
+    world = pose.transform_points(points)
+    on_wall = np.isclose(np.abs(world).max(axis=1), 2.0, atol=1e-9)
+    assert points.shape == (360, 2) and on_wall.all()
+    assert len(static_scan(_square(2.0), pose, angles, 1.6)) < 360  # beyond range: left out
+    noisy = static_scan(_square(2.0), pose, angles, 30.0, 0.01, np.random.default_rng(1))
+    spread = np.linalg.norm(noisy, axis=1) - np.linalg.norm(points, axis=1)
+    assert 0.005 < spread.std() < 0.015
 
 
 def test_off_centre_ray_and_range_limit():
