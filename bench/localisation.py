@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import tempfile
 import time
@@ -33,7 +32,6 @@ from pathlib import Path
 import numpy as np
 from scanflow.config import FrontendSettings
 from scanflow.frontend import default_settings, insert_scan
-from scanflow.geometry import Pose2D
 from scanflow.io.carmen import Keyframe, load_keyframes
 from scanflow.maps.export import load_map, save_map
 from scanflow.maps.matching_map import MatchingMap
@@ -43,7 +41,9 @@ from scanflow.matching.global_search import localise_globally
 from scanflow.pipeline import Pipeline
 from tqdm import tqdm
 
-GROSS_M, GROSS_RAD = 0.5, math.radians(5.0)
+from bench.matching import errors, shares_within
+
+GROSS_M, GROSS_DEG = 0.5, 5.0
 
 
 def prior_map(frames: list[Keyframe], resolution_m: float, folder: Path) -> OccupancyGrid:
@@ -54,20 +54,15 @@ def prior_map(frames: list[Keyframe], resolution_m: float, folder: Path) -> Occu
     return load_map(save_map(world.grid, folder / "prior.npz"))
 
 
-def errors(estimate: Pose2D, truth: Pose2D) -> tuple[float, float]:
-    d = estimate.relative_to(truth)
-    return d.translation_norm(), abs(d.theta)
-
-
 def rates(errs: list[tuple[float, float]]) -> dict[str, float]:
+    """Success shares at bench.matching's THRESHOLDS and error percentiles of (m, deg) errors."""
     e = np.asarray(errs).reshape(-1, 2)
     return {
-        "success_5cm_0.5deg": float(np.mean((e[:, 0] <= 0.05) & (e[:, 1] <= math.radians(0.5)))),
-        "success_10cm_1deg": float(np.mean((e[:, 0] <= 0.10) & (e[:, 1] <= math.radians(1.0)))),
+        **shares_within("success", e[:, 0], e[:, 1]),
         "t50_m": float(np.median(e[:, 0])),
         "t95_m": float(np.percentile(e[:, 0], 95)),
-        "r50_deg": math.degrees(float(np.median(e[:, 1]))),
-        "r95_deg": math.degrees(float(np.percentile(e[:, 1], 95))),
+        "r50_deg": float(np.median(e[:, 1])),
+        "r95_deg": float(np.percentile(e[:, 1], 95)),
     }
 
 
@@ -81,10 +76,10 @@ def global_part(
         t0 = time.perf_counter()
         found = localise_globally(kf.scan.robot_points(), world, refine=method, level=level)
         times.append(time.perf_counter() - t0)
-        err = errors(found.pose, kf.true_pose)
+        err = errors(kf.true_pose, found.pose)
         errs.append(err)
         ambiguous += found.status is MatchStatus.AMBIGUOUS
-        gross_ok += found.ok and (err[0] > GROSS_M or err[1] > GROSS_RAD)
+        gross_ok += found.ok and (err[0] > GROSS_M or err[1] > GROSS_DEG)
     ms = np.asarray(times) * 1e3
     return {
         "queries": len(queries),
@@ -109,7 +104,7 @@ def tracking_part(
     for kf in tqdm(visit, desc="tracking", file=sys.stderr, leave=False):
         est = pipeline.process(kf.scan, kf.odom_pose).estimate
         statuses[str(est.status)] = statuses.get(str(est.status), 0) + 1
-        errs.append(errors(est.pose, kf.true_pose))
+        errs.append(errors(kf.true_pose, est.pose))
     wall_s = time.perf_counter() - t0
     e = np.asarray(errs)
     return {

@@ -1,7 +1,6 @@
 """bench.localisation: the success figures and the CLI end to end on a real log."""
 
 import json
-import math
 import os
 import subprocess
 import sys
@@ -17,8 +16,7 @@ LOG = DATA / "aces-corrected.log.gz"
 
 
 def test_rates_count_both_bars() -> None:
-    errs = [(0.01, math.radians(0.1)), (0.07, math.radians(0.2)), (0.02, math.radians(0.9)),
-            (0.5, 0.0)]
+    errs = [(0.01, 0.1), (0.07, 0.2), (0.02, 0.9), (0.5, 0.0)]  # (metres, degrees)
     r = rates(errs)
     assert r["success_5cm_0.5deg"] == 0.25 and r["success_10cm_1deg"] == 0.75
     assert r["t50_m"] == pytest.approx(0.045)
