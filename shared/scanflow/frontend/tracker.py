@@ -300,14 +300,13 @@ class Frontend:
         self, step: _Step, status: FrontendStatus, result: MatchResult | None, note: str
     ) -> FrontendOutput:
         """Adopt the match (accepted) or the prediction (rejected), insert if due, report."""
-        if status is FrontendStatus.REJECTED:
-            self._rejections += 1
-        elif status in ACCEPTED:
-            self._rejections = 0
         if status in ACCEPTED:
+            self._rejections = 0
             pose = step.prediction.pose if result is None else result.pose
             self._covariance = np.zeros((3, 3)) if result is None else result.covariance
         else:
+            # Too few points leave the count of rejections in a row as it is.
+            self._rejections += status is FrontendStatus.REJECTED
             # The map is not touched; uncertainty grows with the motion since the last match.
             pose = step.prediction.pose
             self._covariance = self._covariance + self._motion_noise(step.prediction.motion)
