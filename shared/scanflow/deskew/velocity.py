@@ -54,6 +54,12 @@ class ConstantVelocityModel:
                 self.reset_reason = ""
         self._last = (stamp_s, pose)
 
+    def move_frame(self, correction: Pose2D) -> None:
+        """Re-express the model in another world frame (T_new_old = `correction`): the last pose
+        moves with it, the body-frame twist does not change."""
+        if self._last is not None:
+            self._last = (self._last[0], correction * self._last[1])
+
     def coverage_gap(self, start_s: float, end_s: float) -> str | None:
         """None when the prior can predict [start_s, end_s], else why not."""
         if self._twist is None or self._last is None:

@@ -41,3 +41,8 @@ class MotionFilter:
 
     def mark_inserted(self, stamp_s: float, pose: Pose2D) -> None:
         self._last = (float(stamp_s), pose)
+
+    def move_frame(self, correction: Pose2D) -> None:
+        """Re-express the last insertion in another map frame (T_new_old = `correction`)."""
+        if self._last is not None:
+            self._last = (self._last[0], correction * self._last[1])

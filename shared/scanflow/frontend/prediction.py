@@ -111,6 +111,13 @@ class MotionPredictor:
         self._last_pose = pose
         self._last_odom = None
 
+    def move_frame(self, correction: Pose2D) -> None:
+        """Re-express the estimates in another map frame (T_new_old = `correction`, a map
+        redrawn after a pose-graph optimisation): the odometry chain and velocity carry on."""
+        if self._last_pose is not None:
+            self._last_pose = correction * self._last_pose
+        self._velocity.move_frame(correction)
+
     def restart(self, stamp_s: float, pose: Pose2D, odom_pose: Pose2D | None) -> None:
         """Record a pose that is not a motion from the last one (found by a whole-map search):
         the velocity is forgotten, so the jump is not extrapolated."""

@@ -16,9 +16,12 @@ from scanflow.frontend import (
     FrontendOutput,
     FrontendStatus,
     PredictionSource,
+    insert_scan,
     occupancy_params,
 )
 from scanflow.geometry import Pose2D
+from scanflow.maps.matching_map import MatchingMap
+from scanflow.maps.occupancy import OccupancyGrid
 
 START = Pose2D(2.5, 2.0, 0.0)
 # The map frame is turned against the world so walls do not lie on grid cell boundaries.
@@ -290,3 +293,25 @@ def test_no_return_clear_distance_comes_from_the_settings():
     settings = FrontendSettings(no_return_clear_m=1.5, map_resolution_m=0.1)
     assert Frontend(settings).map.grid.params.no_return_clear_m == 1.5
     assert occupancy_params(settings).resolution_m == 0.1
+
+
+def test_a_redrawn_map_in_another_frame_is_tracked_on(scan_at: Scanner) -> None:
+    """`redraw` hands the front end the same world drawn in another frame (as the back end does
+    after optimising): the next scan is predicted and matched there, odometry carrying on."""
+    settings = FrontendSettings.model_construct()
+    poses = [START * Pose2D(0.1 * i, 0.0, 0.03 * i) for i in range(7)]
+    frontend = Frontend(settings, initial_pose=START_IN_MAP)
+    run(frontend, scan_at, poses[:5], poses[:5])
+    correction = Pose2D(3.0, -1.0, 0.4)  # T_new_old
+    new_from_world = correction * MAP_FROM_WORLD
+    redrawn = MatchingMap(OccupancyGrid(occupancy_params(settings)))
+    for pose in poses[:5]:
+        insert_scan(redrawn, scan_at(pose), new_from_world * pose)
+    frontend.redraw(redrawn, correction)
+    assert frontend.map is redrawn
+    moved = frontend.pose.relative_to(new_from_world * poses[4])
+    assert moved.translation_norm() < 0.03
+    out = frontend.process(scan_at(poses[5]), 0.5, odom_pose=poses[5])
+    assert out.status is FrontendStatus.TRACKED
+    assert out.prediction_source == PredictionSource.ODOMETRY
+    assert out.pose.relative_to(new_from_world * poses[5]).translation_norm() < 0.03
