@@ -278,3 +278,59 @@ class FrontendSettings(BaseSettings):
     def start_pose(self) -> Pose2D | None:
         """`initial_pose` as a pose (yaw in radians), None when unknown."""
         return _pose_of(self.initial_pose)
+
+
+class BackendSettings(BaseSettings):
+    """Loop closure and pose-graph optimisation (SCANFLOW_BACKEND_*): `scanflow.backend`."""
+
+    model_config = SettingsConfigDict(env_prefix="SCANFLOW_BACKEND_", extra="ignore")
+
+    loop_closure: bool = Field(
+        False, description="close loops and optimise the keyframes' pose graph (`scanflow run`)"
+    )
+    search_radius_m: float = Field(
+        5.0, gt=0.0, description="earlier keyframes this near (by the estimates) are candidates"
+    )
+    min_travel_m: float = Field(
+        10.0, gt=0.0, description="a candidate lies at least this far back along the path"
+    )
+    max_candidates: int = Field(2, ge=1, description="candidates searched per keyframe")
+    submap_half_nodes: int = Field(
+        5, ge=0, description="a candidate's submap: keyframes j-w .. j+w"
+    )
+    linear_m: float = Field(1.0, gt=0.0, description="search window half-width around the guess")
+    angular_deg: float = Field(20.0, gt=0.0, description="search window half-angle")
+    method: str = Field("gn", description="refines the search's best pose on the submap")
+    min_score: float = Field(0.5, description="lowest refined match score kept as a closure")
+    max_position_std_m: float = Field(0.1, gt=0.0, description="largest sqrt(var x/y) kept")
+    max_heading_std_deg: float = Field(2.0, gt=0.0)
+    ambiguity_ratio: float = Field(
+        0.9, gt=0.0, le=1.0, description="a distinct rival scoring this x the best: no closure"
+    )
+    rival_distance_m: float = Field(0.5, gt=0.0, description="rivals lie this far from the best")
+    rival_angle_deg: float = Field(10.0, gt=0.0, description="or this far in heading")
+    confirm_keyframes: int = Field(
+        3, ge=0, description="a closure waits this many keyframes for another that implies the "
+        "same correction before it enters the graph; 0 = every closure enters at once"
+    )
+    confirm_m: float = Field(0.05, gt=0.0, description="two corrections agree within this")
+    confirm_deg: float = Field(0.5, gt=0.0, description="and this")
+    keyframe_std_m: float = Field(
+        0.02, gt=0.0, description="std of the front end's motion between keyframes, fixed part"
+    )
+    keyframe_std_per_m: float = Field(0.02, ge=0.0, description="and per metre moved")
+    keyframe_std_deg: float = Field(0.3, gt=0.0, description="heading std, fixed part")
+    keyframe_std_deg_per_deg: float = Field(0.02, ge=0.0, description="and per degree turned")
+    loop_min_std_m: float = Field(0.03, gt=0.0, description="floor of a closure's position std")
+    loop_min_std_deg: float = Field(0.5, gt=0.0, description="floor of its heading std")
+    robust_scale: float = Field(
+        2.0, gt=0.0, description="Cauchy kernel scale on closures, in standard deviations"
+    )
+    optimise_every: int = Field(
+        10, ge=1, description="optimise after this many keyframes when a closure came meanwhile"
+    )
+    redraw_shift_m: float = Field(
+        0.2, gt=0.0, description="redraw the tracking map when optimising moves a keyframe "
+        "this far against it"
+    )
+    redraw_shift_deg: float = Field(2.0, gt=0.0, description="or turns one this much")

@@ -11,15 +11,18 @@ deskewed with the odometry that came before it.)
     pipeline = Pipeline(settings)              # FrontendSettings; deskew on by default
     pipeline.add_odometry(sample)              # every Odometry sample, in any order
     out = pipeline.process(scan)               # -> PipelineOutput (deskew result + estimate)
+    Pipeline(settings, backend=BackendSettings(loop_closure=True))   # + loop closure:
+    pipeline.finish(); pipeline.mapper.trajectory(), pipeline.frontend.map    # optimised
 """
 
 from __future__ import annotations
 
 import time
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
-from scanflow.config import FrontendSettings
+from scanflow.backend import Mapper, MapperStep
+from scanflow.config import BackendSettings, FrontendSettings
 from scanflow.deskew import (
     DEFAULT_REFERENCE,
     ConstantVelocityModel,
@@ -90,6 +93,7 @@ class PipelineOutput:
     deskew: DeskewResult
     estimate: FrontendOutput
     deskew_time_s: float
+    backend: MapperStep | None = None  # what loop closure did (None: it is off)
 
 
 class Pipeline:
@@ -103,10 +107,16 @@ class Pipeline:
         reference: Reference = DEFAULT_REFERENCE,
         initial_pose: Pose2D | None = None,
         grid: OccupancyGrid | None = None,
+        backend: BackendSettings | None = None,
     ) -> None:
-        """`grid`: a prior map to track against (and extend), else a new empty one."""
+        """`grid`: a prior map to track against (and extend), else a new empty one;
+        `backend` with loop_closure on: keyframes, loop closures and a pose graph as well."""
         self.deskew_stage = DeskewStage(reference, enabled=deskew_enabled)
         self.frontend = Frontend(settings, initial_pose, grid)
+        self.mapper = (
+            Mapper(self.frontend, backend) if backend is not None and backend.loop_closure
+            else None
+        )
 
     def add_odometry(self, sample: Odometry) -> None:
         self.deskew_stage.add_odometry(sample)
@@ -123,6 +133,18 @@ class Pipeline:
         estimate = self.frontend.process(
             result.points, stamp_s, odom_pose, scan.seq, result.no_return_points, result.mount
         )
+        step = None
+        if self.mapper is not None:
+            step = self.mapper.add(
+                estimate, result.points, result.no_return_points, result.mount
+            )
+            if step.correction is not None:  # the front end's map frame moved: follow it
+                self.deskew_stage.velocity.move_frame(step.correction)
+                estimate = replace(estimate, pose=step.correction * estimate.pose)
         if estimate.accepted:
             self.deskew_stage.observe_pose(stamp_s, estimate.pose)
-        return PipelineOutput(result, estimate, deskew_time_s)
+        return PipelineOutput(result, estimate, deskew_time_s, step)
+
+    def finish(self) -> MapperStep | None:
+        """End of the log: the back end's last optimisation (None without loop closure)."""
+        return None if self.mapper is None else self.mapper.finish()

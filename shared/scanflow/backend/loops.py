@@ -1,0 +1,141 @@
+"""Loop closure: recognise a place seen before and measure the robot's pose relative to it.
+
+For a new keyframe k the candidates are earlier keyframes j within `search_radius_m` of it by the
+current estimates and at least `min_travel_m` back along the path (nearer ones are already tied
+to k through the chain of keyframes). A candidate's submap is keyframes j-w .. j+w drawn into
+j's frame at their current relative poses, free space included (a small MatchingMap). Scan k is
+searched on it by branch and bound over +-linear_m / +-angular_deg around the estimated
+relative pose, and the best pose is refined with `method` (Cartographer's constraint builder).
+The closure is kept when the refined match passes the front end's checks, scores at least
+`min_score`, and no distinct pose of the window scores within `ambiguity_ratio` of the best (a
+corridor or a look-alike room). The measurement T_j^-1 T_k and its covariance become a robust
+edge of the pose graph, which can still out-vote a wrong one.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from scanflow.config import BackendSettings
+from scanflow.frontend.acceptance import AcceptanceLimits, rejection_reason
+from scanflow.frontend.tracker import insert_scan
+from scanflow.geometry import Pose2D
+from scanflow.maps.matching_map import MatchingMap
+from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
+from scanflow.matching import match
+
+SUBMAPS_KEPT = 64  # candidate submaps cached between keyframes (a few MB)
+
+
+@dataclass(frozen=True, eq=False)
+class ScanNode:
+    """A keyframe as the back end keeps it: its scan in the robot's frame at `stamp_s`."""
+
+    stamp_s: float
+    points: NDArray[np.float64]
+    no_return: NDArray[np.float64]
+    mount: Pose2D
+
+
+@dataclass(frozen=True, eq=False)
+class LoopClosure:
+    """Keyframe `newer` seen from keyframe `older`: T_older^-1 T_newer = measurement."""
+
+    older: int
+    newer: int
+    measurement: Pose2D
+    covariance: NDArray[np.float64]
+    score: float
+    rival_ratio: float  # best distinct rival's search score / the best's (0: none)
+
+
+def loop_candidates(
+    poses: NDArray[np.float64], travelled_m: NDArray[np.float64], k: int,
+    settings: BackendSettings,
+) -> list[int]:
+    """Keyframes j < k within search_radius_m of k and min_travel_m back along the path,
+    nearest first, at most max_candidates, each from a different stretch of the path (their
+    submaps would overlap otherwise)."""
+    older = np.flatnonzero(travelled_m[:k] <= travelled_m[k] - settings.min_travel_m)
+    if len(older) == 0:
+        return []
+    distance = np.hypot(poses[older, 0] - poses[k, 0], poses[older, 1] - poses[k, 1])
+    near = older[distance <= settings.search_radius_m]
+    chosen: list[int] = []
+    for j in near[np.argsort(distance[distance <= settings.search_radius_m], kind="stable")]:
+        if all(abs(travelled_m[j] - travelled_m[c]) > settings.min_travel_m for c in chosen):
+            chosen.append(int(j))
+        if len(chosen) == settings.max_candidates:
+            break
+    return chosen
+
+
+class LoopDetector:
+    """Finds and measures loop closures for new keyframes (see the module docstring)."""
+
+    def __init__(self, settings: BackendSettings, params: OccupancyParams) -> None:
+        self.settings = settings
+        self.params = params
+        self._limits = AcceptanceLimits(
+            max_correction_m=settings.linear_m,
+            max_correction_rad=math.radians(settings.angular_deg),
+            min_score=settings.min_score,
+            max_position_std_m=settings.max_position_std_m,
+            max_heading_std_rad=math.radians(settings.max_heading_std_deg),
+            accept_degenerate=False,
+        )
+        self._submaps: OrderedDict[int, MatchingMap] = OrderedDict()
+
+    def forget_submaps(self) -> None:
+        """Drop cached submaps (the keyframes' relative poses changed)."""
+        self._submaps.clear()
+
+    def submap(self, nodes: list[ScanNode], poses: NDArray[np.float64], j: int) -> MatchingMap:
+        """Keyframes j-w .. j+w (w = submap_half_nodes, only those before the newest one) in
+        keyframe j's frame."""
+        cached = self._submaps.get(j)
+        if cached is not None:
+            self._submaps.move_to_end(j)
+            return cached
+        frame = Pose2D.from_array(poses[j]).inverse()
+        submap = MatchingMap(OccupancyGrid(self.params))
+        w = self.settings.submap_half_nodes
+        for i in range(max(0, j - w), min(len(nodes), j + w + 1)):
+            node = nodes[i]
+            pose = frame * Pose2D.from_array(poses[i])
+            insert_scan(submap, node.points, pose, node.no_return, node.mount)
+        self._submaps[j] = submap
+        if len(self._submaps) > SUBMAPS_KEPT:
+            self._submaps.popitem(last=False)
+        return submap
+
+    def verify(
+        self, nodes: list[ScanNode], poses: NDArray[np.float64], j: int, k: int
+    ) -> LoopClosure | str:
+        """Match keyframe k on keyframe j's submap: the closure, or why there is none."""
+        s = self.settings
+        guess = Pose2D.from_array(poses[j]).inverse() * Pose2D.from_array(poses[k])
+        submap = self.submap(nodes, poses, j)
+        points = nodes[k].points
+        coarse = match(
+            points, submap, guess, method="csm", linear_m=s.linear_m,
+            angular_rad=math.radians(s.angular_deg), resolution_m=self.params.resolution_m,
+            candidates=2, suppress_m=s.rival_distance_m,
+            suppress_rad=math.radians(s.rival_angle_deg),
+        )
+        if not coarse.ok:
+            return f"search: {coarse.message}"
+        scores = coarse.extra["candidate_scores"]
+        rival = scores[1] / scores[0] if len(scores) > 1 and scores[0] > 0 else 0.0
+        if rival >= s.ambiguity_ratio:
+            return f"ambiguous: a distinct pose scores {rival:.2f} x the best"
+        fine = match(points, submap, coarse.pose, method=s.method)
+        reason = rejection_reason(fine, guess, self._limits)
+        if reason:
+            return reason
+        return LoopClosure(j, k, fine.pose, fine.covariance, fine.score, rival)

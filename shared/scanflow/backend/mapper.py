@@ -1,0 +1,241 @@
+"""Graph SLAM around the front end: keyframes become pose-graph nodes, loop closures robust
+edges, and the optimised graph redraws the map the front end tracks on.
+
+    mapper = Mapper(frontend, BackendSettings(loop_closure=True))
+    out = frontend.process(points, stamp_s, odom_pose, seq, no_return, mount)
+    step = mapper.add(out, points, no_return, mount)   # after every scan -> MapperStep
+    mapper.finish()                                     # last optimisation, final map
+    mapper.trajectory()                                 # every scan's corrected pose, (N, 3)
+
+Each scan the front end inserts is a keyframe: a node whose edge to the previous keyframe is
+the front end's motion between them (std `keyframe_std_*`). Each keyframe is checked for loop
+closures (`scanflow.backend.loops`). A closure enters the graph, as a robust edge, once a closure
+of another of the last `confirm_keyframes` keyframes to the same place implies the same
+correction of the estimates (within `confirm_m` / `confirm_deg`): a wrong closure seldom agrees
+with another. After `optimise_every` keyframes with a new closure the graph is optimised, and
+when that moves a keyframe more than `redraw_shift_*` against the front end's map, the map is
+redrawn from all keyframes at their optimised poses and the front end carries on in it
+(`Frontend.redraw`). A scan that is not a keyframe keeps its pose relative to the last keyframe,
+so it follows that keyframe's correction.
+
+Memory: the keyframes' points (16 bytes per return) and 32 bytes per scan.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from scanflow.backend.loops import LoopClosure, LoopDetector, ScanNode, loop_candidates
+from scanflow.backend.pose_graph import OptimiseReport, PoseGraph
+from scanflow.config import BackendSettings
+from scanflow.frontend.tracker import Frontend, FrontendOutput, insert_scan, occupancy_params
+from scanflow.geometry import IDENTITY, Pose2D, compose_arrays, normalize_angles
+from scanflow.maps.matching_map import MatchingMap
+from scanflow.maps.occupancy import OccupancyGrid
+
+
+@dataclass(frozen=True, eq=False)
+class MapperStep:
+    """What the back end did with one scan."""
+
+    node: int | None  # the keyframe's index, None when the scan is not one
+    closures: tuple[LoopClosure, ...] = ()
+    optimised: OptimiseReport | None = None
+    # Set when the map was redrawn: T_new_old, the front end's frame change.
+    correction: Pose2D | None = None
+
+    @property
+    def redrawn(self) -> bool:
+        return self.correction is not None
+
+
+def _rotated(covariance: NDArray[np.float64], theta: float) -> NDArray[np.float64]:
+    """A relative pose's covariance in the frame of a measurement turned by `theta`."""
+    c, s = math.cos(theta), math.sin(theta)
+    j = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    return j @ covariance @ j.T
+
+
+class Mapper:
+    """Keyframes, loop closures and the pose graph of one robot (see the module docstring)."""
+
+    def __init__(self, frontend: Frontend, settings: BackendSettings) -> None:
+        self.frontend = frontend
+        self.settings = settings
+        self.params = occupancy_params(frontend.settings)
+        self.graph = PoseGraph()
+        self.nodes: list[ScanNode] = []
+        self.closures: list[LoopClosure] = []
+        self.detector = LoopDetector(settings, self.params)
+        self._map_poses: list[Pose2D] = []  # keyframes in the front end's current map frame
+        self._travelled_m: list[float] = []
+        self._scan_node: list[int] = []  # per scan: the keyframe it hangs from
+        self._scan_offset: list[NDArray[np.float64]] = []  # its pose relative to that keyframe
+        self._waiting: list[tuple[LoopClosure, Pose2D]] = []  # closures and their corrections
+        self._pending = 0  # keyframes since the last optimisation that brought a closure
+        self._unoptimised = False
+
+    def add(
+        self,
+        out: FrontendOutput,
+        points_m: ArrayLike,
+        no_return_m: ArrayLike | None = None,
+        mount: Pose2D = IDENTITY,
+    ) -> MapperStep:
+        """Take the front end's output for one scan (with the points it processed)."""
+        if not out.inserted:
+            self._record_scan(out.pose)
+            return MapperStep(None)
+        node = self._add_node(out, points_m, no_return_m, mount)
+        self._record_scan(out.pose)  # before an optimisation can move the map's frame
+        closures = tuple(self._close_loops(node))
+        self._unoptimised |= bool(closures)
+        self._pending += 1
+        if self._unoptimised and self._pending >= self.settings.optimise_every:
+            return MapperStep(node, closures, *self._optimise())
+        return MapperStep(node, closures)
+
+    def finish(self) -> MapperStep:
+        """Optimise once more if a closure came since the last optimisation, and redraw the
+        map from the optimised keyframes if that moved any (call once the log has ended)."""
+        if not self._unoptimised:
+            return MapperStep(None)
+        return MapperStep(None, (), *self._optimise())
+
+    def trajectory(self) -> NDArray[np.float64]:
+        """Every scan's pose (x, y, theta), in the optimised graph's frame."""
+        if not self._scan_node:
+            return np.zeros((0, 3))
+        offsets = np.asarray(self._scan_offset)
+        if self.graph.node_count == 0:
+            return offsets
+        anchors = self.graph.poses[np.asarray(self._scan_node)]
+        return compose_arrays(anchors, offsets)
+
+    def draw_map(self) -> MatchingMap:
+        """A new map of every keyframe at its optimised pose."""
+        grid = MatchingMap(OccupancyGrid(self.params))
+        for node, pose in zip(self.nodes, self.graph.poses, strict=True):
+            insert_scan(grid, node.points, Pose2D.from_array(pose), node.no_return, node.mount)
+        return grid
+
+    def _add_node(
+        self, out: FrontendOutput, points_m: ArrayLike, no_return_m: ArrayLike | None,
+        mount: Pose2D,
+    ) -> int:
+        points = np.array(points_m, dtype=np.float64).reshape(-1, 2)
+        misses = np.zeros((0, 2)) if no_return_m is None else np.array(no_return_m, np.float64)
+        self.nodes.append(ScanNode(out.stamp_s, points, misses.reshape(-1, 2), mount))
+        if not self._map_poses:
+            index = self.graph.add_node(out.pose)
+            self._travelled_m.append(0.0)
+            # Scans before the first keyframe hang from it.
+            first = out.pose.inverse().to_array()
+            self._scan_offset = [compose_arrays(first, o)[0] for o in self._scan_offset]
+            self._scan_node = [0] * len(self._scan_node)
+        else:
+            motion = self._map_poses[-1].inverse() * out.pose
+            previous = self.graph.node_count - 1
+            index = self.graph.add_node(self.graph.pose(previous) * motion)
+            self.graph.add_edge(previous, index, motion, self._keyframe_information(motion))
+            self._travelled_m.append(self._travelled_m[-1] + motion.translation_norm())
+        self._map_poses.append(out.pose)
+        return index
+
+    def _keyframe_information(self, motion: Pose2D) -> NDArray[np.float64]:
+        s = self.settings
+        std_m = s.keyframe_std_m + s.keyframe_std_per_m * motion.translation_norm()
+        std_rad = math.radians(s.keyframe_std_deg) + s.keyframe_std_deg_per_deg * abs(motion.theta)
+        return np.diag([std_m**-2, std_m**-2, std_rad**-2])
+
+    def _close_loops(self, k: int) -> list[LoopClosure]:
+        """Verified closures of keyframe k, each entering the graph once another one of the
+        last `confirm_keyframes` keyframes implies the same correction (a wrong closure rarely
+        agrees with another)."""
+        s = self.settings
+        poses, travelled = self.graph.poses, np.asarray(self._travelled_m)
+        self._waiting = [w for w in self._waiting if w[0].newer >= k - s.confirm_keyframes]
+        added: list[LoopClosure] = []
+        for j in loop_candidates(poses, travelled, k, s):
+            closure = self.detector.verify(self.nodes, poses, j, k)
+            if isinstance(closure, str):
+                continue
+            estimate = Pose2D.from_array(poses[closure.older]).inverse() * Pose2D.from_array(
+                poses[k]
+            )
+            correction = estimate.inverse() * closure.measurement
+            if s.confirm_keyframes == 0:
+                added.append(self._add_closure(closure))
+                continue
+            agreeing = [w for w in self._waiting if self._agree(w, closure, correction)]
+            if not agreeing:
+                self._waiting.append((closure, correction))
+                continue
+            for waiting in agreeing:
+                if not any(c is waiting[0] for c in self.closures):
+                    added.append(self._add_closure(waiting[0]))
+            added.append(self._add_closure(closure))
+            self._waiting.append((closure, correction))
+        return added
+
+    def _agree(
+        self, waiting: tuple[LoopClosure, Pose2D], closure: LoopClosure, correction: Pose2D
+    ) -> bool:
+        """Two closures of nearby keyframes to nearby places that imply the same correction."""
+        s = self.settings
+        other, other_correction = waiting
+        if other.newer == closure.newer:
+            return False
+        if abs(other.older - closure.older) > 2 * s.submap_half_nodes + 1:
+            return False
+        gap = other_correction.relative_to(correction)
+        return gap.translation_norm() <= s.confirm_m and abs(gap.theta) <= math.radians(
+            s.confirm_deg
+        )
+
+    def _add_closure(self, closure: LoopClosure) -> LoopClosure:
+        s = self.settings
+        floor = np.diag(
+            [s.loop_min_std_m**2, s.loop_min_std_m**2, math.radians(s.loop_min_std_deg) ** 2]
+        )
+        covariance = _rotated(closure.covariance + floor, closure.measurement.theta)
+        information = np.linalg.inv(0.5 * (covariance + covariance.T))
+        self.graph.add_edge(
+            closure.older, closure.newer, closure.measurement, information, robust=True
+        )
+        self.closures.append(closure)
+        return closure
+
+    def _optimise(self) -> tuple[OptimiseReport, Pose2D | None]:
+        """Optimise the graph; redraw the front end's map if a keyframe moved against it."""
+        report = self.graph.optimise(robust_scale=self.settings.robust_scale)
+        self._pending = 0
+        self._unoptimised = False
+        self._waiting = []  # their corrections were against the old estimates
+        self.detector.forget_submaps()
+        optimised = self.graph.poses
+        newest = Pose2D.from_array(optimised[-1])
+        correction = newest * self._map_poses[-1].inverse()  # T_graph_map, on the newest node
+        moved = compose_arrays(
+            np.array([[correction.x, correction.y, correction.theta]]),
+            np.array([p.to_array() for p in self._map_poses]),
+        )
+        shift = moved - optimised
+        shift_m = float(np.max(np.hypot(shift[:, 0], shift[:, 1])))
+        shift_rad = float(np.max(np.abs(normalize_angles(shift[:, 2]))))
+        s = self.settings
+        if shift_m < s.redraw_shift_m and shift_rad < math.radians(s.redraw_shift_deg):
+            return report, None
+        self.frontend.redraw(self.draw_map(), correction)
+        self._map_poses = [Pose2D.from_array(p) for p in optimised]
+        return report, correction
+
+    def _record_scan(self, pose: Pose2D) -> None:
+        node = len(self._map_poses) - 1
+        anchor = self._map_poses[node] if node >= 0 else IDENTITY
+        self._scan_node.append(node)
+        self._scan_offset.append((anchor.inverse() * pose).to_array())

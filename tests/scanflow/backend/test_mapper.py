@@ -1,0 +1,157 @@
+"""The back end around the front end: keyframes, confirmed closures, optimisation, redraw."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scanflow.backend import LoopClosure, Mapper
+from scanflow.config import BackendSettings
+from scanflow.frontend import Frontend, default_settings
+from scanflow.geometry import IDENTITY, Pose2D
+
+from .conftest import Drive, output
+
+SETTINGS = BackendSettings.model_construct(loop_closure=True)
+
+
+def _position_errors(poses: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    return np.hypot(*(poses - truth)[:, :2].T)
+
+
+def _feed(mapper: Mapper, drive: Drive) -> list[bool]:
+    """The drifting estimates as a front end gives them: in the frame of its current map, which
+    moves whenever the back end redraws it. Says, per scan, whether it was redrawn."""
+    frame = IDENTITY  # T_current_drifted
+    redrawn = []
+    for seq, (pose, points) in enumerate(zip(drive.drifted, drive.scans, strict=True)):
+        step = mapper.add(output(seq, (frame * Pose2D.from_array(pose)).to_array()), points)
+        if step.correction is not None:
+            frame = step.correction * frame
+        redrawn.append(step.redrawn)
+    mapper.finish()
+    return redrawn
+
+
+def _run(drive: Drive, settings: BackendSettings = SETTINGS) -> tuple[Mapper, Frontend]:
+    frontend = Frontend(default_settings())
+    mapper = Mapper(frontend, settings)
+    _feed(mapper, drive)
+    return mapper, frontend
+
+
+def test_closing_the_ring_removes_the_drift(drive: Drive) -> None:
+    """Round a ring with a heading drift (0.6 m off when back at the start): the closures at
+    the revisit bring every keyframe back to within a few centimetres of the truth."""
+    mapper, _ = _run(drive)
+    before = _position_errors(drive.drifted, drive.truth)
+    after = _position_errors(mapper.trajectory(), drive.truth)
+    assert before.max() > 0.5
+    assert after.max() < 0.1
+    assert after.mean() < 0.2 * before.mean()
+    assert mapper.closures
+    # Each closure names an older keyframe at least min_travel_m back.
+    assert all(c.older < c.newer for c in mapper.closures)
+
+
+def test_the_front_end_map_is_redrawn_at_the_optimised_poses(drive: Drive) -> None:
+    """The map the front end tracks on is replaced: its walls lie where the truth puts them,
+    so a scan at a true pose late in the drive matches it there."""
+    frontend = Frontend(default_settings())
+    first_map = frontend.map
+    mapper = Mapper(frontend, SETTINGS)
+    assert any(_feed(mapper, drive))
+    assert frontend.map is not first_map
+    field = frontend.map.likelihood_field(0)
+
+    def fit(poses: np.ndarray) -> float:
+        """Mean map likelihood under every scan placed at `poses`."""
+        return float(np.mean([
+            field.sample(Pose2D.from_array(p).transform_points(s))[0].mean()
+            for p, s in zip(poses, drive.scans, strict=True)
+        ]))
+
+    assert fit(drive.truth) > 0.6
+    assert fit(drive.truth) > fit(drive.drifted) + 0.2
+
+
+def test_without_confirmation_every_closure_enters(drive: Drive) -> None:
+    confirmed, _ = _run(drive)
+    eager, _ = _run(drive, SETTINGS.model_copy(update={"confirm_keyframes": 0}))
+    assert len(eager.closures) >= len(confirmed.closures)
+
+
+def test_a_single_wrong_closure_waits_and_is_dropped(drive: Drive) -> None:
+    """The first closure found, turned 3 deg: no other closure agrees with it, so it never
+    enters the graph, and the drive is still corrected by the others."""
+    frontend = Frontend(default_settings())
+    mapper = Mapper(frontend, SETTINGS)
+    verify = mapper.detector.verify
+    corrupted: list[LoopClosure] = []
+
+    def first_one_wrong(nodes, poses, j, k):  # type: ignore[no-untyped-def]
+        found = verify(nodes, poses, j, k)
+        if isinstance(found, str) or corrupted:
+            return found
+        turned = replace(found, measurement=found.measurement * Pose2D(0, 0, math.radians(3)))
+        corrupted.append(turned)
+        return turned
+
+    mapper.detector.verify = first_one_wrong  # type: ignore[method-assign]
+    _feed(mapper, drive)
+    assert corrupted
+    assert all(c is not corrupted[0] for c in mapper.closures)
+    assert _position_errors(mapper.trajectory(), drive.truth).max() < 0.1
+
+
+def test_scans_between_keyframes_follow_their_keyframe(drive: Drive) -> None:
+    """Scans not inserted hang from the last keyframe: each keeps its offset to it through
+    every optimisation and redraw."""
+    frontend = Frontend(default_settings())
+    mapper = Mapper(frontend, SETTINGS)
+    offset = Pose2D(0.05, 0.01, 0.02)
+    frame = IDENTITY
+    for seq, (pose, points) in enumerate(zip(drive.drifted, drive.scans, strict=True)):
+        keyframe = frame * Pose2D.from_array(pose)
+        step = mapper.add(output(2 * seq, keyframe.to_array()), points)
+        if step.correction is not None:
+            frame = step.correction * frame
+            keyframe = step.correction * keyframe
+        mapper.add(output(2 * seq + 1, (keyframe * offset).to_array(), inserted=False), points)
+    mapper.finish()
+    poses = mapper.trajectory()
+    assert len(poses) == 2 * len(drive.truth)
+    for keyframe, other in zip(poses[0::2], poses[1::2], strict=True):
+        gap = Pose2D.from_array(other).relative_to(Pose2D.from_array(keyframe))
+        assert gap.relative_to(offset).translation_norm() < 1e-9
+        assert abs(gap.relative_to(offset).theta) < 1e-9
+    assert mapper.graph.node_count == len(drive.truth)
+    assert mapper.closures
+
+
+def test_scans_before_the_first_keyframe_hang_from_it() -> None:
+    frontend = Frontend(default_settings())
+    mapper = Mapper(frontend, SETTINGS)
+    points = np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+    mapper.add(output(0, np.array([0.1, 0.0, 0.0]), inserted=False), points)
+    assert mapper.trajectory().tolist() == [[0.1, 0.0, 0.0]]
+    mapper.add(output(1, np.array([0.3, 0.0, 0.0])), points)
+    np.testing.assert_allclose(mapper.trajectory(), [[0.1, 0.0, 0.0], [0.3, 0.0, 0.0]])
+
+
+def test_nothing_to_optimise_without_closures() -> None:
+    frontend = Frontend(default_settings())
+    mapper = Mapper(frontend, SETTINGS)
+    assert mapper.finish().optimised is None
+    assert mapper.trajectory().shape == (0, 3)
+
+
+@pytest.mark.parametrize("mount", [IDENTITY, Pose2D(0.2, 0.0, 0.0)])
+def test_keyframes_keep_their_mount(drive: Drive, mount: Pose2D) -> None:
+    frontend = Frontend(default_settings())
+    mapper = Mapper(frontend, SETTINGS)
+    mapper.add(output(0, drive.truth[0]), drive.scans[0], None, mount)
+    assert mapper.nodes[0].mount == mount
+    assert mapper.nodes[0].no_return.shape == (0, 2)
