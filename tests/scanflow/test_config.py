@@ -148,3 +148,19 @@ def test_frontend_initial_pose_is_x_y_and_yaw_in_degrees_or_unknown(clean_env) -
         clean_env.setenv("SCANFLOW_FRONTEND_INITIAL_POSE", bad)
         with pytest.raises(ValidationError, match="initial_pose"):
             config.FrontendSettings()
+
+
+def test_backend_settings_read_the_environment_and_name_bad_values(clean_env) -> None:
+    assert config.BackendSettings().loop_closure is False
+    clean_env.setenv("SCANFLOW_BACKEND_LOOP_CLOSURE", "true")
+    clean_env.setenv("SCANFLOW_BACKEND_SEARCH_RADIUS_M", "8")
+    clean_env.setenv("SCANFLOW_BACKEND_CONFIRM_KEYFRAMES", "0")
+    settings = config.BackendSettings()
+    assert settings.loop_closure and settings.search_radius_m == 8.0
+    assert settings.confirm_keyframes == 0
+    for name, bad in (("AMBIGUITY_RATIO", "1.5"), ("LOOP_MIN_STD_M", "0"),
+                      ("OPTIMISE_EVERY", "0")):
+        clean_env.setenv(f"SCANFLOW_BACKEND_{name}", bad)
+        with pytest.raises(ValidationError, match=name.lower()):
+            config.BackendSettings()
+        clean_env.delenv(f"SCANFLOW_BACKEND_{name}")

@@ -10,13 +10,14 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated
 
+import numpy as np
 import typer
 from tqdm import tqdm
 
 from scanflow.cli import app
-from scanflow.config import FrontendSettings
+from scanflow.config import BackendSettings, FrontendSettings
+from scanflow.frontend import save_tum
 from scanflow.frontend.prior import FrontendStart, PriorMapError
-from scanflow.geometry import Pose2D
 from scanflow.io.carmen import load_keyframes
 from scanflow.io.detect import detect_format, open_log
 from scanflow.io.rosbag import BagOdom
@@ -62,8 +63,12 @@ def run_command(
         Path | None,
         typer.Option("--prior-map", help="localise on this map (.npz or map_server .yaml)"),
     ] = None,
+    loop_closure: bool = typer.Option(
+        False, "--loop-closure", help="close loops and optimise the keyframes' pose graph"
+    ),
 ) -> None:
-    """Track scans into a map in one process; settings from SCANFLOW_FRONTEND_*."""
+    """Track scans into a map in one process; settings from SCANFLOW_FRONTEND_* and
+    SCANFLOW_BACKEND_*."""
     if log is not None and not log.exists():
         raise typer.BadParameter(f"no log at {log}", param_hint="--log")
     settings = FrontendSettings()
@@ -73,16 +78,17 @@ def run_command(
         start = FrontendStart(settings)
     except PriorMapError as exc:
         raise typer.BadParameter(str(exc), param_hint="--prior-map") from exc
-    pipeline = Pipeline(settings, initial_pose=start.pose, grid=start.grid())
+    backend = BackendSettings()
+    if loop_closure:
+        backend = backend.model_copy(update={"loop_closure": True})
+    pipeline = Pipeline(settings, initial_pose=start.pose, grid=start.grid(), backend=backend)
     outputs = _log_outputs(pipeline, log) if log is not None else _sim_outputs(
         pipeline, duration, seed
     )
     total = limit or (None if log is not None else math.ceil(duration * SimConfig().rate_hz))
     statuses: dict[str, int] = {}
     sources: dict[str, int] = {}
-    scans = inserted = 0
-    distance_m = 0.0
-    last: Pose2D | None = None
+    scans = inserted = redraws = 0
     t0 = time.perf_counter()
     for out in tqdm(outputs, total=total, unit="scan", disable=as_json):
         est = out.estimate
@@ -90,13 +96,16 @@ def run_command(
         sources[out.deskew.source_used] = sources.get(out.deskew.source_used, 0) + 1
         scans += 1
         inserted += est.inserted
-        if last is not None:
-            distance_m += est.pose.relative_to(last).translation_norm()
-        last = est.pose
+        redraws += out.backend is not None and out.backend.redrawn
         if limit is not None and scans >= limit:
             break
+    final = pipeline.finish()
     wall_s = time.perf_counter() - t0
-    frontend = pipeline.frontend
+    frontend, mapper = pipeline.frontend, pipeline.mapper
+    poses = frontend.trajectory.poses if mapper is None else mapper.trajectory()
+    # The map of the optimised keyframes (the front end's, without loop closure).
+    matching_map = frontend.map if mapper is None else mapper.draw_map()
+    distance_m = float(np.sum(np.hypot(*np.diff(poses[:, :2], axis=0).T)))
     summary: dict[str, object] = {
         "source": str(log) if log is not None else "simulator",
         "prior_map": settings.prior_map or None,
@@ -106,23 +115,31 @@ def run_command(
         "deskew_sources": sources,
         "inserted": inserted,
         "distance_m": round(distance_m, 3),
-        "final_pose": None if last is None else [round(v, 4) for v in last.to_array()],
+        "final_pose": [round(float(v), 4) for v in poses[-1]] if len(poses) else None,
         "scans_per_s": round(scans / wall_s, 2) if wall_s > 0 else None,
-        "map_bytes": frontend.map.nbytes,
+        "map_bytes": matching_map.nbytes,
     }
+    if mapper is not None:
+        summary["loop_closure"] = {
+            "keyframes": mapper.graph.node_count,
+            "closures": len(mapper.closures),
+            "map_redraws": redraws + (final is not None and final.redrawn),
+        }
     written: list[Path] = []
     if map_out is not None:
         map_out.mkdir(parents=True, exist_ok=True)
-        written = [save_map(frontend.map.grid, map_out / f"map{suffix}")
+        written = [save_map(matching_map.grid, map_out / f"map{suffix}")
                    for suffix in (".png", ".yaml", ".npz")]
-        written.append(frontend.trajectory.save_tum(map_out / "trajectory.tum"))
+        written.append(
+            save_tum(map_out / "trajectory.tum", frontend.trajectory.stamps_s, poses)
+        )
         summary["written"] = [str(p) for p in written]
     if as_json:
         typer.echo(json.dumps(summary))
         return
     typer.echo(
         f"{scans} scans ({statuses}) over {distance_m:.1f} m, {inserted} inserted, "
-        f"{summary['scans_per_s']} scans/s, map {frontend.map.nbytes / 1e6:.1f} MB"
+        f"{summary['scans_per_s']} scans/s, map {matching_map.nbytes / 1e6:.1f} MB"
     )
     for path in written:
         typer.echo(f"wrote {path}")

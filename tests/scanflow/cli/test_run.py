@@ -53,3 +53,22 @@ def test_run_names_a_missing_prior_map(tmp_path: Path) -> None:
     _register()
     result = CliRunner().invoke(app, ["run", "--prior-map", str(tmp_path / "none.npz")])
     assert result.exit_code == 2 and "no file at" in result.output
+
+
+def test_run_with_loop_closure_writes_the_optimised_map_and_trajectory(tmp_path: Path) -> None:
+    """Two laps of the simulator's tour: closures are found and reported, and every scan's
+    optimised pose is written."""
+    _register()
+    result = CliRunner().invoke(
+        app, ["run", "--duration", "60", "--loop-closure", "--json", "--map-out", str(tmp_path)]
+    )
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.output)
+    assert summary["loop_closure"]["closures"] > 0
+    assert summary["loop_closure"]["keyframes"] == summary["inserted"]
+    stamps, poses = load_tum(tmp_path / "trajectory.tum")
+    assert len(stamps) == summary["scans"] == 600
+    assert summary["final_pose"] == [round(float(v), 4) for v in poses[-1]]
+    assert not load_map(tmp_path / "map.npz").is_empty
+    plain = CliRunner().invoke(app, ["run", "--duration", "2", "--json"])
+    assert "loop_closure" not in json.loads(plain.output)
