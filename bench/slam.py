@@ -1,0 +1,182 @@
+"""Loop closure and pose-graph optimisation on a real log, against the front end alone.
+
+`python -m bench.slam --data PATH [--limit N] [--json]`
+`python -m bench.slam --sim [--world loop] [--duration 240] [--odom-scale-error 0.03] [--json]`
+
+The keyframes of a CARMEN log go through the in-process pipeline twice with the wheel odometry of
+each record: the front end alone (the baseline: scan-to-map tracking, what `scanflow run` does
+without loop closure), then with the back end (`BackendSettings(loop_closure=True)`, its last
+optimisation at the end of the log). Against the corrected poses: ATE (RMSE after SE(2)
+alignment), the largest aligned error, RPE per metre; for the back end its closures, how many
+of them the corrected poses agree with (relative pose within 0.3 m / 3 deg: a wrong closure is
+one the optimiser must out-vote), optimisations, map redraws and its share of the wall time.
+Each pass's map is saved as PNG in bench/out. Sim mode: the same two passes on the built-in
+simulator, whose poses are exact (the ring world `loop` by default, with wheel odometry of a
+given scale error and yaw noise), so the figures carry no reference noise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+from scanflow.config import BackendSettings, FrontendSettings
+from scanflow.frontend import default_settings
+from scanflow.geometry import Pose2D
+from scanflow.io.carmen import load_keyframes
+from scanflow.maps.export import save_png
+from scanflow.pipeline import Pipeline
+from scanflow.scan import LaserScan, Odometry
+from scanflow.sim import SimConfig, simulate
+from tqdm import tqdm
+
+from bench.frontend import OUT_DIR, SIM_MAP_FROM_WORLD, accuracy, align_se2, poses_array
+
+WRONG_CLOSURE_M = 0.3
+WRONG_CLOSURE_DEG = 3.0
+
+
+def max_error_m(estimate: NDArray[np.float64], truth: NDArray[np.float64]) -> float:
+    """The largest position error after SE(2) alignment."""
+    aligned = align_se2(estimate[:, :2], truth[:, :2])
+    return float(np.max(np.hypot(*(aligned - truth[:, :2]).T)))
+
+
+@dataclass
+class Feed:
+    """What one pass replays: per scan, the scan and either its odometry pose (a log's
+    keyframes) or the odometry samples before it (the simulator)."""
+
+    scans: list[LaserScan]
+    odom_poses: list[Pose2D | None]
+    odometry: list[list[Odometry]]
+
+
+def run_pass(
+    feed: Feed, settings: FrontendSettings, backend: BackendSettings | None, name: str,
+    initial_pose: Pose2D | None = None,
+) -> tuple[Pipeline, NDArray[np.float64], float, list[int], int]:
+    """One pass: the pipeline, its final poses per scan, wall time, the keyframes' scan
+    indices and how often the map was redrawn."""
+    pipeline = Pipeline(settings, backend=backend, initial_pose=initial_pose)
+    poses, keyframes, redraws = [], [], 0
+    t0 = time.perf_counter()
+    for i, scan in enumerate(tqdm(feed.scans, desc=name, file=sys.stderr, leave=False)):
+        for sample in feed.odometry[i]:
+            pipeline.add_odometry(sample)
+        out = pipeline.process(scan, feed.odom_poses[i])
+        poses.append(out.estimate.pose)
+        if out.backend is not None:
+            redraws += out.backend.redrawn
+            if out.backend.node is not None:
+                keyframes.append(i)
+    final = pipeline.finish()
+    redraws += final is not None and final.redrawn
+    wall_s = time.perf_counter() - t0
+    final_poses = (
+        pipeline.mapper.trajectory() if pipeline.mapper is not None else poses_array(poses)
+    )
+    return pipeline, final_poses, wall_s, keyframes, redraws
+
+
+def closure_agreement(
+    pipeline: Pipeline, truth: NDArray[np.float64], keyframes: list[int]
+) -> dict[str, float]:
+    """How many closures the reference disagrees with (relative pose older -> newer)."""
+    mapper = pipeline.mapper
+    assert mapper is not None
+    wrong = 0
+    for closure in mapper.closures:
+        a = Pose2D.from_array(truth[keyframes[closure.older]])
+        b = Pose2D.from_array(truth[keyframes[closure.newer]])
+        error = closure.measurement.relative_to(a.inverse() * b)
+        wrong += (
+            error.translation_norm() > WRONG_CLOSURE_M
+            or abs(np.degrees(error.theta)) > WRONG_CLOSURE_DEG
+        )
+    return {"closures": len(mapper.closures), "disagreeing": wrong}
+
+
+def compare(
+    name: str, feed: Feed, truth: NDArray[np.float64], initial_pose: Pose2D | None = None
+) -> dict[str, object]:
+    """The front end alone and with the back end on the same scans, against `truth`."""
+    settings = default_settings()
+    OUT_DIR.mkdir(exist_ok=True)
+    report: dict[str, object] = {"scans": len(feed.scans)}
+    for label, backend in (
+        ("frontend", None),
+        ("loop_closure", BackendSettings.model_construct(loop_closure=True)),
+    ):
+        pipeline, poses, wall_s, keyframes, redraws = run_pass(
+            feed, settings, backend, label, initial_pose
+        )
+        grid = (pipeline.frontend.map if pipeline.mapper is None
+                else pipeline.mapper.draw_map()).grid
+        png = save_png(grid, OUT_DIR / f"slam_{name}_{label}.png")
+        row: dict[str, object] = {
+            **accuracy(poses, truth),
+            "max_error_m": max_error_m(poses, truth),
+            "wall_s": wall_s,
+            "scans_per_s": len(feed.scans) / wall_s,
+            "map_png": str(png),
+        }
+        if pipeline.mapper is not None:
+            row.update(closure_agreement(pipeline, truth, keyframes))
+            row["keyframes"] = len(keyframes)
+            row["map_redraws"] = redraws
+        report[label] = row
+    return report
+
+
+def run_log(path: Path, limit: int | None) -> dict:
+    frames = load_keyframes(path)[:limit] if limit else load_keyframes(path)
+    feed = Feed([kf.scan for kf in frames], [kf.odom_pose for kf in frames],
+                [[] for _ in frames])
+    truth = poses_array([kf.true_pose for kf in frames])
+    report = {"log": path.name, **compare(path.name.split(".")[0], feed, truth)}
+    report["odometry"] = accuracy(poses_array([kf.odom_pose for kf in frames]), truth)
+    return report
+
+
+def run_sim(world: str, duration_s: float, scale_error: float, yaw_noise: float) -> dict:
+    config = SimConfig(world=world, duration_s=duration_s, seed=1,
+                       odom_scale_error=scale_error, odom_yaw_noise=yaw_noise)
+    frames = list(simulate(config))
+    feed = Feed([f.scan for f in frames], [None] * len(frames), [f.odometry for f in frames])
+    truth = poses_array([SIM_MAP_FROM_WORLD * f.true_pose for f in frames])
+    return {
+        "world": world, "duration_s": duration_s, "odom_scale_error": scale_error,
+        "odom_yaw_noise": yaw_noise,
+        **compare(f"sim_{world}", feed, truth, Pose2D.from_array(truth[0])),
+    }
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, help="CARMEN log (.log or .log.gz)")
+    parser.add_argument("--limit", type=int, default=None, help="first N keyframes only")
+    parser.add_argument("--sim", action="store_true", help="the simulator instead of a log")
+    parser.add_argument("--world", default="loop", help="sim: the world to drive")
+    parser.add_argument("--duration", type=float, default=240.0, help="sim seconds")
+    parser.add_argument("--odom-scale-error", type=float, default=0.03)
+    parser.add_argument("--odom-yaw-noise", type=float, default=0.01)
+    parser.add_argument("--json", action="store_true")
+    args = parser.parse_args(argv)
+    if args.sim:
+        report = run_sim(args.world, args.duration, args.odom_scale_error, args.odom_yaw_noise)
+    elif args.data is not None:
+        report = run_log(args.data, args.limit)
+    else:
+        parser.error("give --data PATH or --sim")
+    print(json.dumps(report, default=float, indent=None if args.json else 2))
+
+
+if __name__ == "__main__":
+    main()
