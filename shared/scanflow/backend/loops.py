@@ -96,8 +96,8 @@ class LoopDetector:
         self._submaps.clear()
 
     def submap(self, nodes: list[ScanNode], poses: NDArray[np.float64], j: int) -> MatchingMap:
-        """Keyframes j-w .. j+w (w = submap_half_nodes, only those before the newest one) in
-        keyframe j's frame."""
+        """Keyframes j-w .. j+w (w = submap_half_nodes; those that exist) drawn in keyframe j's
+        frame at their current poses; cached until `forget_submaps`."""
         cached = self._submaps.get(j)
         if cached is not None:
             self._submaps.move_to_end(j)
