@@ -64,6 +64,13 @@ class Mapper:
     """Keyframes, loop closures and the pose graph of one robot (see the module docstring)."""
 
     def __init__(self, frontend: Frontend, settings: BackendSettings) -> None:
+        """`frontend` must start from an empty map: the back end redraws the map from its own
+        keyframes, which a prior map is not made of."""
+        if not frontend.map.is_empty:
+            raise ValueError(
+                "loop closure builds its map from scratch, but the front end already has a map "
+                "(a prior map?): run without one, or without loop closure"
+            )
         self.frontend = frontend
         self.settings = settings
         self.params = occupancy_params(frontend.settings)

@@ -155,3 +155,11 @@ def test_keyframes_keep_their_mount(drive: Drive, mount: Pose2D) -> None:
     mapper.add(output(0, drive.truth[0]), drive.scans[0], None, mount)
     assert mapper.nodes[0].mount == mount
     assert mapper.nodes[0].no_return.shape == (0, 2)
+
+
+def test_a_prior_map_is_refused(drive: Drive) -> None:
+    """The back end redraws the map from its keyframes: a prior map would be lost."""
+    frontend = Frontend(default_settings())
+    frontend.process(drive.scans[0], 0.0)
+    with pytest.raises(ValueError, match="prior map"):
+        Mapper(frontend, SETTINGS)

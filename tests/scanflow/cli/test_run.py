@@ -72,3 +72,15 @@ def test_run_with_loop_closure_writes_the_optimised_map_and_trajectory(tmp_path:
     assert not load_map(tmp_path / "map.npz").is_empty
     plain = CliRunner().invoke(app, ["run", "--duration", "2", "--json"])
     assert "loop_closure" not in json.loads(plain.output)
+
+
+def test_run_refuses_loop_closure_on_a_prior_map(tmp_path: Path) -> None:
+    _register()
+    first = CliRunner().invoke(
+        app, ["run", "--duration", "2", "--json", "--map-out", str(tmp_path)]
+    )
+    assert first.exit_code == 0, first.output
+    both = CliRunner().invoke(
+        app, ["run", "--duration", "2", "--loop-closure", "--prior-map", str(tmp_path / "map.npz")]
+    )
+    assert both.exit_code == 2 and "prior map" in both.output
