@@ -12,7 +12,7 @@ deskewed with the odometry that came before it.)
     pipeline.add_odometry(sample)              # every Odometry sample, in any order
     out = pipeline.process(scan)               # -> PipelineOutput (deskew result + estimate)
     Pipeline(settings, backend=BackendSettings(loop_closure=True))   # + loop closure:
-    pipeline.finish(); pipeline.mapper.trajectory(), pipeline.frontend.map    # optimised
+    pipeline.finish(); pipeline.mapper.trajectory(), pipeline.mapper.draw_map()  # optimised
 """
 
 from __future__ import annotations
@@ -147,4 +147,9 @@ class Pipeline:
 
     def finish(self) -> MapperStep | None:
         """End of the log: the back end's last optimisation (None without loop closure)."""
-        return None if self.mapper is None else self.mapper.finish()
+        if self.mapper is None:
+            return None
+        step = self.mapper.finish()
+        if step.correction is not None:
+            self.deskew_stage.velocity.move_frame(step.correction)
+        return step
