@@ -146,5 +146,10 @@ def run_command(
         f"{scans} scans ({statuses}) over {distance_m:.1f} m, {inserted} inserted, "
         f"{summary['scans_per_s']} scans/s, map {matching_map.nbytes / 1e6:.1f} MB"
     )
+    if mapper is not None:
+        typer.echo(
+            f"loop closure: {len(mapper.closures)} closures between {mapper.graph.node_count} "
+            "keyframes; map and trajectory optimised"
+        )
     for path in written:
         typer.echo(f"wrote {path}")

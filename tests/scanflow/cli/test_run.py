@@ -72,6 +72,8 @@ def test_run_with_loop_closure_writes_the_optimised_map_and_trajectory(tmp_path:
     assert not load_map(tmp_path / "map.npz").is_empty
     plain = CliRunner().invoke(app, ["run", "--duration", "2", "--json"])
     assert "loop_closure" not in json.loads(plain.output)
+    human = CliRunner().invoke(app, ["run", "--duration", "60", "--loop-closure"])
+    assert human.exit_code == 0 and "loop closure: " in human.output
 
 
 def test_run_refuses_loop_closure_on_a_prior_map(tmp_path: Path) -> None:
