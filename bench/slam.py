@@ -10,9 +10,11 @@ optimisation at the end of the log). Against the corrected poses: ATE (RMSE afte
 alignment), the largest aligned error, RPE per metre; for the back end its closures, how many
 of them the corrected poses agree with (relative pose within 0.3 m / 3 deg: a wrong closure is
 one the optimiser must out-vote), optimisations, map redraws and its share of the wall time.
-Each pass's map is saved as PNG in bench/out. Sim mode: the same two passes on the built-in
-simulator, whose poses are exact (the ring world `loop` by default, with wheel odometry of a
-given scale error and yaw noise), so the figures carry no reference noise.
+Each pass's map is saved as PNG in bench/out. The back end's other settings come from
+`SCANFLOW_BACKEND_*` as in `scanflow run` (e.g. `SCANFLOW_BACKEND_CONFIRM_KEYFRAMES=0`).
+Sim mode: the same two passes on the built-in simulator, whose poses are exact (the ring world
+`loop` by default, with wheel odometry of a given scale error and yaw noise), so the figures
+carry no reference noise.
 """
 
 from __future__ import annotations
@@ -112,7 +114,7 @@ def compare(
     report: dict[str, object] = {"scans": len(feed.scans)}
     for label, backend in (
         ("frontend", None),
-        ("loop_closure", BackendSettings.model_construct(loop_closure=True)),
+        ("loop_closure", BackendSettings(loop_closure=True)),  # SCANFLOW_BACKEND_* apply
     ):
         pipeline, poses, wall_s, keyframes, redraws = run_pass(
             feed, settings, backend, label, initial_pose
