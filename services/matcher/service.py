@@ -25,7 +25,7 @@ import threading
 import numpy as np
 import zenoh
 from scanflow import keys
-from scanflow.config import FrontendSettings, MatcherSettings, ZenohSettings
+from scanflow.config import BackendSettings, FrontendSettings, MatcherSettings, ZenohSettings
 from scanflow.frontend import Frontend, FrontendOutput
 from scanflow.frontend.prior import FrontendStart
 from scanflow.geometry import Pose2D
@@ -217,4 +217,7 @@ def main() -> None:
     """Run a matcher (settings: SCANFLOW_MATCHER_*, SCANFLOW_FRONTEND_*, SCANFLOW_ZENOH_*)."""
     settings = MatcherSettings()
     init_process(settings)
+    refusal = BackendSettings().refusal_for_services()
+    if refusal:
+        raise SystemExit(refusal)
     MatcherService(settings, FrontendSettings(), ZenohSettings()).run()

@@ -334,3 +334,13 @@ class BackendSettings(BaseSettings):
         "this far against it"
     )
     redraw_shift_deg: float = Field(2.0, gt=0.0, description="or turns one this much")
+
+    def refusal_for_services(self) -> str:
+        """Why the services cannot honour these settings ('' when they can): they do not run
+        the back end yet, and a setting silently ignored would mislead."""
+        if not self.loop_closure:
+            return ""
+        return (
+            "SCANFLOW_BACKEND_LOOP_CLOSURE=true: the services (scanflow up, the matcher) do not "
+            "run loop closure yet; use `scanflow run --loop-closure`, or unset it"
+        )

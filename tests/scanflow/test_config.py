@@ -164,3 +164,9 @@ def test_backend_settings_read_the_environment_and_name_bad_values(clean_env) ->
         with pytest.raises(ValidationError, match=name.lower()):
             config.BackendSettings()
         clean_env.delenv(f"SCANFLOW_BACKEND_{name}")
+
+
+def test_backend_settings_say_why_the_services_refuse_them(clean_env) -> None:
+    assert config.BackendSettings().refusal_for_services() == ""
+    clean_env.setenv("SCANFLOW_BACKEND_LOOP_CLOSURE", "1")
+    assert "scanflow run --loop-closure" in config.BackendSettings().refusal_for_services()

@@ -74,3 +74,17 @@ def test_up_names_a_missing_prior_map(tmp_path):
     cmd = up_command(tmp_path / "data", "--prior-map", str(tmp_path / "none.npz"))
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
     assert done.returncode == 2 and "no file at" in done.stderr
+
+
+def test_up_refuses_loop_closure_which_the_services_do_not_run(tmp_path):
+    cmd = up_command(tmp_path / "data")
+    env = {**os.environ, "SCANFLOW_BACKEND_LOOP_CLOSURE": "true"}
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=60, env=env)
+    assert done.returncode == 2 and "scanflow run --loop-closure" in done.stderr
+
+
+def test_a_matcher_refuses_loop_closure_at_start_naming_it():
+    env = {**os.environ, "SCANFLOW_BACKEND_LOOP_CLOSURE": "true"}
+    cmd = [sys.executable, "-m", "scanflow", "serve", "matcher"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=60, env=env)
+    assert done.returncode == 1 and "SCANFLOW_BACKEND_LOOP_CLOSURE" in done.stderr

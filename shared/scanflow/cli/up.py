@@ -12,6 +12,7 @@ from typing import Annotated
 import typer
 
 from scanflow.cli import app
+from scanflow.config import BackendSettings
 
 
 @app.command()
@@ -31,6 +32,10 @@ def up(
     Exits 0 when every service stopped cleanly, else 1 naming the ones that did not."""
     from services.common.launch import ORDER, PIPELINE, Launcher
 
+    refusal = BackendSettings().refusal_for_services()
+    if refusal:
+        typer.echo(f"Error: {refusal}", err=True)
+        raise typer.Exit(2)
     settings = {
         "SCANFLOW_INGEST_RATE": str(rate),
         "SCANFLOW_MAPSERVER_DATA_DIR": str(data_dir.resolve()),
