@@ -7,9 +7,10 @@ The keyframes of a CARMEN log go through the in-process pipeline twice with the 
 each record: the front end alone (the baseline: scan-to-map tracking, what `scanflow run` does
 without loop closure), then with the back end (`BackendSettings(loop_closure=True)`, its last
 optimisation at the end of the log). Against the corrected poses: ATE (RMSE after SE(2)
-alignment), the largest aligned error, RPE per metre; for the back end its closures, how many
-of them the corrected poses agree with (relative pose within 0.3 m / 3 deg: a wrong closure is
-one the optimiser must out-vote), optimisations, map redraws and its share of the wall time.
+alignment), the largest aligned error, RPE per metre. Without them: the map's occupied cells
+(a wall drawn twice by drift takes more). For the back end: its closures, how many of them the
+corrected poses disagree with (relative pose beyond 0.3 m / 3 deg: a wrong closure is one the
+optimiser must out-vote), keyframes and map redraws; wall time of both passes.
 Each pass's map is saved as PNG in bench/out. The back end's other settings come from
 `SCANFLOW_BACKEND_*` as in `scanflow run` (e.g. `SCANFLOW_BACKEND_CONFIRM_KEYFRAMES=0`).
 Sim mode: the same two passes on the built-in simulator, whose poses are exact (the ring world
@@ -128,6 +129,8 @@ def compare(
             "wall_s": wall_s,
             "scans_per_s": len(feed.scans) / wall_s,
             "map_png": str(png),
+            # Walls drawn twice (drift) take more cells: fewer is a crisper map of the same place.
+            "occupied_cells": int(np.count_nonzero(grid.occupied_mask())),
         }
         if pipeline.mapper is not None:
             row.update(closure_agreement(pipeline, truth, keyframes))
