@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from scanflow.config import BackendSettings
 from scanflow.frontend.acceptance import AcceptanceLimits, rejection_reason
 from scanflow.frontend.tracker import insert_scan
-from scanflow.geometry import Pose2D
+from scanflow.geometry import Pose2D, compose_arrays
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
 from scanflow.matching import match
@@ -52,6 +52,17 @@ class LoopClosure:
     covariance: NDArray[np.float64]
     score: float
     rival_ratio: float  # best distinct rival's search score / the best's (0: none)
+
+
+def draw_keyframes(
+    nodes: list[ScanNode], poses: NDArray[np.float64], params: OccupancyParams
+) -> MatchingMap:
+    """A new map of `nodes` inserted at `poses` (rows x, y, theta), free space included: a
+    candidate's submap, and the back end's whole map."""
+    drawn = MatchingMap(OccupancyGrid(params))
+    for node, pose in zip(nodes, poses, strict=True):
+        insert_scan(drawn, node.points, Pose2D.from_array(pose), node.no_return, node.mount)
+    return drawn
 
 
 def loop_candidates(
@@ -102,13 +113,10 @@ class LoopDetector:
         if cached is not None:
             self._submaps.move_to_end(j)
             return cached
-        frame = Pose2D.from_array(poses[j]).inverse()
-        submap = MatchingMap(OccupancyGrid(self.params))
         w = self.settings.submap_half_nodes
-        for i in range(max(0, j - w), min(len(nodes), j + w + 1)):
-            node = nodes[i]
-            pose = frame * Pose2D.from_array(poses[i])
-            insert_scan(submap, node.points, pose, node.no_return, node.mount)
+        window = slice(max(0, j - w), min(len(nodes), j + w + 1))
+        in_j = compose_arrays(Pose2D.from_array(poses[j]).inverse().to_array(), poses[window])
+        submap = draw_keyframes(nodes[window], in_j, self.params)
         self._submaps[j] = submap
         if len(self._submaps) > SUBMAPS_KEPT:
             self._submaps.popitem(last=False)

@@ -29,13 +29,18 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scanflow.backend.loops import LoopClosure, LoopDetector, ScanNode, loop_candidates
+from scanflow.backend.loops import (
+    LoopClosure,
+    LoopDetector,
+    ScanNode,
+    draw_keyframes,
+    loop_candidates,
+)
 from scanflow.backend.pose_graph import OptimiseReport, PoseGraph
 from scanflow.config import BackendSettings
-from scanflow.frontend.tracker import Frontend, FrontendOutput, insert_scan, occupancy_params
+from scanflow.frontend.tracker import Frontend, FrontendOutput, occupancy_params
 from scanflow.geometry import IDENTITY, Pose2D, compose_arrays, normalize_angles
 from scanflow.maps.matching_map import MatchingMap
-from scanflow.maps.occupancy import OccupancyGrid
 
 
 @dataclass(frozen=True, eq=False)
@@ -51,6 +56,16 @@ class MapperStep:
     @property
     def redrawn(self) -> bool:
         return self.correction is not None
+
+
+@dataclass
+class _Waiting:
+    """A recent closure, the correction of the estimates it implies, and whether it is in the
+    graph (it enters once another recent closure agrees with it)."""
+
+    closure: LoopClosure
+    correction: Pose2D
+    entered: bool
 
 
 def _rotated(covariance: NDArray[np.float64], theta: float) -> NDArray[np.float64]:
@@ -82,8 +97,8 @@ class Mapper:
         self._travelled_m: list[float] = []
         self._scan_node: list[int] = []  # per scan: the keyframe it hangs from
         self._scan_offset: list[NDArray[np.float64]] = []  # its pose relative to that keyframe
-        self._waiting: list[tuple[LoopClosure, Pose2D]] = []  # closures and their corrections
-        self._pending = 0  # keyframes since the last optimisation that brought a closure
+        self._waiting: list[_Waiting] = []  # recent closures, entered or waiting for another
+        self._pending = 0  # keyframes since the last optimisation
         self._unoptimised = False
 
     def add(
@@ -125,10 +140,7 @@ class Mapper:
 
     def draw_map(self) -> MatchingMap:
         """A new map of every keyframe at its optimised pose."""
-        grid = MatchingMap(OccupancyGrid(self.params))
-        for node, pose in zip(self.nodes, self.graph.poses, strict=True):
-            insert_scan(grid, node.points, Pose2D.from_array(pose), node.no_return, node.mount)
-        return grid
+        return draw_keyframes(self.nodes, self.graph.poses, self.params)
 
     def _add_node(
         self, out: FrontendOutput, points_m: ArrayLike, no_return_m: ArrayLike | None,
@@ -165,7 +177,7 @@ class Mapper:
         agrees with another)."""
         s = self.settings
         poses, travelled = self.graph.poses, np.asarray(self._travelled_m)
-        self._waiting = [w for w in self._waiting if w[0].newer >= k - s.confirm_keyframes]
+        self._waiting = [w for w in self._waiting if w.closure.newer >= k - s.confirm_keyframes]
         added: list[LoopClosure] = []
         for j in loop_candidates(poses, travelled, k, s):
             closure = self.detector.verify(self.nodes, poses, j, k)
@@ -179,22 +191,19 @@ class Mapper:
                 added.append(self._add_closure(closure))
                 continue
             agreeing = [w for w in self._waiting if self._agree(w, closure, correction)]
-            if not agreeing:
-                self._waiting.append((closure, correction))
-                continue
             for waiting in agreeing:
-                if not any(c is waiting[0] for c in self.closures):
-                    added.append(self._add_closure(waiting[0]))
-            added.append(self._add_closure(closure))
-            self._waiting.append((closure, correction))
+                if not waiting.entered:
+                    added.append(self._add_closure(waiting.closure))
+                    waiting.entered = True
+            if agreeing:
+                added.append(self._add_closure(closure))
+            self._waiting.append(_Waiting(closure, correction, entered=bool(agreeing)))
         return added
 
-    def _agree(
-        self, waiting: tuple[LoopClosure, Pose2D], closure: LoopClosure, correction: Pose2D
-    ) -> bool:
+    def _agree(self, waiting: _Waiting, closure: LoopClosure, correction: Pose2D) -> bool:
         """Two closures of nearby keyframes to nearby places that imply the same correction."""
         s = self.settings
-        other, other_correction = waiting
+        other, other_correction = waiting.closure, waiting.correction
         if other.newer == closure.newer:
             return False
         if abs(other.older - closure.older) > 2 * s.submap_half_nodes + 1:
