@@ -119,6 +119,7 @@ pose_messages = st.builds(
     iterations=counts,
     score=finite,
     message=texts,
+    correction=st.none() | poses,
 )
 scalars = st.booleans() | st.integers(-(2**63), 2**64 - 1) | st.floats(allow_nan=False) | texts
 points_f64 = small_n.flatmap(lambda n: f64_arrays((n, 2)))
@@ -216,6 +217,34 @@ def map_inserts(draw: st.DrawFn) -> wire.MapInsertMessage:
     )
 
 
+@st.composite
+def map_redraws(draw: st.DrawFn) -> wire.MapRedrawMessage:
+    seqs = np.array(sorted(draw(st.sets(counts, max_size=20))), dtype=np.int64)
+    n = draw(small_n)
+    return wire.MapRedrawMessage(
+        robot_id=draw(ids),
+        seq=draw(counts),
+        correction=draw(poses),
+        keyframe_seqs=seqs,
+        keyframe_poses=draw(f64_arrays((len(seqs), 3))),
+        stamps_s=draw(f64_arrays(n)),
+        poses=draw(f64_arrays((n, 3))),
+    )
+
+
+@st.composite
+def keyframes(draw: st.DrawFn) -> wire.KeyframesMessage:
+    seqs = np.array(sorted(draw(st.sets(counts, max_size=6))), dtype=np.int64)
+    n = len(seqs)
+    hit_counts = np.array(draw(st.lists(st.integers(0, 5), min_size=n, max_size=n)), np.int64)
+    miss_counts = np.array(draw(st.lists(st.integers(0, 3), min_size=n, max_size=n)), np.int64)
+    return wire.KeyframesMessage(
+        draw(ids), seqs, draw(f64_arrays(n)), draw(f64_arrays((n, 3))), draw(f64_arrays((n, 3))),
+        hit_counts, draw(f64_points(int(hit_counts.sum()))), miss_counts,
+        draw(f64_points(int(miss_counts.sum()))),
+    )
+
+
 STRATEGIES: dict[str, st.SearchStrategy[wire.Message]] = {
     "scan": scan_messages,
     "scan_deskewed": deskewed_messages(),
@@ -229,6 +258,8 @@ STRATEGIES: dict[str, st.SearchStrategy[wire.Message]] = {
     "map_image": map_images,
     "map_changed": map_changes(),
     "map_insert": map_inserts(),
+    "map_redraw": map_redraws(),
+    "keyframes": keyframes(),
     "service_stats": service_stats,
     "initial_pose": st.builds(wire.InitialPoseMessage, ids, poses),
 }
@@ -304,7 +335,7 @@ def test_decoded_arrays_are_read_only() -> None:
 def test_every_payload_carries_type_and_version() -> None:
     data = wire.MapImageMessage("r", 1, "png", b"x").encode()
     assert msgpack.unpackb(data)["type"] == "map_image"
-    assert msgpack.unpackb(data)["v"] == wire.SCHEMA_VERSION == 3
+    assert msgpack.unpackb(data)["v"] == wire.SCHEMA_VERSION == 4
 
 
 def test_message_helpers_carry_match_results() -> None:
@@ -362,7 +393,8 @@ SCAN = wire.ScanMessage(LaserScan(np.array([1.0, np.nan, 3.0]), 0.0, 0.1, robot_
 
 
 def test_wrong_version_is_a_version_error() -> None:
-    for version in (1, 2, 4):  # 1: before no_return_points, 2: before the sensor mount
+    # 1: before no_return_points, 2: before the sensor mount, 3: before map redraws
+    for version in (1, 2, 3, 5):
         with pytest.raises(wire.VersionError, match=rf"\.v: schema version {version}"):
             wire.decode_any(_payload(SCAN, v=version))
 
@@ -626,6 +658,38 @@ def test_encoding_over_the_limit_is_refused() -> None:
             "options",
         ),
         (lambda: wire.TrajectoryMessage("r", np.zeros(2), np.zeros((3, 3))), "poses"),
+        (
+            lambda: wire.PoseEstimateMessage(
+                "r", 0, 0.0, Pose2D(), np.eye(3), "ok", "", 0, 0, "", (1, 2, 3)
+            ),
+            "correction",
+        ),
+        (
+            lambda: wire.MapRedrawMessage(
+                "r", 0, Pose2D(), np.array([3, 3]), np.zeros((2, 3)), np.zeros(0), np.zeros((0, 3))
+            ),
+            "keyframe_seqs must be >= 0 and strictly increasing",
+        ),
+        (
+            lambda: wire.MapRedrawMessage(
+                "r", 0, Pose2D(), np.array([1, 3]), np.zeros((1, 3)), np.zeros(0), np.zeros((0, 3))
+            ),
+            "keyframe_poses must have shape",
+        ),
+        (
+            lambda: wire.KeyframesMessage(
+                "r", np.array([1]), np.zeros(1), np.zeros((1, 3)), np.zeros((1, 3)),
+                np.array([3]), np.zeros((2, 2)), np.array([0]), np.zeros((0, 2)),
+            ),
+            "hit_counts must be >= 0 and add up to the rows of hits",
+        ),
+        (
+            lambda: wire.MapRedrawMessage(
+                "r", 0, Pose2D(), np.zeros(0), np.zeros((0, 3)), np.zeros(2),
+                np.full((2, 3), np.nan),
+            ),
+            "poses contains non-finite",
+        ),
         (lambda: wire.MapMetaMessage("r", 0.0, 0, 0, 1, 1, 0, 0.0), "resolution_m"),
         (lambda: wire.ServiceStatsMessage("s", "i", 0.0, gauges={"g": math.nan}), "gauges"),
         (lambda: wire.ServiceStatsMessage("s", "i", 0.0, gauges={"g": None}), "gauges"),
@@ -669,6 +733,9 @@ def _examples() -> list[wire.Message]:
         ),
         wire.OdometryMessage(Odometry(1.0, Pose2D(1, 2, 3), (0.5, 0.0, 0.1))),
         wire.PoseEstimateMessage("r", 1, 2.0, Pose2D(1, 2, 3), np.eye(3), "ok", "icp", 4, 0.5),
+        wire.PoseEstimateMessage(
+            "r", 1, 2.0, Pose2D(1, 2, 3), np.eye(3), "ok", "icp", 4, 0.5, "", Pose2D(0.1, 0, 0)
+        ),
         wire.MatchRequest("icp", scan, wire.MapRef("r"), Pose2D(1, 0, 0), {"a": 1, "b": 2.5}),
         wire.MatchRequest("plicp", scan.points(), scan, None, {"c": "x", "d": True}),
         wire.MatchResponse.from_error("no map", "icp"),
@@ -682,6 +749,14 @@ def _examples() -> list[wire.Message]:
         wire.MapChangedMessage("r", 1, 0.0, 0, 0, 1, 1),
         wire.MapInsertMessage("r", 3, 2.0, Pose2D(1, 2, 3), scan.points(), scan.points()[:2] * 3),
         wire.MapInsertMessage("r", 3, 2.0, Pose2D(1, 2, 3), scan.points(), scan.points()[:2] * 3),
+        wire.MapRedrawMessage(
+            "r", 9, Pose2D(0.1, -0.2, 0.03), np.array([2, 5]), np.ones((2, 3)), np.arange(3.0),
+            np.zeros((3, 3)),
+        ),
+        wire.KeyframesMessage(
+            "r", np.array([1, 4]), np.array([0.1, 0.4]), np.zeros((2, 3)), np.zeros((2, 3)),
+            np.array([2, 1]), np.ones((3, 2)), np.array([0, 1]), np.ones((1, 2)),
+        ),
         wire.ServiceStatsMessage("deskew", "a", 1.0, {"in": 3}, {"lag_s": 0.5}),
         wire.InitialPoseMessage("r", Pose2D(1.5, -2.0, 0.3)),
     ]
@@ -806,3 +881,18 @@ def test_random_splices_only_raise_decode_error(msg: wire.Message, data: st.Data
     start = data.draw(st.integers(0, len(payload)))
     stop = data.draw(st.integers(start, len(payload)))
     _decode_or_decode_error(payload[:start] + data.draw(st.binary(max_size=12)) + payload[stop:])
+
+
+def test_keyframes_split_back_into_their_scans() -> None:
+    msg = wire.KeyframesMessage(
+        "r", np.array([1, 4, 9]), np.array([0.1, 0.4, 0.9]), np.zeros((3, 3)), np.zeros((3, 3)),
+        np.array([2, 0, 1]), np.arange(6.0).reshape(3, 2), np.array([0, 1, 0]),
+        np.array([[7.0, 8.0]]),
+    )
+    (h0, m0), (h1, m1), (h2, m2) = wire.KeyframesMessage.decode(msg.encode()).scans()
+    assert h0.tolist() == [[0, 1], [2, 3]] and h1.shape == (0, 2) and h2.tolist() == [[4, 5]]
+    assert m0.shape == (0, 2) and m1.tolist() == [[7, 8]] and m2.shape == (0, 2)
+    assert wire.KeyframesMessage(
+        "r", np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)),
+        np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0, np.int64), np.zeros((0, 2)),
+    ).scans() == []

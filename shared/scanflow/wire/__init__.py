@@ -8,9 +8,10 @@ and shape. Anything wrong with a payload raises a `DecodeError` (subclasses `Ver
 `MessageError`. Decoded arrays are read-only views of the payload.
 
 Changing any message's fields bumps SCHEMA_VERSION (2: `DeskewedScanMessage.no_return_points`;
-3: the sensor `mount` on scans, deskewed scans and map inserts): readers refuse other versions
-with a VersionError, so services of two versions fail loudly instead of dropping or missing a
-field.
+3: the sensor `mount` on scans, deskewed scans and map inserts; 4: `MapRedrawMessage`,
+`KeyframesMessage` and `PoseEstimateMessage.correction`, loop closure in the services):
+readers refuse other versions with a VersionError, so services of two versions fail loudly
+instead of dropping or missing a field.
 """
 
 from scanflow.wire.base import Message, decode_any, message_types
@@ -32,10 +33,12 @@ from scanflow.wire.estimates import (
 )
 from scanflow.wire.maps import (
     MAP_IMAGE_FORMATS,
+    KeyframesMessage,
     MapChangedMessage,
     MapImageMessage,
     MapInsertMessage,
     MapMetaMessage,
+    MapRedrawMessage,
     MapRegionMessage,
 )
 from scanflow.wire.scans import DeskewedScanMessage, OdometryMessage, ScanMessage
@@ -49,10 +52,12 @@ __all__ = [
     "DecodeError",
     "DeskewedScanMessage",
     "InitialPoseMessage",
+    "KeyframesMessage",
     "MapChangedMessage",
     "MapImageMessage",
     "MapInsertMessage",
     "MapMetaMessage",
+    "MapRedrawMessage",
     "MapRef",
     "MapRegionMessage",
     "MatchRequest",

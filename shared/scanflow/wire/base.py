@@ -139,3 +139,11 @@ def check_array(
                 f"{name} contains {what} (first at flat index {int(np.argmax(bad))})"
             )
     return a
+
+
+def check_seqs(name: str, values: ArrayLike) -> NDArray[np.int64]:
+    """Scan seqs of a list of keyframes: int64, >= 0 and strictly increasing."""
+    seqs = check_array(name, values, np.int64, (None,))
+    if seqs.size and (seqs[0] < 0 or np.any(np.diff(seqs) <= 0)):
+        raise MessageError(f"{name} must be >= 0 and strictly increasing")
+    return seqs

@@ -25,7 +25,7 @@ from scanflow.wire.errors import (
     VersionError,
 )
 
-SCHEMA_VERSION = 3  # 2: DeskewedScanMessage.no_return_points; 3: the sensor `mount`
+SCHEMA_VERSION = 4  # 2: no-return points; 3: the sensor `mount`; 4: map redraws
 MAX_PAYLOAD_BYTES = 16 * 1024 * 1024
 MAX_STR_BYTES = 64 * 1024
 MAX_MAP_LEN = 4096

@@ -71,6 +71,7 @@ class PoseEstimateMessage(Message):
         "iterations": INT,
         "score": NUMBER,
         "message": TEXT,
+        "correction": optional(POSE),
     }
     robot_id: str
     seq: int
@@ -82,6 +83,9 @@ class PoseEstimateMessage(Message):
     iterations: int
     score: float
     message: str = ""
+    # Set when the back end redrew the map at this scan: T_new_old, the map frame's change
+    # (this pose is in the new frame, the ones before in the old).
+    correction: Pose2D | None = None
 
     def __post_init__(self) -> None:
         check_text("robot_id", self.robot_id)
@@ -94,13 +98,17 @@ class PoseEstimateMessage(Message):
         object.__setattr__(self, "iterations", check_count("iterations", self.iterations))
         object.__setattr__(self, "score", check_finite("score", self.score))
         check_text("message", self.message, allow_empty=True)
+        if self.correction is not None:
+            check_pose("correction", self.correction)
 
     @classmethod
     def from_result(
-        cls, result: MatchResult | FrontendOutput, robot_id: str, seq: int, stamp_s: float
+        cls, result: MatchResult | FrontendOutput, robot_id: str, seq: int, stamp_s: float,
+        correction: Pose2D | None = None,
     ) -> Self:
         """The estimate a tracker publishes: a match result's or a front-end output's pose,
-        covariance, status, method, iterations, score and message."""
+        covariance, status, method, iterations, score and message (and the map frame's
+        `correction` when the map was redrawn at this scan)."""
         return cls(
             robot_id=robot_id,
             seq=seq,
@@ -112,6 +120,7 @@ class PoseEstimateMessage(Message):
             iterations=result.iterations,
             score=result.score,
             message=result.message,
+            correction=correction,
         )
 
 

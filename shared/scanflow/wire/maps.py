@@ -20,6 +20,7 @@ from scanflow.wire.base import (
     check_count,
     check_finite,
     check_pose,
+    check_seqs,
     check_text,
 )
 from scanflow.wire.errors import MessageError
@@ -68,6 +69,108 @@ class MapInsertMessage(Message):
             object.__setattr__(
                 self, name, check_array(name, getattr(self, name), np.float64, (None, 2))
             )
+
+
+@dataclass(frozen=True, eq=False)
+class MapRedrawMessage(Message):
+    """The back end optimised its pose graph and redrew the tracker's map: the map is now every
+    keyframe (the scans of the inserts with `keyframe_seqs`, in that order) at
+    `keyframe_poses`, and the robot's path is `poses` at `stamps_s` (every scan so far, the
+    one of `seq` last). Sent on the inserts' key, so a map server takes it between the same
+    inserts the tracker did; `correction` is T_new_old, the change of the map frame.
+    """
+
+    TYPE = "map_redraw"
+    WIRE: ClassVar[Schema] = {
+        "robot_id": TEXT,
+        "seq": INT,
+        "correction": POSE,
+        "keyframe_seqs": array("<i8"),
+        "keyframe_poses": array("<f8"),
+        "stamps_s": array("<f8"),
+        "poses": array("<f8"),
+    }
+    robot_id: str
+    seq: int
+    correction: Pose2D
+    keyframe_seqs: NDArray[np.int64]
+    keyframe_poses: NDArray[np.float64]
+    stamps_s: NDArray[np.float64]
+    poses: NDArray[np.float64]
+
+    def __post_init__(self) -> None:
+        check_text("robot_id", self.robot_id)
+        object.__setattr__(self, "seq", check_count("seq", self.seq))
+        check_pose("correction", self.correction)
+        seqs = check_seqs("keyframe_seqs", self.keyframe_seqs)
+        object.__setattr__(self, "keyframe_seqs", seqs)
+        object.__setattr__(
+            self, "keyframe_poses",
+            check_array("keyframe_poses", self.keyframe_poses, np.float64, (len(seqs), 3)),
+        )
+        stamps = check_array("stamps_s", self.stamps_s, np.float64, (None,))
+        object.__setattr__(self, "stamps_s", stamps)
+        object.__setattr__(
+            self, "poses", check_array("poses", self.poses, np.float64, (len(stamps), 3))
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class KeyframesMessage(Message):
+    """The keyframes a map server keeps for loop closure (a matcher resuming a robot rebuilds
+    its back end from them): keyframe i is the scan of seq `seqs[i]` at `stamps_s[i]`, drawn
+    at `poses[i]` with its lidar at `mounts[i]`; its hits are the next `hit_counts[i]` rows of
+    `hits`, its no-return points the next `miss_counts[i]` rows of `misses`.
+    """
+
+    TYPE = "keyframes"
+    WIRE: ClassVar[Schema] = {
+        "robot_id": TEXT,
+        "seqs": array("<i8"),
+        "stamps_s": array("<f8"),
+        "poses": array("<f8"),
+        "mounts": array("<f8"),
+        "hit_counts": array("<i8"),
+        "hits": array("<f8"),
+        "miss_counts": array("<i8"),
+        "misses": array("<f8"),
+    }
+    robot_id: str
+    seqs: NDArray[np.int64]
+    stamps_s: NDArray[np.float64]
+    poses: NDArray[np.float64]
+    mounts: NDArray[np.float64]
+    hit_counts: NDArray[np.int64]
+    hits: NDArray[np.float64]
+    miss_counts: NDArray[np.int64]
+    misses: NDArray[np.float64]
+
+    def __post_init__(self) -> None:
+        check_text("robot_id", self.robot_id)
+        seqs = check_seqs("seqs", self.seqs)
+        n = len(seqs)
+        checked = {
+            "seqs": seqs,
+            "stamps_s": check_array("stamps_s", self.stamps_s, np.float64, (n,)),
+            "poses": check_array("poses", self.poses, np.float64, (n, 3)),
+            "mounts": check_array("mounts", self.mounts, np.float64, (n, 3)),
+        }
+        for counts, rows in (("hit_counts", "hits"), ("miss_counts", "misses")):
+            c = check_array(counts, getattr(self, counts), np.int64, (n,))
+            r = check_array(rows, getattr(self, rows), np.float64, (None, 2))
+            if np.any(c < 0) or int(c.sum()) != len(r):
+                raise MessageError(f"{counts} must be >= 0 and add up to the rows of {rows}")
+            checked.update({counts: c, rows: r})
+        for name, value in checked.items():
+            object.__setattr__(self, name, value)
+
+    def scans(self) -> list[tuple[NDArray[np.float64], NDArray[np.float64]]]:
+        """Per keyframe: (hits, no-return points), each (k, 2)."""
+        if not len(self.seqs):
+            return []
+        hits = np.split(self.hits, np.cumsum(self.hit_counts)[:-1])
+        misses = np.split(self.misses, np.cumsum(self.miss_counts)[:-1])
+        return list(zip(hits, misses, strict=True))
 
 
 @dataclass(frozen=True, eq=False)
