@@ -132,6 +132,12 @@ class IngestSettings(ServiceSettings):
     replays: int = Field(1, ge=1, description="publish the source this many times in a row")
     sim_duration_s: float = Field(60.0, gt=0.0)
     sim_seed: int = 0
+    sim_world: Literal["rooms", "corridor", "loop"] = Field(
+        "rooms", description="the simulator's world (loop: a ring corridor to close a loop in)"
+    )
+    sim_odom_scale_error: float = Field(
+        0.01, ge=0.0, lt=0.5, description="the simulator's wheel odometry scale error"
+    )
     mount: Annotated[list[float], NoDecode] = Field(
         default_factory=list,
         description="the lidar's pose on the robot, 'x_m,y_m,yaw_deg' (T_base_laser): set on "
@@ -286,7 +292,7 @@ class BackendSettings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="SCANFLOW_BACKEND_", extra="ignore")
 
     loop_closure: bool = Field(
-        False, description="close loops and optimise the keyframes' pose graph (`scanflow run`)"
+        False, description="close loops and optimise the keyframes' pose graph"
     )
     search_radius_m: float = Field(
         5.0, gt=0.0, description="earlier keyframes this near (by the estimates) are candidates"
@@ -334,13 +340,18 @@ class BackendSettings(BaseSettings):
         "this far against it"
     )
     redraw_shift_deg: float = Field(2.0, gt=0.0, description="or turns one this much")
+    relocated_std_m: float = Field(
+        100.0, gt=0.0, description="std of the link across an operator's pose (unmeasured)"
+    )
+    relocated_std_deg: float = Field(90.0, gt=0.0, description="and its heading std")
 
-    def refusal_for_services(self) -> str:
-        """Why the services cannot honour these settings ('' when they can): they do not run
-        the back end yet, and a setting silently ignored would mislead."""
-        if not self.loop_closure:
+    def refusal(self, prior_map: str) -> str:
+        """Why these settings cannot run beside the front end's `prior_map` ('' when they
+        can): loop closure redraws the map from its own keyframes, which would drop the prior
+        map, so the pair is refused at start rather than half honoured."""
+        if not (self.loop_closure and prior_map):
             return ""
         return (
-            "SCANFLOW_BACKEND_LOOP_CLOSURE=true: the services (scanflow up, the matcher) do not "
-            "run loop closure yet; use `scanflow run --loop-closure`, or unset it"
+            f"SCANFLOW_BACKEND_LOOP_CLOSURE=true with the prior map {prior_map!r}: loop closure "
+            "builds its map from scratch; run without the prior map, or without loop closure"
         )

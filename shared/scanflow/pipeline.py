@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import time
 from collections import OrderedDict
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 from scanflow.backend import Mapper, MapperStep
 from scanflow.config import BackendSettings, FrontendSettings
@@ -140,7 +140,7 @@ class Pipeline:
             )
             if step.correction is not None:  # the front end's map frame moved: follow it
                 self.deskew_stage.velocity.move_frame(step.correction)
-                estimate = replace(estimate, pose=step.correction * estimate.pose)
+                estimate = estimate.in_frame(step.correction)
         if estimate.accepted:
             self.deskew_stage.observe_pose(stamp_s, estimate.pose)
         return PipelineOutput(result, estimate, deskew_time_s, step)

@@ -166,7 +166,9 @@ def test_backend_settings_read_the_environment_and_name_bad_values(clean_env) ->
         clean_env.delenv(f"SCANFLOW_BACKEND_{name}")
 
 
-def test_backend_settings_say_why_the_services_refuse_them(clean_env) -> None:
-    assert config.BackendSettings().refusal_for_services() == ""
+def test_loop_closure_with_a_prior_map_is_refused_naming_both(clean_env) -> None:
+    assert config.BackendSettings().refusal("maps/office.yaml") == ""
     clean_env.setenv("SCANFLOW_BACKEND_LOOP_CLOSURE", "1")
-    assert "scanflow run --loop-closure" in config.BackendSettings().refusal_for_services()
+    assert config.BackendSettings().refusal("") == ""
+    why = config.BackendSettings().refusal("maps/office.yaml")
+    assert "SCANFLOW_BACKEND_LOOP_CLOSURE" in why and "maps/office.yaml" in why

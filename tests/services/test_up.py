@@ -76,15 +76,26 @@ def test_up_names_a_missing_prior_map(tmp_path):
     assert done.returncode == 2 and "no file at" in done.stderr
 
 
-def test_up_refuses_loop_closure_which_the_services_do_not_run(tmp_path):
-    cmd = up_command(tmp_path / "data")
-    env = {**os.environ, "SCANFLOW_BACKEND_LOOP_CLOSURE": "true"}
-    done = subprocess.run(cmd, capture_output=True, text=True, timeout=60, env=env)
-    assert done.returncode == 2 and "scanflow run --loop-closure" in done.stderr
+def test_up_with_loop_closure_runs_the_back_end_in_the_services(tmp_path):
+    out, data = tmp_path / "up.out", tmp_path / "data"
+    proc = run_until_ingest_is_done(up_command(data, "--loop-closure"), out, signal.SIGINT)
+    text = out.read_text()
+    assert proc.returncode == 0, text
+    assert "back end: loop closure on" in text
+    with np.load(data / "robot.snapshot.npz") as snap:  # the map server kept the keyframes
+        assert len(snap["keyframes_seqs"]) > 0
 
 
-def test_a_matcher_refuses_loop_closure_at_start_naming_it():
-    env = {**os.environ, "SCANFLOW_BACKEND_LOOP_CLOSURE": "true"}
+def test_up_refuses_loop_closure_on_a_prior_map(tmp_path):
+    cmd = up_command(tmp_path / "data", "--loop-closure", "--prior-map", str(tmp_path / "m.npz"))
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and "loop closure builds its map from scratch" in done.stderr
+
+
+def test_a_matcher_refuses_loop_closure_on_a_prior_map_at_start_naming_both(tmp_path):
+    env = {**os.environ, "SCANFLOW_BACKEND_LOOP_CLOSURE": "true",
+           "SCANFLOW_FRONTEND_PRIOR_MAP": str(tmp_path / "m.npz")}
     cmd = [sys.executable, "-m", "scanflow", "serve", "matcher"]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=60, env=env)
-    assert done.returncode == 1 and "SCANFLOW_BACKEND_LOOP_CLOSURE" in done.stderr
+    assert done.returncode == 1, done.stderr
+    assert "SCANFLOW_BACKEND_LOOP_CLOSURE" in done.stderr and "m.npz" in done.stderr

@@ -11,7 +11,7 @@ to the front end.
 """
 
 from scanflow.backend.loops import LoopClosure, LoopDetector, ScanNode, loop_candidates
-from scanflow.backend.mapper import Mapper, MapperStep
+from scanflow.backend.mapper import Mapper, MapperStep, SavedRun
 from scanflow.backend.pose_graph import OptimiseReport, PoseGraph
 
 __all__ = [
@@ -21,6 +21,7 @@ __all__ = [
     "MapperStep",
     "OptimiseReport",
     "PoseGraph",
+    "SavedRun",
     "ScanNode",
     "loop_candidates",
 ]

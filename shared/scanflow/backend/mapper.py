@@ -16,9 +16,12 @@ with another. After `optimise_every` keyframes with a new closure the graph is o
 when that moves a keyframe more than `redraw_shift_*` against the front end's map, the map is
 redrawn from all keyframes at their optimised poses and the front end carries on in it
 (`Frontend.redraw`). A scan that is not a keyframe keeps its pose relative to the last keyframe,
-so it follows that keyframe's correction.
+so it follows that keyframe's correction. When the front end is put at a pose from outside (an
+operator's, `relocated()`), the motion to the next keyframe is not measured: its edge is a weak
+link that the loop closures can move. A run can be carried on from its keyframes at the poses
+they are drawn at (`SavedRun`: what a restarted matcher gets back from the map server).
 
-Memory: the keyframes' points (16 bytes per return) and 32 bytes per scan.
+Memory: the keyframes' points (16 bytes per return) and 40 bytes per scan.
 """
 
 from __future__ import annotations
@@ -39,7 +42,7 @@ from scanflow.backend.loops import (
 from scanflow.backend.pose_graph import OptimiseReport, PoseGraph
 from scanflow.config import BackendSettings
 from scanflow.frontend.tracker import Frontend, FrontendOutput, occupancy_params
-from scanflow.geometry import IDENTITY, Pose2D, compose_arrays, normalize_angles
+from scanflow.geometry import IDENTITY, Pose2D, compose_arrays, normalize_angles, relative_arrays
 from scanflow.maps.matching_map import MatchingMap
 
 
@@ -56,6 +59,18 @@ class MapperStep:
     @property
     def redrawn(self) -> bool:
         return self.correction is not None
+
+
+@dataclass(frozen=True, eq=False)
+class SavedRun:
+    """A run to carry on: its keyframes with their seqs, at the poses they are drawn at in the
+    map the front end resumes on, and every scan's stamp and pose so far."""
+
+    nodes: list[ScanNode]
+    seqs: list[int]
+    poses: NDArray[np.float64]  # (K, 3)
+    stamps_s: NDArray[np.float64]  # (N,)
+    path: NDArray[np.float64]  # (N, 3)
 
 
 @dataclass
@@ -78,10 +93,13 @@ def _rotated(covariance: NDArray[np.float64], theta: float) -> NDArray[np.float6
 class Mapper:
     """Keyframes, loop closures and the pose graph of one robot (see the module docstring)."""
 
-    def __init__(self, frontend: Frontend, settings: BackendSettings) -> None:
+    def __init__(
+        self, frontend: Frontend, settings: BackendSettings, saved: SavedRun | None = None
+    ) -> None:
         """`frontend` must start from an empty map: the back end redraws the map from its own
-        keyframes, which a prior map is not made of."""
-        if not frontend.map.is_empty:
+        keyframes, which a prior map is not made of. Or from the map of `saved`'s keyframes,
+        to carry on a run (a restarted matcher)."""
+        if saved is None and not frontend.map.is_empty:
             raise ValueError(
                 "loop closure builds its map from scratch, but the front end already has a map "
                 "(a prior map?): run without one, or without loop closure"
@@ -95,11 +113,16 @@ class Mapper:
         self.detector = LoopDetector(settings, self.params)
         self._map_poses: list[Pose2D] = []  # keyframes in the front end's current map frame
         self._travelled_m: list[float] = []
+        self.keyframe_seqs: list[int] = []  # per keyframe: its scan's seq
+        self._scan_stamps: list[float] = []  # per scan: its stamp
         self._scan_node: list[int] = []  # per scan: the keyframe it hangs from
         self._scan_offset: list[NDArray[np.float64]] = []  # its pose relative to that keyframe
         self._waiting: list[_Waiting] = []  # recent closures, entered or waiting for another
         self._pending = 0  # keyframes since the last optimisation
         self._unoptimised = False
+        self._relocated = False  # the front end was put somewhere since the last keyframe
+        if saved is not None:
+            self._resume(saved)
 
     def add(
         self,
@@ -110,16 +133,21 @@ class Mapper:
     ) -> MapperStep:
         """Take the front end's output for one scan (with the points it processed)."""
         if not out.inserted:
-            self._record_scan(out.pose)
+            self._record_scan(out.stamp_s, out.pose)
             return MapperStep(None)
         node = self._add_node(out, points_m, no_return_m, mount)
-        self._record_scan(out.pose)  # before an optimisation can move the map's frame
+        self._record_scan(out.stamp_s, out.pose)  # before an optimisation moves the map's frame
         closures = tuple(self._close_loops(node))
         self._unoptimised |= bool(closures)
         self._pending += 1
         if self._unoptimised and self._pending >= self.settings.optimise_every:
             return MapperStep(node, closures, *self._optimise())
         return MapperStep(node, closures)
+
+    def relocated(self) -> None:
+        """The front end was put at a pose from outside (`Frontend.set_pose`): the next
+        keyframe's edge to the last one becomes a weak link (std `relocated_std_*`)."""
+        self._relocated = bool(self.nodes)
 
     def finish(self) -> MapperStep:
         """Optimise once more if a closure came since the last optimisation, and redraw the
@@ -138,6 +166,10 @@ class Mapper:
         anchors = self.graph.poses[np.asarray(self._scan_node)]
         return compose_arrays(anchors, offsets)
 
+    def stamps_s(self) -> NDArray[np.float64]:
+        """Every scan's stamp, in the order of `trajectory()`."""
+        return np.asarray(self._scan_stamps, dtype=np.float64)
+
     def draw_map(self) -> MatchingMap:
         """A new map of every keyframe at its optimised pose."""
         return draw_keyframes(self.nodes, self.graph.poses, self.params)
@@ -149,24 +181,53 @@ class Mapper:
         points = np.array(points_m, dtype=np.float64).reshape(-1, 2)
         misses = np.zeros((0, 2)) if no_return_m is None else np.array(no_return_m, np.float64)
         self.nodes.append(ScanNode(out.stamp_s, points, misses.reshape(-1, 2), mount))
+        self.keyframe_seqs.append(out.seq)
+        return self._chain(out.pose)
+
+    def _chain(self, pose: Pose2D) -> int:
+        """The graph node of the newest keyframe, at `pose` in the front end's map, linked to
+        the keyframe before by the motion between them."""
         if not self._map_poses:
-            index = self.graph.add_node(out.pose)
+            index = self.graph.add_node(pose)
             self._travelled_m.append(0.0)
             # Scans before the first keyframe hang from it.
-            first = out.pose.inverse().to_array()
+            first = pose.inverse().to_array()
             self._scan_offset = [compose_arrays(first, o)[0] for o in self._scan_offset]
             self._scan_node = [0] * len(self._scan_node)
         else:
-            motion = self._map_poses[-1].inverse() * out.pose
+            motion = self._map_poses[-1].inverse() * pose
             previous = self.graph.node_count - 1
             index = self.graph.add_node(self.graph.pose(previous) * motion)
             self.graph.add_edge(previous, index, motion, self._keyframe_information(motion))
+            self._relocated = False
             self._travelled_m.append(self._travelled_m[-1] + motion.translation_norm())
-        self._map_poses.append(out.pose)
+        self._map_poses.append(pose)
         return index
+
+    def _resume(self, saved: SavedRun) -> None:
+        """Keyframes chained at their saved poses (the closures that placed them are in those
+        poses; the chain keeps them together), every earlier scan hung from the last keyframe
+        at or before it."""
+        for node, seq, pose in zip(saved.nodes, saved.seqs, saved.poses, strict=True):
+            self.nodes.append(node)
+            self.keyframe_seqs.append(int(seq))
+            self._chain(Pose2D.from_array(pose))
+        stamps = np.asarray(saved.stamps_s, dtype=np.float64)
+        path = np.asarray(saved.path, dtype=np.float64).reshape(-1, 3)
+        if self.nodes:
+            keyframe_stamps = np.array([n.stamp_s for n in self.nodes])
+            nodes = np.maximum(np.searchsorted(keyframe_stamps, stamps, side="right") - 1, 0)
+            offsets = relative_arrays(np.asarray(saved.poses)[nodes], path)
+        else:
+            nodes, offsets = np.full(len(stamps), -1), path
+        self._scan_stamps = stamps.tolist()
+        self._scan_node = nodes.tolist()
+        self._scan_offset = list(offsets)
 
     def _keyframe_information(self, motion: Pose2D) -> NDArray[np.float64]:
         s = self.settings
+        if self._relocated:
+            return np.diag([s.relocated_std_m**-2] * 2 + [math.radians(s.relocated_std_deg) ** -2])
         std_m = s.keyframe_std_m + s.keyframe_std_per_m * motion.translation_norm()
         std_rad = math.radians(s.keyframe_std_deg) + s.keyframe_std_deg_per_deg * abs(motion.theta)
         return np.diag([std_m**-2, std_m**-2, std_rad**-2])
@@ -250,8 +311,9 @@ class Mapper:
         self._map_poses = [Pose2D.from_array(p) for p in optimised]
         return report, correction
 
-    def _record_scan(self, pose: Pose2D) -> None:
+    def _record_scan(self, stamp_s: float, pose: Pose2D) -> None:
         node = len(self._map_poses) - 1
+        self._scan_stamps.append(stamp_s)
         anchor = self._map_poses[node] if node >= 0 else IDENTITY
         self._scan_node.append(node)
         self._scan_offset.append((anchor.inverse() * pose).to_array())

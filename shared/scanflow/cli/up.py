@@ -27,12 +27,18 @@ def up(
         Path | None,
         typer.Option("--prior-map", help="start every robot on this map (.npz or .yaml)"),
     ] = None,
+    loop_closure: bool = typer.Option(
+        False, "--loop-closure", help="close loops and optimise the keyframes' pose graph"
+    ),
 ) -> None:
     """Start the whole pipeline as local processes; stop them all on Ctrl-C or SIGTERM.
     Exits 0 when every service stopped cleanly, else 1 naming the ones that did not."""
     from services.common.launch import ORDER, PIPELINE, Launcher
 
-    refusal = BackendSettings().refusal_for_services()
+    backend = BackendSettings()
+    if loop_closure:
+        backend = backend.model_copy(update={"loop_closure": True})
+    refusal = backend.refusal(str(prior_map or ""))
     if refusal:
         typer.echo(f"Error: {refusal}", err=True)
         raise typer.Exit(2)
@@ -49,6 +55,8 @@ def up(
         if not prior_map.is_file():
             raise typer.BadParameter(f"no file at {prior_map}", param_hint="--prior-map")
         settings["SCANFLOW_FRONTEND_PRIOR_MAP"] = str(prior_map.resolve())
+    if loop_closure:
+        settings["SCANFLOW_BACKEND_LOOP_CLOSURE"] = "true"
     log_dir = Path(tempfile.mkdtemp(prefix="scanflow-up-"))
     launcher = Launcher.local(log_dir, zenoh_port, **settings)
     stopping = False
@@ -72,6 +80,8 @@ def up(
         typer.echo(f"source:   {log or 'built-in simulator'} at rate {rate}")
         if prior_map is not None:
             typer.echo(f"map:      every robot starts on {prior_map.resolve()}")
+        if backend.loop_closure:
+            typer.echo("back end: loop closure on (the map is redrawn when a loop closes)")
         typer.echo(f"gateway:  http://127.0.0.1:{port}/")
         typer.echo(f"zenoh:    tcp/127.0.0.1:{zenoh_port} (SCANFLOW_ZENOH_CONNECT)")
         typer.echo(f"data dir: {data_dir.resolve()}")

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import StrEnum
 
 import numpy as np
@@ -89,6 +89,16 @@ class FrontendOutput:
     @property
     def accepted(self) -> bool:
         return self.status in ACCEPTED
+
+    def in_frame(self, correction: Pose2D) -> FrontendOutput:
+        """The same estimate in another map frame (T_new_old = `correction`: the map was
+        redrawn): the pose moved, the covariance's position block turned with it."""
+        covariance = self.covariance
+        if np.all(np.isfinite(covariance)):  # "no information" (inf) stays as it is
+            c, s = math.cos(correction.theta), math.sin(correction.theta)
+            turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            covariance = turn @ covariance @ turn.T
+        return replace(self, pose=correction * self.pose, covariance=covariance)
 
 
 @dataclass

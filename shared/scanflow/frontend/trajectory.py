@@ -25,6 +25,17 @@ class TrajectoryStore:
         self._rows = np.empty((_INITIAL_CAPACITY, 4))
         self._count = 0
 
+    @classmethod
+    def of(cls, stamps_s: NDArray[np.float64], poses: NDArray[np.float64]) -> TrajectoryStore:
+        """A store holding `poses` (N, 3) at `stamps_s` (N,), e.g. a saved or corrected path."""
+        store = cls()
+        n = len(stamps_s)
+        store._rows = np.empty((max(n, _INITIAL_CAPACITY), 4))
+        store._rows[:n, 0] = stamps_s
+        store._rows[:n, 1:] = np.asarray(poses).reshape(n, 3)
+        store._count = n
+        return store
+
     def __len__(self) -> int:
         return self._count
 

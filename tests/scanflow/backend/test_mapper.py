@@ -7,7 +7,8 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from scanflow.backend import LoopClosure, Mapper
+from scanflow.backend import LoopClosure, Mapper, SavedRun
+from scanflow.backend.loops import draw_keyframes
 from scanflow.config import BackendSettings
 from scanflow.frontend import Frontend, default_settings
 from scanflow.geometry import IDENTITY, Pose2D
@@ -131,6 +132,8 @@ def test_scans_between_keyframes_follow_their_keyframe(drive: Drive) -> None:
         assert abs(gap.relative_to(offset).theta) < 1e-9
     assert mapper.graph.node_count == len(drive.truth)
     assert mapper.closures
+    assert mapper.keyframe_seqs == list(range(0, 2 * len(drive.truth), 2))
+    np.testing.assert_array_equal(mapper.stamps_s(), 0.1 * np.arange(2 * len(drive.truth)))
 
 
 def test_scans_before_the_first_keyframe_hang_from_it() -> None:
@@ -165,3 +168,65 @@ def test_a_prior_map_is_refused(drive: Drive) -> None:
     frontend.process(drive.scans[0], 0.0)
     with pytest.raises(ValueError, match="prior map"):
         Mapper(frontend, SETTINGS)
+
+
+def test_an_operators_pose_is_a_weak_link_that_the_closures_move(drive: Drive) -> None:
+    """Halfway round the ring the front end is put 0.5 m / 4 deg off (an operator's pose
+    that was wrong, or one that fixed a wrong track: either way the two halves disagree).
+    As a weak link, the jump gives way to the closures at the revisit; as a measured motion
+    it would be spread over the whole ring."""
+    jump, k_jump = Pose2D(0.4, -0.3, math.radians(4.0)), len(drive.truth) // 2
+
+    def errors(relocate: bool) -> np.ndarray:
+        mapper = Mapper(Frontend(default_settings()), SETTINGS)
+        frame = IDENTITY
+        for seq, (pose, points) in enumerate(zip(drive.truth, drive.scans, strict=True)):
+            if seq == k_jump:
+                frame = jump * frame
+                if relocate:
+                    mapper.relocated()
+            step = mapper.add(output(seq, (frame * Pose2D.from_array(pose)).to_array()), points)
+            if step.correction is not None:
+                frame = step.correction * frame
+        mapper.finish()
+        assert mapper.closures
+        return _position_errors(mapper.trajectory(), drive.truth)
+
+    weak, measured = errors(True), errors(False)
+    assert weak.max() < 0.08  # 0.03 m here
+    assert measured.max() > 0.3  # 0.70 m here
+
+
+def test_a_run_carried_on_from_its_saved_keyframes_still_closes_the_loop(drive: Drive) -> None:
+    """What a restarted matcher does: a new back end from the keyframes at the poses they are
+    drawn at and the path so far (as the map server keeps them), on the map they draw. The
+    revisit after the restart still closes the ring; the path covers every scan."""
+    first = Mapper(Frontend(default_settings()), SETTINGS)
+    cut = int(0.6 * len(drive.truth))
+    frame, drawn, path = IDENTITY, [], []  # as the map server holds them
+    for seq in range(cut):
+        pose = frame * Pose2D.from_array(drive.drifted[seq])
+        step = first.add(output(seq, pose.to_array()), drive.scans[seq])
+        drawn.append(pose.to_array())
+        path.append(pose.to_array())
+        if step.correction is not None:
+            frame = step.correction * frame
+            drawn, path = list(first.graph.poses), list(first.trajectory())
+    saved = SavedRun(first.nodes, first.keyframe_seqs, np.array(drawn), first.stamps_s(),
+                     np.array(path))
+    frontend = Frontend(default_settings(), grid=draw_keyframes(
+        saved.nodes, saved.poses, first.params).grid)
+    resumed = Mapper(frontend, SETTINGS, saved)
+    assert resumed.keyframe_seqs == first.keyframe_seqs
+    np.testing.assert_allclose(resumed.trajectory(), path, atol=1e-9)
+    for seq in range(cut, len(drive.truth)):
+        pose = frame * Pose2D.from_array(drive.drifted[seq])
+        step = resumed.add(output(seq, pose.to_array()), drive.scans[seq])
+        if step.correction is not None:
+            frame = step.correction * frame
+    resumed.finish()
+    assert any(c.older < len(saved.nodes) for c in resumed.closures)  # to keyframes before
+    after = _position_errors(resumed.trajectory(), drive.truth)
+    before = _position_errors(drive.drifted, drive.truth)
+    assert len(after) == len(drive.truth)
+    assert after.max() < 0.25 * before.max()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -315,3 +316,19 @@ def test_a_redrawn_map_in_another_frame_is_tracked_on(scan_at: Scanner) -> None:
     assert out.status is FrontendStatus.TRACKED
     assert out.prediction_source == PredictionSource.ODOMETRY
     assert out.pose.relative_to(new_from_world * poses[5]).translation_norm() < 0.03
+
+
+def test_an_estimate_moved_into_a_redrawn_frame_turns_its_covariance() -> None:
+    """T_new_old turned by 90 deg: the pose moves, the position uncertainty turns with it (x's
+    variance becomes y's), and "no information" stays infinite rather than NaN."""
+    out = FrontendOutput(
+        seq=3, stamp_s=0.3, pose=Pose2D(1.0, 0.0, 0.0), covariance=np.diag([4.0, 1.0, 0.1]),
+        status=FrontendStatus.TRACKED, method="gn", iterations=2, score=0.9, message="",
+        inserted=True, prediction_source="odometry",
+    )
+    correction = Pose2D(0.5, 0.0, math.pi / 2)
+    moved = out.in_frame(correction)
+    assert moved.pose == correction * out.pose and moved.seq == 3
+    np.testing.assert_allclose(moved.covariance, np.diag([1.0, 4.0, 0.1]), atol=1e-12)
+    lost = replace(out, covariance=np.diag([math.inf] * 3)).in_frame(correction)
+    assert np.isinf(np.diag(lost.covariance)).all() and not np.isnan(lost.covariance).any()
