@@ -222,10 +222,18 @@ class ServiceShell:
                 self._handle(handle, kind, message)
             if item is None:
                 if idle is not None:
-                    idle()
+                    self._idle(idle)
             elif item[0] != _WAKE:
                 self._handle(handle, *item)
             self._busy_s += time.perf_counter() - t0
+
+    def _idle(self, idle: Callable[[], None]) -> None:
+        try:
+            idle()
+        except Exception:  # periodic work (snapshots, notices) must not stop the service
+            n = self.counters.add("errors.idle")
+            if n <= _LOG_FIRST or n % _LOG_EVERY == 0:
+                self.log.exception("idle work failed (%d so far)", n)
 
     def _handle(self, handle: Callable[[str, Any], None], kind: str, message: Any) -> None:
         t0 = time.perf_counter()

@@ -6,7 +6,8 @@ constant-velocity prior fed by the matcher's accepted poses, else to no correcti
 `source_used` in each message says which. A scan that odometry will never cover first waits
 (within the same budget) for the matcher's pose of the scan before it, so the prior holds every
 earlier estimate, as in the in-process pipeline; a zero-length sweep (keyframe logs) has nothing
-to correct and does not wait. Poses come in on the shell's feedback lane:
+to correct and does not wait. A pose that carries a map frame `correction` (loop closure
+redrew the map) moves the prior's frame with it. Poses come in on the shell's feedback lane:
 the matcher blocks on publishing them, so they must not queue behind scans that wait on it.
 """
 
@@ -89,6 +90,8 @@ class DeskewService:
             robot = self.robots.get(robot_id)
             if robot is not None:
                 robot.pose_seq = message.seq
+                if message.correction is not None:  # the map was redrawn: follow its frame
+                    robot.stage.velocity.move_frame(message.correction)
                 if message.status in ACCEPTED:
                     robot.stage.observe_pose(message.stamp_s, message.pose)
                 self._flush(robot_id, robot, force=False)

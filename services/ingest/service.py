@@ -44,7 +44,8 @@ class Ingest:
         prefix = self.shell.prefix
         scans = 0
         events = source_events(
-            s.log, s.robot_id, s.sim_duration_s, s.sim_seed, s.limit, s.mount_pose()
+            s.log, s.robot_id, s.sim_duration_s, s.sim_seed, s.limit, s.mount_pose(),
+            sim_world=s.sim_world, sim_odom_scale_error=s.sim_odom_scale_error,
         )
         for event in events:
             if self.shell.stop_event.is_set():

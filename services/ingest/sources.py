@@ -19,13 +19,18 @@ Event = LaserScan | Odometry
 
 
 def sim_events(
-    duration_s: float, seed: int, robot_id: str, mount: Pose2D = IDENTITY
+    duration_s: float, seed: int, robot_id: str, mount: Pose2D = IDENTITY,
+    world: str = "rooms", odom_scale_error: float = 0.01,
 ) -> Iterator[Event]:
-    """The built-in simulator (its lidar at `mount` on the robot): each frame's odometry
-    samples, then its (distorted) scan."""
+    """The built-in simulator (its lidar at `mount` on the robot, in `world`, with wheel
+    odometry off by `odom_scale_error`): each frame's odometry samples, then its (distorted)
+    scan."""
     from scanflow.sim import SimConfig, simulate
 
-    config = SimConfig(duration_s=duration_s, seed=seed, robot_id=robot_id, mount=mount)
+    config = SimConfig(
+        world=world, duration_s=duration_s, seed=seed, robot_id=robot_id, mount=mount,
+        odom_scale_error=odom_scale_error,
+    )
     for frame in simulate(config):
         yield from frame.odometry
         yield frame.scan
@@ -78,11 +83,17 @@ def source_events(
     sim_seed: int,
     limit: int | None,
     mount: Pose2D | None = None,
+    *,
+    sim_world: str = "rooms",
+    sim_odom_scale_error: float = 0.01,
 ) -> Iterator[Event]:
     """The numbered, limited stream of one replay of the configured source; `mount` (when
     given) places the simulator's lidar, or overrides what a log says about its lidar."""
     if log is None:
-        raw = sim_events(sim_duration_s, sim_seed, robot_id, mount or IDENTITY)
+        raw = sim_events(
+            sim_duration_s, sim_seed, robot_id, mount or IDENTITY, sim_world,
+            sim_odom_scale_error,
+        )
     else:
         raw = log_events(log, robot_id)
         raw = raw if mount is None else mounted(raw, mount)

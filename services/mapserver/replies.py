@@ -1,4 +1,5 @@
-"""What the map server's queryables answer: metadata, exported images, regions, trajectory."""
+"""What the map server's queryables answer: metadata, exported images, regions, trajectory,
+and the keyframes kept for loop closure."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import numpy as np
 from scanflow.maps.export import save_map_server, save_npz, save_png
 from scanflow.maps.grid import CellBox
 from scanflow.wire import (
+    KeyframesMessage,
     MapImageMessage,
     MapMetaMessage,
     MapRegionMessage,
@@ -64,3 +66,13 @@ def region(robot: RobotMap, bounds_m: tuple[float, float, float, float] | None) 
 
 def trajectory(robot: RobotMap) -> TrajectoryMessage:
     return TrajectoryMessage(robot.robot_id, robot.trajectory.stamps_s, robot.trajectory.poses)
+
+
+def keyframes(robot: RobotMap) -> KeyframesMessage:
+    """The keyframes and their poses (LookupError when this server keeps none)."""
+    if robot.keyframes is None:
+        raise LookupError(
+            f"robot {robot.robot_id}: this map server keeps no keyframes "
+            "(SCANFLOW_BACKEND_LOOP_CLOSURE is off here)"
+        )
+    return robot.keyframes.message(robot.robot_id)

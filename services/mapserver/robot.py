@@ -1,17 +1,21 @@
-"""One robot's map as the map server keeps it: grid, trajectory, dirty region."""
+"""One robot's map as the map server keeps it: grid, trajectory, dirty region, and (with loop
+closure on) the keyframes to redraw it from."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
+import numpy as np
+from scanflow.backend.loops import draw_keyframes
 from scanflow.frontend import insert_scan
 from scanflow.frontend.trajectory import TrajectoryStore
-from scanflow.geometry import Pose2D
 from scanflow.maps.grid import CellBox
 from scanflow.maps.matching_map import MatchingMap
-from scanflow.maps.occupancy import OccupancyGrid
-from scanflow.wire import MapChangedMessage, MapInsertMessage, PoseEstimateMessage
+from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
+from scanflow.wire import MapChangedMessage, MapInsertMessage, MapRedrawMessage, PoseEstimateMessage
 
+from services.mapserver.keyframes import Keyframes
 from services.mapserver.snapshot import Snapshot
 
 
@@ -19,21 +23,31 @@ class RobotMap:
     """Inserts the tracker's scans at the poses it inserted them, and records its poses.
 
     Inserts and poses come on two subscribers (no order between them); an insert carries its
-    pose, so only the order of the inserts matters, and one subscriber keeps that.
+    pose, so only the order of the inserts matters, and one subscriber keeps that. A redraw
+    comes on the inserts' subscriber, between the inserts the tracker made around it; it also
+    carries the whole corrected path up to its scan: a pose of a scan it covers is not added
+    again, and poses of later scans that came before it are kept.
     """
 
     def __init__(
-        self, robot_id: str, new_grid: Callable[[], OccupancyGrid], snap: Snapshot | None = None
+        self, robot_id: str, new_grid: Callable[[], OccupancyGrid], snap: Snapshot | None = None,
+        keep_keyframes: bool = False,
     ) -> None:
         """`new_grid`: a robot's starting map (the matchers' prior map, or an empty grid with
-        their resolution), also after a reset; a snapshot is resumed as it was saved."""
+        their resolution), also after a reset; a snapshot is resumed as it was saved.
+        `keep_keyframes`: keep every inserted scan, so that redraws can be followed."""
         self.robot_id = robot_id
         self.new_grid = new_grid
+        self.keep_keyframes = keep_keyframes
         self.map = MatchingMap(snap.grid if snap else new_grid())
-        self.trajectory = TrajectoryStore()
-        if snap is not None:
-            for stamp_s, row in zip(snap.stamps_s, snap.poses, strict=True):
-                self.trajectory.append(float(stamp_s), Pose2D.from_array(row))
+        self.trajectory = (
+            TrajectoryStore() if snap is None else TrajectoryStore.of(snap.stamps_s, snap.poses)
+        )
+        self.keyframes: Keyframes | None = None
+        if keep_keyframes:
+            saved = snap.keyframes if snap is not None else None
+            self.keyframes = saved if saved is not None else Keyframes()
+        self.redrawn_seq = -1 if snap is None else snap.redrawn_seq
         self.last_seq = -1 if snap is None else snap.last_seq
         self.last_insert_seq = -1
         self.streams: set[str] = set()  # the kinds of message this run has had
@@ -49,25 +63,56 @@ class RobotMap:
         """The robot's stream restarted (a replay): start its map and trajectory afresh."""
         self.map = MatchingMap(self.new_grid())
         self.trajectory = TrajectoryStore()
+        self.keyframes = Keyframes() if self.keep_keyframes else None
+        self.redrawn_seq = -1
         self.last_seq = -1
         self.last_insert_seq = -1
         self.streams.clear()
         self.dirty = None
 
     def apply(self, pose: PoseEstimateMessage) -> None:
-        """Record the pose in the trajectory."""
+        """Record the pose in the trajectory (unless a redraw's path already holds it)."""
         self.last_seq = pose.seq
-        self.trajectory.append(pose.stamp_s, pose.pose)
+        if pose.seq > self.redrawn_seq:
+            self.trajectory.append(pose.stamp_s, pose.pose)
 
     def insert(self, scan: MapInsertMessage) -> None:
         """The front end's own insertion of the scan (hits and no-return beams) at its pose;
         remembers the touched cells."""
         self.last_insert_seq = scan.seq
+        if self.keyframes is not None:
+            self.keyframes.add(scan)
         result = insert_scan(
             self.map, scan.points, scan.pose, scan.no_return_points, scan.mount
         )
         if result.touched is not None:
             self.dirty = result.touched.union(self.dirty)
+
+    def redraw(self, redraw: MapRedrawMessage, params: OccupancyParams) -> None:
+        """The tracker's redraw: the map of every keyframe at its optimised pose (a new
+        revision), and the corrected path. Raises, changing nothing, when this server does
+        not hold exactly the keyframes the redraw names."""
+        if self.keyframes is None:
+            raise ValueError(
+                f"robot {self.robot_id}: a map redraw came, but this map server keeps no "
+                "keyframes (SCANFLOW_BACKEND_LOOP_CLOSURE is off here, on in the matcher)"
+            )
+        self.keyframes.check(redraw.keyframe_seqs)
+        grid = draw_keyframes(self.keyframes.nodes, redraw.keyframe_poses, params).grid
+        grid.revision = self.map.revision + 1
+        for box in (self.map.grid.extent, grid.extent):
+            if box is not None:
+                self.dirty = box.union(self.dirty)
+        self.map = MatchingMap(grid)
+        self.keyframes.moved(redraw.keyframe_poses)
+        # Poses of later scans that came before the redraw are in the new frame already.
+        last_s = redraw.stamps_s[-1] if len(redraw.stamps_s) else -math.inf
+        later = self.trajectory.stamps_s > last_s
+        self.trajectory = TrajectoryStore.of(
+            np.concatenate((redraw.stamps_s, self.trajectory.stamps_s[later])),
+            np.concatenate((redraw.poses, self.trajectory.poses[later])),
+        )
+        self.redrawn_seq = redraw.seq
 
     def take_change(self, stamp_s: float) -> MapChangedMessage | None:
         """The change notice for everything touched since the last one (None if nothing)."""
@@ -92,4 +137,6 @@ class RobotMap:
             self.trajectory.stamps_s,
             self.trajectory.poses,
             self.last_seq,
+            self.keyframes,
+            self.redrawn_seq,
         )

@@ -1,7 +1,8 @@
 """Map server: inserts the scans the matcher inserted, at the poses it inserted them, with the
 library's map update; keeps the matcher's poses as each robot's trajectory; serves the maps on
 queryables, publishes rate-limited change notices and snapshots every robot atomically to the
-data directory (a restart resumes from there).
+data directory (a restart resumes from there). With loop closure on (SCANFLOW_BACKEND_*, as the
+matchers) it keeps every inserted scan and repeats the matcher's map redraws.
 """
 
 from __future__ import annotations
@@ -13,12 +14,19 @@ from pathlib import Path
 
 import zenoh
 from scanflow import keys
-from scanflow.config import FrontendSettings, MapServerSettings, ZenohSettings
+from scanflow.config import BackendSettings, FrontendSettings, MapServerSettings, ZenohSettings
 from scanflow.frontend import default_settings, occupancy_params
 from scanflow.frontend.prior import FrontendStart
 from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.warmup import warm_up
-from scanflow.wire import MapInsertMessage, Message, PoseEstimateMessage
+from scanflow.wire import (
+    MapInsertMessage,
+    MapRedrawMessage,
+    Message,
+    PoseEstimateMessage,
+    SchemaError,
+    decode_any,
+)
 
 from services.common.process import init_process
 from services.common.shell import ServiceShell
@@ -27,6 +35,15 @@ from services.mapserver.robot import RobotMap
 from services.mapserver.snapshot import load_snapshots, save_snapshot
 
 Builder = Callable[[RobotMap, zenoh.Parameters], Message]
+Update = MapInsertMessage | MapRedrawMessage | PoseEstimateMessage
+
+
+def _map_update(data: bytes) -> MapInsertMessage | MapRedrawMessage:
+    """A message on a robot's inserts key: an insert, or a redraw between two inserts."""
+    message = decode_any(data)
+    if not isinstance(message, MapInsertMessage | MapRedrawMessage):
+        raise SchemaError(f"message.type: expected map_insert or map_redraw, got {message.TYPE!r}")
+    return message
 
 
 class MapServer:
@@ -37,9 +54,13 @@ class MapServer:
         settings: MapServerSettings,
         zenoh_settings: ZenohSettings,
         frontend_settings: FrontendSettings | None = None,
+        backend_settings: BackendSettings | None = None,
     ) -> None:
-        """`frontend_settings`: the matchers' (their map resolution), default the documented."""
+        """`frontend_settings`: the matchers' (their map resolution), default the documented;
+        `backend_settings`: the matchers' too (with loop closure, keyframes are kept)."""
         self.settings = settings
+        backend = backend_settings if backend_settings is not None else BackendSettings()
+        self.keep_keyframes = backend.loop_closure
         frontend = frontend_settings if frontend_settings is not None else default_settings()
         self.params = occupancy_params(frontend)
         self.start = FrontendStart(frontend)  # a bad prior map stops the start here
@@ -51,31 +72,42 @@ class MapServer:
         for reason in skipped:
             self.shell.log.warning("%s; starting that robot afresh", reason)
         for snap in snapshots:
-            self.robots[snap.robot_id] = RobotMap(snap.robot_id, self.new_grid, snap)
+            self.robots[snap.robot_id] = RobotMap(
+                snap.robot_id, self.new_grid, snap, self.keep_keyframes
+            )
             self.shell.seqs.resume(f"{snap.robot_id}/pose", snap.last_seq)
             self.shell.log.info("robot %s: resumed at seq %d", snap.robot_id, snap.last_seq)
         self._last_notice_s = 0.0
         self._last_snapshot_s = time.monotonic()
         prefix = self.shell.prefix
-        self.shell.subscribe(keys.map_key("*", "insert", prefix), "insert", MapInsertMessage.decode)
+        self.shell.subscribe(keys.map_key("*", "insert", prefix), "insert", _map_update)
         self.shell.subscribe(keys.pose("*", prefix), "pose", PoseEstimateMessage.decode)
         self._serve(lambda r: keys.map_key(r, "meta", prefix), lambda r, _p: replies.meta(r))
         self._serve(lambda r: keys.map_key(r, "image", prefix), _image)
         self._serve(lambda r: keys.map_key(r, "region", prefix), _region)
         self._serve(lambda r: keys.trajectory(r, prefix), lambda r, _p: replies.trajectory(r))
+        self._serve(
+            lambda r: keys.map_key(r, "keyframes", prefix), lambda r, _p: replies.keyframes(r)
+        )
         self.shell.add_stats(self._gauges)
 
     # -- bus ------------------------------------------------------------------------------
-    def handle(self, kind: str, message: MapInsertMessage | PoseEstimateMessage) -> None:
+    def handle(self, kind: str, message: Update) -> None:
         with self.lock:
             self._apply(kind, message)
         self.idle()
 
-    def _apply(self, kind: str, message: MapInsertMessage | PoseEstimateMessage) -> None:
+    def _apply(self, kind: str, message: Update) -> None:
         robot_id = message.robot_id
         robot = self.robots.get(robot_id)
         if robot is None:
-            robot = self.robots[robot_id] = RobotMap(robot_id, self.new_grid)
+            robot = self.robots[robot_id] = RobotMap(
+                robot_id, self.new_grid, keep_keyframes=self.keep_keyframes
+            )
+        if isinstance(message, MapRedrawMessage):  # follows the insert of its own scan
+            robot.redraw(message, self.params)
+            self.shell.counters.add("redrawn")
+            return
         if isinstance(message, MapInsertMessage):  # sparse seqs: gaps are not misses
             restarted = message.seq <= robot.last_insert_seq
         else:
@@ -149,6 +181,8 @@ class MapServer:
                 f"{r}.map_bytes": robot.map.grid.nbytes,
                 f"{r}.last_insert_seq": robot.last_insert_seq,
             })
+            if robot.keyframes is not None:
+                gauges[f"{r}.keyframes"] = len(robot.keyframes)
         return gauges
 
     def run(self) -> None:
@@ -180,7 +214,8 @@ def _region(robot: RobotMap, params: zenoh.Parameters) -> Message:
 
 def main() -> None:
     """Run the map server (settings: SCANFLOW_MAPSERVER_*, SCANFLOW_ZENOH_*, and the map
-    resolution from SCANFLOW_FRONTEND_*, so its maps have the matchers' lattice)."""
+    resolution from SCANFLOW_FRONTEND_*, so its maps have the matchers' lattice, and
+    SCANFLOW_BACKEND_LOOP_CLOSURE as the matchers have it)."""
     settings = MapServerSettings()
     init_process(settings)
-    MapServer(settings, ZenohSettings(), FrontendSettings()).run()
+    MapServer(settings, ZenohSettings(), FrontendSettings(), BackendSettings()).run()

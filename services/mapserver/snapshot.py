@@ -2,8 +2,9 @@
 
 One file, replaced atomically, so a crash leaves either the previous snapshot or the new one,
 never a map without its trajectory. The file is a map in scanflow's native format (`load_npz`
-reads it) with the trajectory and the last applied pose seq beside the map arrays; a restart
-loads it back and carries on from that seq.
+reads it) with the trajectory and the last applied pose seq beside the map arrays, and, with
+loop closure on, the keyframes' scans (a later redraw needs them); a restart loads it back and
+carries on from that seq.
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scanflow.maps.export import grid_from_npz, npz_arrays, write_npz
 from scanflow.maps.occupancy import OccupancyGrid
+
+from services.mapserver.keyframes import Keyframes
 
 SUFFIX = ".snapshot.npz"
 
@@ -28,6 +31,8 @@ class Snapshot:
     stamps_s: NDArray[np.float64]
     poses: NDArray[np.float64]
     last_seq: int
+    keyframes: Keyframes | None = None
+    redrawn_seq: int = -1  # the scan of the last redraw (its path already holds up to it)
 
 
 def snapshot_path(data_dir: Path, robot_id: str) -> Path:
@@ -38,7 +43,12 @@ def save_snapshot(data_dir: Path, snap: Snapshot) -> None:
     """Write the robot's map, trajectory and last seq as one file, replaced atomically."""
     data_dir.mkdir(parents=True, exist_ok=True)
     arrays = npz_arrays(snap.grid)
-    arrays.update(stamps_s=snap.stamps_s, poses=snap.poses, last_seq=np.int64(snap.last_seq))
+    arrays.update(
+        stamps_s=snap.stamps_s, poses=snap.poses, last_seq=np.int64(snap.last_seq),
+        redrawn_seq=np.int64(snap.redrawn_seq),
+    )
+    if snap.keyframes is not None:
+        arrays.update(snap.keyframes.arrays(snap.robot_id))
     write_npz(snapshot_path(data_dir, snap.robot_id), arrays)
 
 
@@ -52,9 +62,13 @@ def load_snapshots(data_dir: Path) -> tuple[list[Snapshot], list[str]]:
             with np.load(path, allow_pickle=False) as data:
                 grid = grid_from_npz(data, path)
                 stamps_s, poses = data["stamps_s"], data["poses"]
+                if poses.shape != (len(stamps_s), 3):
+                    raise ValueError(f"poses {poses.shape} do not fit {len(stamps_s)} stamps")
                 last_seq = int(data["last_seq"])
+                redrawn_seq = int(data["redrawn_seq"]) if "redrawn_seq" in data else -1
+                keyframes = Keyframes.from_arrays(robot_id, data)
         except (OSError, KeyError, ValueError) as exc:
             skipped.append(f"robot {robot_id}: snapshot not loaded ({type(exc).__name__}: {exc})")
             continue
-        snaps.append(Snapshot(robot_id, grid, stamps_s, poses, last_seq))
+        snaps.append(Snapshot(robot_id, grid, stamps_s, poses, last_seq, keyframes, redrawn_seq))
     return snaps, skipped

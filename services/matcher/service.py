@@ -14,6 +14,14 @@ initial_pose` (InitialPoseMessage, echoed once taken) puts the robot there: its 
 matched from it, or, for a robot not seen yet, its first scan. Match requests are answered
 on `<prefix>/match` (any scans) and `<prefix>/<robot>/match` (also against that robot's
 current map).
+
+With SCANFLOW_BACKEND_LOOP_CLOSURE a `Mapper` runs around each robot's front end (keyframes,
+loop closures, the pose graph). When it redraws the map, the matcher sends a MapRedrawMessage
+on the inserts' key (between the same inserts it made, so the map server redraws at the same
+point of the stream), and the scan's pose estimate carries the frame's `correction`, which the
+deskewer's motion prior and the gateway's pose cache follow. A robot resumed from the map
+server mid-stream gets its back end back from the map server's keyframes (the closures found
+before are in their poses); without them it is tracked without loop closure.
 """
 
 from __future__ import annotations
@@ -25,6 +33,7 @@ import threading
 import numpy as np
 import zenoh
 from scanflow import keys
+from scanflow.backend import Mapper, MapperStep, SavedRun
 from scanflow.config import BackendSettings, FrontendSettings, MatcherSettings, ZenohSettings
 from scanflow.frontend import Frontend, FrontendOutput
 from scanflow.frontend.prior import FrontendStart
@@ -36,15 +45,19 @@ from scanflow.warmup import warm_up
 from scanflow.wire import (
     DeskewedScanMessage,
     InitialPoseMessage,
+    KeyframesMessage,
     MapImageMessage,
     MapInsertMessage,
+    MapRedrawMessage,
     MapRef,
     MatchRequest,
+    MessageError,
     PoseEstimateMessage,
     TrajectoryMessage,
     decode_any,
 )
 
+from services.common.keyframes import scan_nodes
 from services.common.process import init_process
 from services.common.shell import ServiceShell
 from services.matcher.requests import answer
@@ -61,12 +74,20 @@ class MatcherService:
         settings: MatcherSettings,
         frontend_settings: FrontendSettings,
         zenoh_settings: ZenohSettings,
+        backend_settings: BackendSettings | None = None,
     ) -> None:
+        """`backend_settings` with loop_closure on: a back end per robot (refused beside a
+        prior map, which its redraws would drop)."""
         self.settings = settings
         self.frontend_settings = frontend_settings
+        self.backend = backend_settings if backend_settings is not None else BackendSettings()
+        refusal = self.backend.refusal(frontend_settings.prior_map)
+        if refusal:
+            raise ValueError(refusal)
         self.start = FrontendStart(frontend_settings)  # a bad prior map stops the start here
         self.shell = ServiceShell("matcher", settings, zenoh_settings)
         self.frontends: dict[str, Frontend] = {}
+        self.mappers: dict[str, Mapper] = {}  # robots tracked with loop closure
         self.initial_poses: dict[str, Pose2D] = {}  # operators' poses for robots not seen yet
         self.lock = threading.Lock()  # the worker updates maps that match requests read
         prefix = self.shell.prefix
@@ -89,7 +110,7 @@ class MatcherService:
         restarted = self.shell.seqs.is_restart(stream, message.seq)
         self.shell.seqs.observe(stream, message.seq)
         frontend = self._frontend(robot_id, message.seq, fresh=restarted)
-        with self.lock:
+        with self.lock:  # a redraw replaces the map that match requests read
             out = frontend.process(
                 message.points,
                 message.stamp_s,
@@ -98,9 +119,34 @@ class MatcherService:
                 message.no_return_points,
                 message.mount,
             )
-        self._publish(robot_id, message, out)
+            mapper = self.mappers.get(robot_id)
+            step = None if mapper is None else mapper.add(
+                out, message.points, message.no_return_points, message.mount
+            )
+            redraw = None if step is None else self._redraw(robot_id, out.seq, mapper, step)
+        self._publish(robot_id, message, out, redraw)
 
-    def _publish(self, robot_id: str, scan: DeskewedScanMessage, out: FrontendOutput) -> None:
+    def _redraw(
+        self, robot_id: str, seq: int, mapper: Mapper, step: MapperStep
+    ) -> MapRedrawMessage | None:
+        """Count what the back end did; the redraw to send, if it redrew the map."""
+        self.shell.counters.add("backend.closures", len(step.closures))
+        if step.optimised is not None:
+            self.shell.counters.add("backend.optimisations")
+        if step.correction is None:
+            return None
+        self.shell.counters.add("backend.redraws")
+        return MapRedrawMessage(
+            robot_id, seq, step.correction, np.asarray(mapper.keyframe_seqs, dtype=np.int64),
+            mapper.graph.poses, mapper.stamps_s(), mapper.trajectory(),
+        )
+
+    def _publish(
+        self, robot_id: str, scan: DeskewedScanMessage, out: FrontendOutput,
+        redraw: MapRedrawMessage | None,
+    ) -> None:
+        """The insert (the scan at the pose it went in at), then the redraw that followed it,
+        then the estimate (in the redrawn map's frame, with the correction, after a redraw)."""
         prefix = self.shell.prefix
         if out.inserted:
             insert = MapInsertMessage(
@@ -108,9 +154,24 @@ class MatcherService:
                 scan.mount,
             )
             self.shell.put(keys.map_key(robot_id, "insert", prefix), insert.encode())
-        estimate = PoseEstimateMessage.from_result(out, robot_id, out.seq, out.stamp_s)
+        correction = None if redraw is None else redraw.correction
+        if redraw is not None:
+            self._put_redraw(redraw)
+            out = out.in_frame(redraw.correction)
+        estimate = PoseEstimateMessage.from_result(out, robot_id, out.seq, out.stamp_s, correction)
         self.shell.put(keys.pose(robot_id, prefix), estimate.encode())
         self.shell.counters.add(f"status.{out.status}")
+
+    def _put_redraw(self, redraw: MapRedrawMessage) -> None:
+        """Send the redraw; one too big for the wire (a path of ~500k scans) is logged and
+        counted, and the map server then keeps its map unredrawn."""
+        try:
+            payload = redraw.encode()
+        except MessageError as exc:
+            self.shell.counters.add("backend.redraws_unsent")
+            self.shell.log.error("robot %s: redraw not sent: %s", redraw.robot_id, exc)
+            return
+        self.shell.put(keys.map_key(redraw.robot_id, "insert", self.shell.prefix), payload)
 
     # -- robots ---------------------------------------------------------------------------
     def _frontend(self, robot_id: str, seq: int, fresh: bool = False) -> Frontend:
@@ -121,20 +182,54 @@ class MatcherService:
         frontend = self.frontends.get(robot_id)
         if frontend is not None and not fresh:
             return frontend
-        new = self._seeded(robot_id) if frontend is None and seq > 0 else None
-        if new is None:
+        seeded = self._seeded(robot_id) if frontend is None and seq > 0 else None
+        mapper = None
+        if seeded is None:
             new = Frontend(self.frontend_settings, self.start.pose, self.start.grid())
+            if self.backend.loop_closure:
+                mapper = Mapper(new, self.backend)
+        else:
+            new, path = seeded
+            if self.backend.loop_closure:
+                mapper = self._resumed_back_end(robot_id, new, path)
         if frontend is None:
             self.shell.serve(keys.robot_match(robot_id, self.shell.prefix), self._on_match)
         with self.lock:
             self.frontends[robot_id] = new
+            if mapper is None:
+                self.mappers.pop(robot_id, None)
+            else:
+                self.mappers[robot_id] = mapper
             told = self.initial_poses.pop(robot_id, None)
             if told is not None:
                 new.set_pose(told)
+                if mapper is not None:  # a resumed robot's graph links across it weakly
+                    mapper.relocated()
         return new
 
-    def _seeded(self, robot_id: str) -> Frontend | None:
-        """A front end continuing the map server's map and last pose of `robot_id`, if any."""
+    def _resumed_back_end(
+        self, robot_id: str, frontend: Frontend, path: TrajectoryMessage
+    ) -> Mapper | None:
+        """The back end carried on from the map server's keyframes of `robot_id`; None (the
+        robot is tracked without loop closure, counted) when it has none to give."""
+        kept = self._query(keys.map_key(robot_id, "keyframes", self.shell.prefix))
+        if not isinstance(kept, KeyframesMessage) or len(kept.seqs) == 0:
+            self.shell.counters.add("backend.resumed_without")
+            self.shell.log.warning(
+                "robot %s: the map server has no keyframes to resume loop closure from; "
+                "tracked without it", robot_id,
+            )
+            return None
+        saved = SavedRun(scan_nodes(kept), kept.seqs.tolist(), kept.poses, path.stamps_s,
+                         path.poses)
+        self.shell.counters.add("backend.resumed")
+        self.shell.log.info("robot %s: loop closure resumed on %d keyframes", robot_id,
+                            len(kept.seqs))
+        return Mapper(frontend, self.backend, saved)
+
+    def _seeded(self, robot_id: str) -> tuple[Frontend, TrajectoryMessage] | None:
+        """A front end continuing the map server's map and last pose of `robot_id`, and the
+        path so far, if any."""
         prefix = self.shell.prefix
         image = self._query(f"{keys.map_key(robot_id, 'image', prefix)}?format=npz")
         path = self._query(keys.trajectory(robot_id, prefix))
@@ -151,7 +246,7 @@ class MatcherService:
             "robot %s: resumed from the map server (revision %d, %d poses, last %s)",
             robot_id, image.revision, len(path.poses), pose,
         )
-        return Frontend(self.frontend_settings, initial_pose=pose, grid=grid)
+        return Frontend(self.frontend_settings, initial_pose=pose, grid=grid), path
 
     def _query(self, selector: str) -> object | None:
         for reply in self.shell.session.get(selector, timeout=SEED_TIMEOUT_S):
@@ -178,6 +273,9 @@ class MatcherService:
                 self.initial_poses[robot_id] = message.pose
             else:
                 frontend.set_pose(message.pose)
+                mapper = self.mappers.get(robot_id)
+                if mapper is not None:  # its graph links across the pose only weakly
+                    mapper.relocated()
         self.shell.counters.add("initial_poses")
         self.shell.log.info("robot %s: placed at %s by request", robot_id, message.pose)
         query.reply(key, message.encode())
@@ -214,10 +312,12 @@ class MatcherService:
 
 
 def main() -> None:
-    """Run a matcher (settings: SCANFLOW_MATCHER_*, SCANFLOW_FRONTEND_*, SCANFLOW_ZENOH_*)."""
+    """Run a matcher (settings: SCANFLOW_MATCHER_*, SCANFLOW_FRONTEND_*, SCANFLOW_BACKEND_*,
+    SCANFLOW_ZENOH_*)."""
     settings = MatcherSettings()
     init_process(settings)
-    refusal = BackendSettings().refusal_for_services()
-    if refusal:
-        raise SystemExit(refusal)
-    MatcherService(settings, FrontendSettings(), ZenohSettings()).run()
+    try:  # a bad prior map, or loop closure beside one: stop at start, naming it
+        service = MatcherService(settings, FrontendSettings(), ZenohSettings(), BackendSettings())
+    except ValueError as exc:
+        raise SystemExit(f"matcher: {exc}") from exc
+    service.run()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import tempfile
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -11,6 +12,8 @@ import pytest
 import zenoh
 from scanflow import keys
 from scanflow.config import ZenohSettings
+from scanflow.maps.export import load_npz
+from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.wire import ServiceStatsMessage, decode_any
 
 from services.common.launch import Launcher, free_port
@@ -71,6 +74,14 @@ class Bus:
                 raise AssertionError(f"{selector}: {reply.err.payload.to_string()}")
             out.append(decode_any(reply.ok.payload.to_bytes()))
         return out
+
+    def map_grid(self, robot: str = "robot") -> OccupancyGrid:
+        """The map server's map of `robot`, as its native .npz image."""
+        (image,) = self.get(f"{keys.map_key(robot, 'image')}?format=npz")
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / "map.npz"
+            path.write_bytes(image.data)
+            return load_npz(path)
 
     def stats(self, service: str, instance: str = "0") -> ServiceStatsMessage | None:
         replies = self.get(keys.stats(service, instance), timeout_s=3.0)

@@ -9,8 +9,9 @@ import pytest
 from scanflow import keys
 from scanflow.deskew import OdometryBuffer, deskew
 from scanflow.geometry import Pose2D
+from scanflow.pipeline import DeskewStage
 from scanflow.scan import LaserScan, Odometry
-from scanflow.wire import OdometryMessage, ScanMessage
+from scanflow.wire import OdometryMessage, PoseEstimateMessage, ScanMessage
 
 from services.ingest.sources import source_events
 
@@ -106,3 +107,35 @@ def test_ingest_waits_for_a_subscriber_before_publishing(launcher, bus, start):
     start("deskew")
     bus.wait_until(lambda: len(deskewed) == 10, 30.0, "all 10 scans, none published into nothing")
     assert [m.seq for m in deskewed] == list(range(10))
+
+
+def test_a_map_redraws_correction_moves_the_velocity_prior_with_the_frame(launcher, bus, start):
+    """Without odometry the prior is the matcher's poses. A pose that carries a redraw's frame
+    correction is in the new frame: the prior moves with it (as the in-process pipeline's),
+    instead of reading the frame change as motion."""
+    deskewed = bus.record(keys.deskewed_scan("cv"))
+    start("deskew", SCANFLOW_DESKEW_ODOM_WAIT_S="0.2")
+    scans = [e for e in source_events(None, "cv", 0.6, 1, None) if isinstance(e, LaserScan)]
+    correction, step = Pose2D(0.4, -0.3, 0.2), Pose2D(0.05, 0.01, 0.08)
+    followed, ignored = DeskewStage(), DeskewStage()
+    pose, expected, naive = Pose2D(), [], []
+    for k, scan in enumerate(scans):
+        bus.put(keys.raw_scan("cv"), ScanMessage(scan).encode())
+        result = followed.process(scan)
+        expected.append(result.points)
+        naive.append(ignored.process(scan).points)
+        bus.wait_until(lambda n=k + 1: len(deskewed) == n, 30.0, f"deskewed scan {k}")
+        fix = correction if k == 2 else None
+        if fix is not None:
+            pose = fix * pose
+            followed.velocity.move_frame(fix)
+        followed.observe_pose(result.reference_stamp_s, pose)
+        ignored.observe_pose(result.reference_stamp_s, pose)
+        bus.put(keys.pose("cv"), PoseEstimateMessage(
+            "cv", scan.seq, result.reference_stamp_s, pose, np.eye(3), "tracked", "gn", 1, 1.0,
+            "", fix).encode())
+        pose = pose * step
+    assert len(scans) >= 5 and [m.source_used for m in deskewed][-1] == "constant_velocity"
+    for message, points in zip(deskewed, expected, strict=True):
+        np.testing.assert_array_equal(message.points, points, strict=True)
+    assert not np.allclose(naive[3], expected[3], atol=1e-3)  # the test can tell the two

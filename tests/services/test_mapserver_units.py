@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scanflow.geometry import Pose2D
 from scanflow.maps.export import load_npz, save_npz
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
-from scanflow.wire import MapInsertMessage, PoseEstimateMessage
+from scanflow.wire import MapInsertMessage, MapRedrawMessage, PoseEstimateMessage
 
+from services.mapserver import replies
 from services.mapserver.robot import RobotMap
 from services.mapserver.snapshot import load_snapshots, save_snapshot
 from services.matcher.shard import owns
@@ -102,3 +104,134 @@ def test_shards_split_robots_and_a_robot_list_wins():
     second = {r for r in robots if owns(r, "1/2", [])}
     assert first | second == set(robots) and not first & second and first and second
     assert owns("x", "1/2", ["x"]) and not owns("y", "0/1", ["x"])
+
+
+def redraw(seqs: list[int], poses: list[Pose2D], path: np.ndarray, seq: int) -> MapRedrawMessage:
+    return MapRedrawMessage(
+        "r", seq, Pose2D(0.1, 0.0, 0.02), np.array(seqs, dtype=np.int64),
+        np.array([p.to_array() for p in poses]).reshape(-1, 3),
+        0.1 * np.arange(len(path)), path,
+    )
+
+
+def test_a_redraw_redraws_the_kept_keyframes_at_their_new_poses_and_takes_the_path():
+    robot = RobotMap("r", lambda: OccupancyGrid(OccupancyParams()), keep_keyframes=True)
+    robot.insert(insert(0, Pose2D()))
+    robot.apply(pose(0))
+    robot.apply(pose(1))
+    robot.insert(insert(2, Pose2D(1.0, 0.0, 0.0)))
+    robot.take_change(0.0)
+    moved = [Pose2D(0.0, 0.5, 0.0), Pose2D(1.0, 0.5, 0.1)]
+    path = np.array([[0.0, 0.5, 0.0], [0.5, 0.5, 0.05], [1.0, 0.5, 0.1]])
+    revision = robot.map.revision
+    robot.redraw(redraw([0, 2], moved, path, 2), OccupancyParams())
+    want = new_robot()
+    for seq, at in zip((0, 2), moved, strict=True):
+        want.insert(insert(seq, at))
+    np.testing.assert_array_equal(robot.map.grid.log_odds, want.map.grid.log_odds)
+    assert robot.map.grid.extent == want.map.grid.extent
+    assert robot.map.revision == revision + 1  # a new revision, never an old one again
+    assert robot.take_change(1.0) is not None  # the whole map changed
+    np.testing.assert_array_equal(robot.trajectory.poses, path)
+    served = replies.keyframes(robot)  # what a restarted matcher resumes from
+    assert served.seqs.tolist() == [0, 2]
+    np.testing.assert_allclose(served.poses, [p.to_array() for p in moved], atol=1e-12)
+    robot.apply(pose(2, Pose2D(9.0, 9.0, 0.0)))  # the redraw's path already holds scan 2
+    robot.apply(pose(3, Pose2D(1.5, 0.5, 0.1)))
+    assert len(robot.trajectory) == 4 and robot.last_seq == 3
+    np.testing.assert_allclose(robot.trajectory.poses[-1], [1.5, 0.5, 0.1], atol=1e-12)
+
+
+def test_a_redraw_that_does_not_fit_is_refused_and_changes_nothing():
+    robot = RobotMap("r", lambda: OccupancyGrid(OccupancyParams()), keep_keyframes=True)
+    robot.insert(insert(0))
+    robot.insert(insert(2, Pose2D(1.0, 0.0, 0.0)))
+    before = robot.map.grid.log_odds.copy(), robot.map.revision
+    wrong = redraw([0, 3], [Pose2D(), Pose2D()], np.zeros((3, 3)), 3)
+    with pytest.raises(ValueError, match=r"differ from keyframe 1 on \(seq 3 vs 2\)"):
+        robot.redraw(wrong, OccupancyParams())
+    with pytest.raises(ValueError, match="names 1 keyframes, this map server holds 2"):
+        robot.redraw(redraw([0], [Pose2D()], np.zeros((1, 3)), 0), OccupancyParams())
+    unkept = new_robot()
+    with pytest.raises(ValueError, match="SCANFLOW_BACKEND_LOOP_CLOSURE is off here"):
+        unkept.redraw(redraw([], [], np.zeros((0, 3)), 0), OccupancyParams())
+    with pytest.raises(LookupError, match="keeps no keyframes"):
+        replies.keyframes(unkept)
+    np.testing.assert_array_equal(robot.map.grid.log_odds, before[0])
+    assert robot.map.revision == before[1] and len(robot.keyframes) == 2
+
+
+def test_snapshots_keep_the_keyframes_so_a_restart_can_follow_the_next_redraw(tmp_path):
+    robot = RobotMap("r", lambda: OccupancyGrid(OccupancyParams()), keep_keyframes=True)
+    robot.insert(insert(0))
+    robot.insert(MapInsertMessage(
+        "r", 4, 0.4, Pose2D(1.0, 0.0, 0.2), np.array([[3.0, 0.5]]), np.array([[0.0, 9.0]]),
+        Pose2D(0.2, 0.0, 0.1),
+    ))
+    robot.apply(pose(4))
+    robot.redraw(redraw([0, 4], [Pose2D(), Pose2D(1.0, 0.1, 0.2)], np.zeros((5, 3)), 4),
+                 OccupancyParams())
+    save_snapshot(tmp_path, robot.snapshot())
+    (snap,), skipped = load_snapshots(tmp_path)
+    assert skipped == [] and snap.redrawn_seq == 4
+    resumed = RobotMap("r", lambda: OccupancyGrid(OccupancyParams()), snap, keep_keyframes=True)
+    assert resumed.keyframes.seqs == [0, 4]
+    loop_closure_off = RobotMap("r", lambda: OccupancyGrid(OccupancyParams()), snap)
+    assert loop_closure_off.keyframes is None  # not kept (nor grown) while the setting is off
+    for got, want in zip(resumed.keyframes.nodes, robot.keyframes.nodes, strict=True):
+        assert (got.stamp_s, got.mount) == (want.stamp_s, want.mount)
+        np.testing.assert_array_equal(got.points, want.points)
+        np.testing.assert_array_equal(got.no_return, want.no_return)
+    again = redraw([0, 4], [Pose2D(0.0, 0.2, 0.0), Pose2D(1.0, 0.3, 0.2)], np.zeros((5, 3)), 4)
+    robot.redraw(again, OccupancyParams())
+    resumed.redraw(again, OccupancyParams())
+    np.testing.assert_array_equal(resumed.map.grid.log_odds, robot.map.grid.log_odds)
+
+
+def test_a_snapshot_with_broken_keyframes_is_skipped_naming_why(tmp_path):
+    robot = RobotMap("r", lambda: OccupancyGrid(OccupancyParams()), keep_keyframes=True)
+    robot.insert(insert(0))
+    robot.apply(pose(0))
+    save_snapshot(tmp_path, robot.snapshot())
+    path = next(tmp_path.iterdir())
+    with np.load(path) as data:
+        arrays = dict(data)
+    arrays["keyframes_hit_counts"] = np.array([7])
+    np.savez(path, **arrays)
+    snaps, skipped = load_snapshots(tmp_path)
+    assert snaps == [] and "hit_counts must be >= 0 and add up to the rows of hits" in skipped[0]
+
+
+def test_poses_of_later_scans_that_came_before_the_redraw_are_kept():
+    """Poses and inserts come on two subscribers: the redraw of scan 2 may come after the
+    pose of scan 3 (already in the new frame)."""
+    robot = RobotMap("r", lambda: OccupancyGrid(OccupancyParams()), keep_keyframes=True)
+    robot.insert(insert(0))
+    robot.apply(pose(0))
+    robot.insert(insert(2, Pose2D(1.0, 0.0, 0.0)))
+    robot.apply(pose(1))
+    robot.apply(pose(2, Pose2D(1.0, 0.5, 0.0)))
+    robot.apply(pose(3, Pose2D(1.5, 0.5, 0.0)))  # before the redraw of scan 2
+    path = np.array([[0.0, 0.5, 0.0], [0.5, 0.5, 0.0], [1.0, 0.5, 0.0]])
+    robot.redraw(redraw([0, 2], [Pose2D(0.0, 0.5, 0.0), Pose2D(1.0, 0.5, 0.0)], path, 2),
+                 OccupancyParams())
+    np.testing.assert_array_equal(robot.trajectory.poses, [*path, [1.5, 0.5, 0.0]])
+    np.testing.assert_allclose(robot.trajectory.stamps_s, [0.0, 0.1, 0.2, 0.3])
+
+
+def test_a_new_run_on_a_resumed_map_starts_the_kept_keyframes_afresh(tmp_path):
+    """The robot's seqs start again at 0 on a map resumed from a snapshot: its tracker keeps
+    only the new run's keyframes, and so does the map server (still strictly increasing, so
+    the snapshot and the keyframes query keep working)."""
+    robot = RobotMap("r", lambda: OccupancyGrid(OccupancyParams()), keep_keyframes=True)
+    for seq in (3, 7):
+        robot.insert(insert(seq))
+    robot.apply(pose(7))
+    save_snapshot(tmp_path, robot.snapshot())
+    (snap,), _ = load_snapshots(tmp_path)
+    resumed = RobotMap("r", lambda: OccupancyGrid(OccupancyParams()), snap, keep_keyframes=True)
+    resumed.insert(insert(0))
+    resumed.apply(pose(0))
+    assert resumed.keyframes.seqs == [0]
+    save_snapshot(tmp_path, resumed.snapshot())
+    assert replies.keyframes(resumed).seqs.tolist() == [0]

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import math
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -18,11 +17,11 @@ from scanflow.config import FrontendSettings, ServiceSettings
 from scanflow.frontend import FrontendOutput, FrontendStatus
 from scanflow.frontend.prior import FrontendStart
 from scanflow.geometry import Pose2D
-from scanflow.maps.export import load_npz, save_map
+from scanflow.maps.export import save_map
 from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.pipeline import Pipeline
 from scanflow.scan import LaserScan
-from scanflow.wire import InitialPoseMessage, MapImageMessage, PoseEstimateMessage
+from scanflow.wire import InitialPoseMessage, PoseEstimateMessage
 
 from services.common.process import available_cpus
 from services.ingest.sources import source_events
@@ -47,15 +46,6 @@ def in_process(
         else:
             pipeline.add_odometry(event)
     return outputs, pipeline.frontend.map.grid
-
-
-def served_grid(bus, robot: str = "robot") -> OccupancyGrid:
-    (image,) = bus.get(f"{keys.map_key(robot, 'image')}?format=npz")
-    assert isinstance(image, MapImageMessage)
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "map.npz"
-        path.write_bytes(image.data)
-        return load_npz(path)
 
 
 def assert_same_grid(served: OccupancyGrid, expected: OccupancyGrid) -> None:
@@ -112,7 +102,7 @@ def assert_served_map(bus, grid: OccupancyGrid, scans: int) -> None:
         lambda: bus.stats("mapserver").counters.get("received.pose", 0) >= scans,
         30.0, "map server caught up",
     )
-    assert_same_grid(served_grid(bus), grid)
+    assert_same_grid(bus.map_grid(), grid)
 
 
 def test_simulated_run_equals_the_in_process_pipeline(pipeline):

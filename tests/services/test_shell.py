@@ -35,3 +35,30 @@ def test_a_slow_message_is_logged_counted_and_measured(caplog) -> None:
     assert stats.counters["slow.scan"] == 1 and "slow.quick" not in stats.counters
     assert stats.gauges["handle_max_s"] >= 0.2
     assert "a scan message took 0.2" in caplog.text and "slow_message_s=0.05" in caplog.text
+
+
+def test_failing_idle_work_is_logged_counted_and_the_worker_goes_on(caplog) -> None:
+    """A snapshot that cannot be written (say) must not end the service: the idle call's error
+    is counted as errors.idle, logged, and the next messages are still handled."""
+    shell = ServiceShell("deskew", DeskewSettings(), ZenohSettings(mode="peer", connect=[]))
+    handled: list[str] = []
+    idles = []
+
+    def idle() -> None:
+        idles.append(1)
+        if len(idles) == 1:
+            shell.inbox.put("scan", None)
+            raise OSError("disk full")
+
+    def handle(kind: str, _message: object) -> None:
+        handled.append(kind)
+        shell.stop()
+
+    try:
+        with caplog.at_level(logging.ERROR, logger="scanflow.deskew"):
+            shell.run(handle, idle, poll_s=0.01)
+        stats = shell.stats()
+    finally:
+        shell.close(flush_s=0.0)
+    assert handled == ["scan"] and stats.counters["errors.idle"] == 1
+    assert "idle work failed" in caplog.text and "disk full" in caplog.text

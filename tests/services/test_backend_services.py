@@ -1,0 +1,166 @@
+"""Loop closure in the services (SCANFLOW_BACKEND_LOOP_CLOSURE), as real processes through a
+real router, against the in-process pipeline with the back end.
+
+A lap of the simulator's ring corridor with poor wheel odometry (seed 1: one redraw, at scan
+640 of 800): poses, the redraw's frame correction, the served map and the served path must
+equal the in-process pipeline's. tests/docker loads this module by path for `ring_in_process`,
+so it takes no relative imports.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scanflow import keys
+from scanflow.config import BackendSettings
+from scanflow.geometry import Pose2D
+from scanflow.pipeline import Pipeline
+from scanflow.scan import LaserScan
+from scanflow.wire import (
+    InitialPoseMessage,
+    MapInsertMessage,
+    MapRedrawMessage,
+    PoseEstimateMessage,
+)
+
+from services.ingest.sources import source_events
+
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
+
+RING = {
+    "SCANFLOW_INGEST_SIM_DURATION_S": "80", "SCANFLOW_INGEST_SIM_SEED": "1",
+    "SCANFLOW_INGEST_SIM_WORLD": "loop", "SCANFLOW_INGEST_SIM_ODOM_SCALE_ERROR": "0.03",
+}
+LOOP_CLOSURE = {"SCANFLOW_BACKEND_LOOP_CLOSURE": "true"}
+ODOM_WAIT = {"SCANFLOW_DESKEW_ODOM_WAIT_S": "3"}  # as in test_pipeline_services
+
+
+def ring_in_process() -> tuple[Pipeline, list, list[tuple[int, Pose2D, np.ndarray, list]]]:
+    """(pipeline, per-scan estimates, (seq, correction, corrected path, keyframe seqs) of
+    every redraw)."""
+    pipeline = Pipeline(backend=BackendSettings(loop_closure=True))
+    outputs, redraws = [], []
+    for event in source_events(None, "robot", 80.0, 1, None, sim_world="loop",
+                               sim_odom_scale_error=0.03):
+        if not isinstance(event, LaserScan):
+            pipeline.add_odometry(event)
+            continue
+        out = pipeline.process(event)
+        outputs.append(out.estimate)
+        if out.backend.redrawn:
+            mapper = pipeline.mapper
+            redraws.append((event.seq, out.backend.correction, mapper.trajectory(),
+                            list(mapper.keyframe_seqs)))
+    return pipeline, outputs, redraws
+
+
+def test_a_loop_closing_run_equals_the_in_process_pipeline(launcher, bus, start):
+    start("deskew", **ODOM_WAIT, **LOOP_CLOSURE)
+    start("matcher", **LOOP_CLOSURE)
+    start("mapserver", **LOOP_CLOSURE)
+    poses = bus.record(keys.pose())
+    redraws = bus.record(keys.map_key("*", "insert"))
+    proc = launcher.start("ingest", **RING)
+    proc.wait(180)
+    assert proc.returncode == 0, launcher.log_text("ingest")
+    pipeline, expected, expected_redraws = ring_in_process()
+    assert len(expected_redraws) >= 1  # the run must exercise a redraw
+    bus.wait_until(lambda: len(poses) >= len(expected), 60.0, "every pose")
+
+    assert [p.seq for p in poses] == [o.seq for o in expected]
+    for got, want in zip(poses, expected, strict=True):
+        assert got.pose == want.pose, f"seq {got.seq}: {got.pose} != {want.pose}"
+        np.testing.assert_array_equal(got.covariance, want.covariance)  # turned at a redraw
+    corrected = [(p.seq, p.correction) for p in poses if p.correction is not None]
+    assert corrected == [(r[0], r[1]) for r in expected_redraws]
+
+    sent = [m for m in redraws if isinstance(m, MapRedrawMessage)]
+    assert [m.seq for m in sent] == [r[0] for r in expected_redraws]
+    for message, (_, correction, path, keyframes) in zip(sent, expected_redraws, strict=True):
+        assert message.correction == correction
+        np.testing.assert_array_equal(message.poses, path)
+        np.testing.assert_array_equal(message.keyframe_seqs, keyframes)
+
+    bus.wait_until(
+        lambda: bus.stats("mapserver").counters.get("received.pose", 0) >= len(expected),
+        30.0, "map server caught up",
+    )
+    served, want = bus.map_grid(), pipeline.frontend.map.grid
+    assert served.extent == want.extent
+    np.testing.assert_array_equal(served.log_odds, want.log_odds)
+    np.testing.assert_array_equal(served.observed, want.observed)
+    (path,) = bus.get(keys.trajectory("robot"))
+    seq, _, at_redraw, _ = expected_redraws[-1]
+    after = [o.pose.to_array() for o in expected[seq + 1:]]
+    np.testing.assert_array_equal(path.poses, np.vstack([at_redraw, *after]))
+
+    matcher, mapserver = bus.stats("matcher"), bus.stats("mapserver")
+    assert matcher.counters["backend.redraws"] == len(expected_redraws)
+    assert matcher.counters["backend.closures"] == len(pipeline.mapper.closures)
+    assert mapserver.counters["redrawn"] == len(expected_redraws)
+    assert mapserver.gauges["robot.keyframes"] == len(pipeline.mapper.keyframe_seqs)
+    assert "errors.insert" not in mapserver.counters
+
+    # An operator's pose is taken: the keyframe after it hangs from the one before by a weak
+    # link only (tests/scanflow/backend: the closures then move it).
+    request = InitialPoseMessage("robot", Pose2D(1.0, 0.0, 0.0)).encode()
+    (echo,) = bus.get(keys.initial_pose("robot"), payload=request)
+    assert echo.pose == Pose2D(1.0, 0.0, 0.0)
+    assert bus.stats("matcher").counters["initial_poses"] == 1
+
+
+def test_a_redraw_the_map_server_cannot_follow_is_counted_and_the_map_kept(launcher, bus, start):
+    """A map server without loop closure (a misconfigured deployment) refuses the matcher's
+    redraw, naming the setting, and keeps serving the map it had."""
+    start("mapserver")
+    insert_key = keys.map_key("robot", "insert")
+    scan = MapInsertMessage("robot", 0, 0.0, Pose2D(), np.array([[2.0, 0.0], [2.0, 0.5]]),
+                            np.zeros((0, 2)))
+    bus.put(insert_key, scan.encode())
+    bus.put(keys.pose("robot"), PoseEstimateMessage(
+        "robot", 0, 0.0, Pose2D(), np.eye(3), "tracked", "gn", 1, 1.0).encode())
+    bus.put(insert_key, MapRedrawMessage(
+        "robot", 0, Pose2D(0.5, 0.0, 0.0), np.array([0]), np.array([[0.5, 0.0, 0.0]]),
+        np.zeros(1), np.array([[0.5, 0.0, 0.0]])).encode())
+    bus.wait_until(
+        lambda: bus.stats("mapserver").counters.get("errors.insert", 0) == 1, 30.0,
+        "the redraw refused",
+    )
+    (path,) = bus.get(keys.trajectory("robot"))
+    np.testing.assert_array_equal(path.poses, [[0.0, 0.0, 0.0]])
+    # The error is counted just before it is logged: wait for the line too.
+    bus.wait_until(lambda: "keeps no keyframes" in launcher.log_text("mapserver"), 10.0,
+                   "the refusal in the map server's log")
+
+
+def test_a_restarted_matcher_resumes_loop_closure_from_the_map_servers_keyframes(
+    launcher, bus, start
+):
+    """The matcher killed before the ring's revisit, restarted: it gets the keyframes back
+    from the map server, closes the loop with keyframes from before the crash, and the map
+    server follows that redraw."""
+    start("deskew", **ODOM_WAIT, **LOOP_CLOSURE)
+    start("matcher", **LOOP_CLOSURE)
+    start("mapserver", **LOOP_CLOSURE)
+    poses = bus.record(keys.pose())
+    ingest = launcher.start("ingest", **RING, SCANFLOW_INGEST_WINDOW="4",
+                            SCANFLOW_INGEST_STALL_TIMEOUT_S="2")
+    bus.wait_until(lambda: len(poses) >= 300, 60.0, "300 poses before the crash")
+    launcher.kill("matcher")
+    start("matcher", **LOOP_CLOSURE)
+    ingest.wait(180.0)
+    assert ingest.returncode == 0, launcher.log_text("ingest")
+    bus.wait_until(lambda: poses and poses[-1].seq == 799, 60.0, "the last pose")
+    matcher = bus.stats("matcher")
+    assert matcher.counters["resumed_robots"] == 1
+    assert matcher.counters["backend.resumed"] == 1
+    assert matcher.counters["backend.redraws"] >= 1, matcher.counters
+    bus.wait_until(
+        lambda: bus.stats("mapserver").counters.get("redrawn", 0)
+        == matcher.counters["backend.redraws"], 30.0, "the map server to follow every redraw",
+    )
+    mapserver = bus.stats("mapserver")
+    assert "errors.insert" not in mapserver.counters, launcher.log_text("mapserver")
+    (path,) = bus.get(keys.trajectory("robot"))
+    assert len(path.poses) == len({p.seq for p in poses})
+    assert np.max(np.hypot(*np.diff(path.poses[:, :2], axis=0).T)) < 1.0  # no jump

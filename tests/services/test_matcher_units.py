@@ -1,0 +1,66 @@
+"""Matcher pieces on a real, isolated Zenoh session (a peer with no endpoints)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scanflow.backend import Mapper
+from scanflow.config import BackendSettings, FrontendSettings, MatcherSettings, ZenohSettings
+from scanflow.frontend import Frontend
+from scanflow.geometry import Pose2D
+from scanflow.wire import MAX_PAYLOAD_BYTES, MapRedrawMessage, TrajectoryMessage
+
+from services.matcher.service import MatcherService
+
+LOOP_CLOSURE = BackendSettings.model_construct(loop_closure=True)
+
+
+def matcher() -> MatcherService:
+    return MatcherService(
+        MatcherSettings(), FrontendSettings(), ZenohSettings(mode="peer", connect=[]),
+        LOOP_CLOSURE,
+    )
+
+
+def test_a_redraw_too_big_for_the_wire_is_counted_not_raised() -> None:
+    """A path of ~500k scans no longer fits one message: the redraw is dropped, counted and
+    logged, and the estimate after it still goes out (the caller carries on)."""
+    service = matcher()
+    try:
+        n = MAX_PAYLOAD_BYTES // 32 + 1
+        huge = MapRedrawMessage("r", n, Pose2D(), np.zeros(0, np.int64), np.zeros((0, 3)),
+                                np.zeros(n), np.zeros((n, 3)))
+        service._put_redraw(huge)
+        assert service.shell.counters.get("backend.redraws_unsent") == 1
+        assert service.shell.outbox.depth() == 0
+    finally:
+        service.shell.close(flush_s=0.0)
+
+
+def test_an_operators_pose_before_a_resumed_robots_first_scan_is_a_weak_link() -> None:
+    """The pose waits for the robot's first scan; when that scan resumes the robot with its
+    keyframes, the pose is applied and the graph told that the motion across it is unknown."""
+    service = matcher()
+    try:
+        told = Pose2D(3.0, 1.0, 0.5)
+        service.initial_poses["r"] = told
+        relocated: list[bool] = []
+
+        class Spy(Mapper):
+            def relocated(self) -> None:
+                relocated.append(True)
+                super().relocated()
+
+        frontend_of: dict[str, Frontend] = {}
+
+        def seeded(robot_id: str) -> tuple[Frontend, TrajectoryMessage]:
+            frontend = Frontend(FrontendSettings())
+            frontend_of[robot_id] = frontend
+            return frontend, TrajectoryMessage(robot_id, np.zeros(0), np.zeros((0, 3)))
+
+        service._seeded = seeded
+        service._resumed_back_end = lambda robot_id, frontend, path: Spy(frontend, LOOP_CLOSURE)
+        frontend = service._frontend("r", seq=12)
+        assert frontend is frontend_of["r"] and relocated == [True]
+        assert "r" not in service.initial_poses
+    finally:
+        service.shell.close(flush_s=0.0)
