@@ -247,6 +247,10 @@ class PoseOut(BaseModel):
     score: float
     message: str
     interpolated: bool = Field(False, description="true when between two estimates")
+    map_correction: PoseIn | None = Field(
+        None, description="set when loop closure redrew the map at this scan: T_new_old, the "
+        "map frame's change (this pose is in the new frame; the earlier path moved with it)",
+    )
 
     @classmethod
     def from_estimate(
@@ -268,6 +272,9 @@ class PoseOut(BaseModel):
             score=e.score,
             message=e.message,
             interpolated=pose is not None,
+            map_correction=None if e.correction is None or pose is not None else PoseIn(
+                x_m=e.correction.x, y_m=e.correction.y, theta_rad=e.correction.theta
+            ),
         )
 
     @classmethod

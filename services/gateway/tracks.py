@@ -50,11 +50,15 @@ class RobotTrack:
         return self.estimates[-1] if self.estimates else None
 
     def add(self, estimate: PoseEstimateMessage, received_s: float) -> None:
-        """Append; a seq that does not move forward (a replay) starts the cache afresh."""
+        """Append; a seq that does not move forward (a replay) starts the cache afresh, and
+        so does a map redraw (the earlier poses are in the old frame: the map server's
+        corrected path answers for them)."""
         latest = self.latest
         if latest is not None and estimate.seq <= latest.seq:
             self.estimates.clear()
             self.restarts += 1
+        elif estimate.correction is not None:
+            self.estimates.clear()
         self.estimates.append(estimate)
         self.last_pose_received_s = received_s
 

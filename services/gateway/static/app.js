@@ -1,5 +1,6 @@
 // Live view: one panel per robot with its map (PNG, refetched on `map` events) and its
-// trajectory (loaded once, then extended by `pose` events from the server-sent stream).
+// trajectory (loaded, then extended by `pose` events from the server-sent stream, and loaded
+// again when a pose says loop closure redrew the map).
 "use strict";
 
 const API = "/api/v1";
@@ -23,10 +24,17 @@ function viewOf(robot) {
   return view;
 }
 
-async function loadTrajectory(robot, view) {
+// `untilStamp`: after a redraw, ask again (a few times) until the map server's path reaches
+// the redraw's scan, so that an old-frame path is not drawn under the new-frame poses.
+async function loadTrajectory(robot, view, untilStamp = -Infinity, tries = 20) {
   const r = await fetch(`${API}/robots/${encodeURIComponent(robot)}/trajectory`);
   if (!r.ok) return;
   const body = await r.json();
+  const last = body.poses.length ? body.poses[body.poses.length - 1].stamp_s : -Infinity;
+  if (last < untilStamp && tries > 1) {
+    setTimeout(() => loadTrajectory(robot, view, untilStamp, tries - 1), 250);
+    return;
+  }
   view.path = body.poses.map((p) => [p.x_m, p.y_m]).concat(view.path);
   draw(view);
 }
@@ -86,7 +94,12 @@ function draw(view) {
 function onPose(event) {
   const p = JSON.parse(event.data);
   const view = viewOf(p.robot_id);
-  view.path.push([p.x_m, p.y_m]);
+  if (p.map_correction) {  // loop closure redrew the map: the whole path moved, load it again
+    view.path = [];
+    loadTrajectory(p.robot_id, view, p.stamp_s);
+  } else {
+    view.path.push([p.x_m, p.y_m]);
+  }
   view.label.textContent =
     `#${p.seq} t=${p.stamp_s.toFixed(2)} x=${p.x_m.toFixed(2)} y=${p.y_m.toFixed(2)} ` +
     `θ=${p.theta_rad.toFixed(2)} ${p.status}`;

@@ -10,14 +10,16 @@ import io
 import shutil
 import threading
 from collections.abc import Iterator
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import uvicorn
 from PIL import Image
 from scanflow import keys
+from scanflow.geometry import Pose2D
 from scanflow.maps.grid import GridSpec
-from scanflow.wire import MapImageMessage, MapMetaMessage
+from scanflow.wire import MapImageMessage, MapMetaMessage, TrajectoryMessage
 
 from services.common.launch import free_port, wait_for_port
 from services.gateway.app import create_app
@@ -82,3 +84,35 @@ def test_page_draws_the_map_and_trajectory(served, peer, backend):
     assert drawn.mean() > 0.3, f"only {drawn.mean():.1%} of the canvas differs from background"
     assert white.sum() > 1000, "the free (white) map cells are not drawn"
     assert red.sum() > 10, "the trajectory (red) is not drawn"
+
+
+def test_page_loads_the_path_again_when_loop_closure_redraws_the_map(served, peer, backend):
+    old_path = (np.arange(4.0), np.column_stack((np.arange(4.0), np.zeros(4), np.zeros(4))))
+    served_path = {"now": old_path}  # (stamps, poses), swapped whole
+    peer.answer(keys.trajectory("r2"),
+                lambda q: TrajectoryMessage("r2", *served_path["now"]).encode())
+    for seq in range(4):
+        peer.put(keys.pose("r2"), estimate("r2", seq, float(seq), float(seq), 0.0).encode())
+
+    with sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
+        try:
+            page = browser.new_page()
+            page.goto(served)
+            page.wait_for_function(
+                "() => { const v = views.get('r2'); return v && v.path.length >= 4; }",
+                timeout=15_000,
+            )
+            redrawn = replace(estimate("r2", 4, 4.0, 4.0, 5.0), correction=Pose2D(0.0, 5.0, 0.0))
+            peer.put(keys.pose("r2"), redrawn.encode())  # before the map server has redrawn
+            page.wait_for_timeout(600)  # the page asks meanwhile, and must wait for the path
+            served_path["now"] = (  # the map server has redrawn: the corrected path
+                np.arange(5.0), np.column_stack((np.arange(5.0), np.full(5, 5.0), np.zeros(5)))
+            )
+            page.wait_for_function(  # every point of the path now comes from the corrected one
+                "() => { const p = views.get('r2').path;"
+                " return p.length >= 5 && p.every(([x, y]) => y === 5); }",
+                timeout=15_000,
+            )
+        finally:
+            browser.close()

@@ -4,11 +4,15 @@ operator's pose PUT to the tracker."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 from scanflow import keys
+from scanflow.geometry import Pose2D
 from scanflow.wire import InitialPoseMessage, TrajectoryMessage
+
+from .conftest import estimate, eventually
 
 
 def test_latest_pose_comes_from_the_bus(client, publish_poses):
@@ -107,3 +111,22 @@ def test_an_operators_pose_needs_the_key_a_tracker_and_a_valid_body(client, auth
     assert r.status_code == 503 and "initial_pose" in r.json()["detail"]
     r = client.put("/api/v1/robots/r1/pose", json={"x_m": "far"}, headers=auth)
     assert r.status_code == 422 and "x_m" in r.text
+
+
+def test_a_map_redraw_drops_the_cached_poses_of_the_old_frame(client, peer, publish_poses):
+    """Loop closure redrew the map at seq 3: poses before it are answered from the map
+    server's corrected path, not from the cache's old-frame estimates."""
+    publish_poses("r4", [(10.0 + k, float(k), 0.0, 0.0) for k in range(3)])
+    redrawn = replace(estimate("r4", 3, 13.0, 3.5, 0.0), correction=Pose2D(0.5, 0.0, 0.0))
+    peer.put(keys.pose("r4"), redrawn.encode())
+    eventually(lambda: client.get("/api/v1/robots/r4/pose").json()["seq"] == 3, "the redraw")
+    latest = client.get("/api/v1/robots/r4/pose").json()
+    assert latest["map_correction"] == {"x_m": 0.5, "y_m": 0.0, "theta_rad": 0.0}
+    stamps = np.array([10.0, 11.0, 12.0, 13.0])
+    poses = np.array([[k + 0.5, 0.0, 0.0] for k in range(4)])
+    peer.answer(keys.trajectory("r4"), lambda q: TrajectoryMessage("r4", stamps, poses).encode())
+    body = client.get("/api/v1/robots/r4/pose", params={"t": 11.5}).json()
+    assert body["status"] == "trajectory" and body["x_m"] == pytest.approx(2.0)
+    robots = client.get("/api/v1/robots").json()["robots"]
+    (r4,) = [r for r in robots if r["robot_id"] == "r4"]
+    assert r4["poses_cached"] == 1 and r4["restarts"] == 0
