@@ -40,13 +40,18 @@ TESTS = Path(__file__).resolve().parents[1]
 APP_LAYER = 3  # image layers before scanflow's own: base, user, dependency venv
 
 
-def reference_pipeline():
-    """`in_process(events) -> (outputs, grid)` of the services' own end-to-end test."""
-    path = TESTS / "services" / "test_pipeline_services.py"
-    spec = importlib.util.spec_from_file_location("_services_pipeline_reference", path)
+def services_test(name: str):
+    """A module of tests/services, loaded by path, for its in-process references."""
+    path = TESTS / "services" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(f"_services_reference_{name}", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    return module.in_process
+    return module
+
+
+def reference_pipeline():
+    """`in_process(events) -> (outputs, grid)` of the services' own end-to-end test."""
+    return services_test("test_pipeline_services").in_process
 
 
 @pytest.fixture(scope="module")
