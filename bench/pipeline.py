@@ -1,13 +1,14 @@
 """The distributed pipeline's numbers: Zenoh transport alone, end-to-end throughput against the
 in-process pipeline, ingest-to-pose latency at real-time rate, and resident memory per service.
 
-    python -m bench.pipeline [--json] [--limit N] [--rounds K]
+    python -m bench.pipeline [--json] [--data LOG] [--limit N] [--rounds K]
                              [--only transport,throughput,latency,memory]
 
 Every service runs as its own process through a router on a free loopback port, exactly as
 `scanflow up` starts them (matchers on CPUs of their own; `SCANFLOW_LAUNCH_MATCHER_CPUS=0` in
 the environment measures them unpinned). Latencies are measured by one observer process that
-sees both the raw scan and its pose on the bus (one clock).
+sees both the raw scan and its pose on the bus (one clock). The services and the in-process
+baseline both read SCANFLOW_BACKEND_* from the environment (loop closure off by default).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from typing import Any
 import numpy as np
 import zenoh
 from scanflow import keys
-from scanflow.config import LaunchSettings, ZenohSettings
+from scanflow.config import BackendSettings, LaunchSettings, ZenohSettings
 from scanflow.pipeline import Pipeline
 from scanflow.scan import LaserScan
 from scanflow.wire import ScanMessage, ServiceStatsMessage, decode_any
@@ -207,8 +208,9 @@ def throughput(log: Path, limit: int | None, rounds: int = 1) -> dict[str, Any]:
 
 
 def _in_process(events: Iterable[Any]) -> tuple[float, float]:
-    """(wall s, CPU s) of the in-process pipeline over `events` (a list, or a log being read)."""
-    pipeline = Pipeline()
+    """(wall s, CPU s) of the in-process pipeline over `events` (a list, or a log being read),
+    with the back end as SCANFLOW_BACKEND_* sets it (as the services have it)."""
+    pipeline = Pipeline(backend=BackendSettings())
     t0, cpu0 = time.perf_counter(), time.process_time()
     for event in events:
         if isinstance(event, LaserScan):
@@ -313,7 +315,8 @@ def memory(log: Path, limit: int | None, replays: int = 3) -> dict[str, Any]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--json", action="store_true", help="print one JSON object")
-    parser.add_argument("--limit", type=int, default=None, help="scans of freiburg-079 to use")
+    parser.add_argument("--data", type=Path, default=FREIBURG, help="the log (freiburg-079)")
+    parser.add_argument("--limit", type=int, default=None, help="scans of the log to use")
     parser.add_argument("--latency-s", type=float, default=30.0, help="simulated seconds")
     parser.add_argument("--replays", type=int, default=3, help="replays for the memory figure")
     parser.add_argument("--only", default="transport,throughput,latency,memory")
@@ -321,17 +324,17 @@ def main() -> None:
     args = parser.parse_args()
     wanted = set(args.only.split(","))
     needs_log = wanted & {"throughput", "memory"}
-    if needs_log and not FREIBURG.exists():
-        raise SystemExit(f"{FREIBURG} not found (set SCANFLOW_DATA_DIR)")
+    if needs_log and not args.data.exists():
+        raise SystemExit(f"{args.data} not found (set SCANFLOW_DATA_DIR or --data)")
     results: dict[str, Any] = {"date": time.strftime("%Y-%m-%d"), "cpus": os.cpu_count()}
     if "transport" in wanted:
         results["transport"] = transport()
     if "throughput" in wanted:
-        results["throughput"] = throughput(FREIBURG, args.limit, args.rounds)
+        results["throughput"] = throughput(args.data, args.limit, args.rounds)
     if "latency" in wanted:
         results["latency"] = latency(args.latency_s)
     if "memory" in wanted:
-        results["memory"] = memory(FREIBURG, args.limit, args.replays)
+        results["memory"] = memory(args.data, args.limit, args.replays)
     if args.json:
         print(json.dumps(results, indent=2))
         return
