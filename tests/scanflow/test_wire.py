@@ -206,14 +206,16 @@ service_stats = st.builds(
 
 @st.composite
 def map_inserts(draw: st.DrawFn) -> wire.MapInsertMessage:
+    seq = draw(counts)
     return wire.MapInsertMessage(
         robot_id=draw(ids),
-        seq=draw(counts),
+        seq=seq,
         stamp_s=draw(finite),
         pose=draw(poses),
         points=draw(f64_points(draw(small_n))),
         no_return_points=draw(f64_points(draw(small_n))),
         mount=draw(poses),
+        previous_seq=draw(st.none() | st.integers(0, seq - 1)) if seq > 0 else None,
     )
 
 
@@ -481,6 +483,16 @@ def test_map_insert_points_must_be_finite_float64_rows_and_the_pose_a_pose() -> 
         wire.decode_any(
             _payload(msg, points=wire.codec.encode_array(np.full((1, 2), np.nan), "<f8"))
         )
+
+
+def test_map_insert_previous_seq_comes_before_its_seq() -> None:
+    msg = wire.MapInsertMessage("r", 3, 2.0, Pose2D(), np.zeros((0, 2)), np.zeros((0, 2)))
+    assert wire.MapInsertMessage.decode(msg.encode()).previous_seq is None
+    for bad in (3, 7):
+        with pytest.raises(wire.SchemaError, match="previous_seq must be below seq 3"):
+            wire.decode_any(_payload(msg, previous_seq=bad))
+    with pytest.raises(wire.SchemaError, match="previous_seq"):
+        wire.decode_any(_payload(msg, previous_seq=-1))
 
 
 def test_zero_sized_arrays_with_huge_dimensions_are_refused() -> None:

@@ -24,7 +24,17 @@ from scanflow.wire.base import (
     check_text,
 )
 from scanflow.wire.errors import MessageError
-from scanflow.wire.schema import BLOB, INT, NUMBER, POSE, TEXT, FieldCodec, Schema, array
+from scanflow.wire.schema import (
+    BLOB,
+    INT,
+    NUMBER,
+    POSE,
+    TEXT,
+    FieldCodec,
+    Schema,
+    array,
+    optional,
+)
 
 MAP_IMAGE_FORMATS = ("png", "pgm", "yaml", "npz")
 MapImageFormat = Literal["png", "pgm", "yaml", "npz"]
@@ -38,7 +48,10 @@ class MapInsertMessage(Message):
 
     `points` (hits) and `no_return_points` (beams that saw nothing: they clear free space) are
     in the robot's frame at `stamp_s`, float64, bit for bit what the tracker inserted; `pose` is
-    the robot's and `mount` the sensor's pose on it, where the rays start.
+    the robot's and `mount` the sensor's pose on it, where the rays start. `previous_seq` is the
+    seq of the tracker's insert before this one in the same run (None for its first, or when
+    the tracker does not know it: a restarted matcher): a map server that holds another last
+    insert missed some, and asks the matcher to send them again (`keys.map_key(r, "resend")`).
     """
 
     TYPE = "map_insert"
@@ -50,6 +63,7 @@ class MapInsertMessage(Message):
         "points": array("<f8"),
         "no_return_points": array("<f8"),
         "mount": POSE,
+        "previous_seq": optional(INT),
     }
     robot_id: str
     seq: int
@@ -58,10 +72,16 @@ class MapInsertMessage(Message):
     points: NDArray[np.float64]
     no_return_points: NDArray[np.float64]
     mount: Pose2D = IDENTITY
+    previous_seq: int | None = None
 
     def __post_init__(self) -> None:
         check_text("robot_id", self.robot_id)
         object.__setattr__(self, "seq", check_count("seq", self.seq))
+        if self.previous_seq is not None:
+            previous = check_count("previous_seq", self.previous_seq)
+            if previous >= self.seq:
+                raise MessageError(f"previous_seq must be below seq {self.seq}, got {previous}")
+            object.__setattr__(self, "previous_seq", previous)
         object.__setattr__(self, "stamp_s", check_finite("stamp_s", self.stamp_s))
         check_pose("pose", self.pose)
         check_pose("mount", self.mount)
