@@ -9,7 +9,9 @@ sends what is queued, flushes, undeclares and closes the session.
 A full inbox blocks the Zenoh callback and with it the session's whole link (backpressure).
 Hints a service takes back from a service it feeds (deskew: the matcher's poses) must not wait
 behind that: `subscribe_feedback` takes them on a second session whose callback never blocks,
-else two services that publish to each other could each wait for the other forever.
+else two services that publish to each other could each wait for the other forever. The same
+side session carries the queries a worker makes mid-stream (`get`) and the queryables that
+answer them (`serve(..., side=True)`): their replies must not wait behind a blocked link either.
 """
 
 from __future__ import annotations
@@ -61,7 +63,7 @@ class ServiceShell:
         self._io_cpus = settings.io_cpus
         self._zenoh_settings = zenoh_settings
         self.session = self._open_session()
-        self._feedback_session: zenoh.Session | None = None
+        self._side: zenoh.Session | None = None
         self._feedback: deque[tuple[str, Any]] = deque()
         self._feedback_lock = threading.Lock()
         self._feedback_size = queue_size
@@ -135,10 +137,29 @@ class ServiceShell:
         """Decode every sample on `key` on a second session whose callback never blocks; the
         worker takes them (through `handle`) before its next inbox item. At most `queue_size`
         wait: past that the oldest goes, counted as `feedback_overflow.<kind>` (hints only)."""
-        if self._feedback_session is None:
-            self._feedback_session = self._open_session()
         callback = self._sample_callback(kind, decode, self._feed)
-        self._declared.append(self._feedback_session.declare_subscriber(key, callback))
+        self._declared.append(self._side_session().declare_subscriber(key, callback))
+
+    def _side_session(self) -> zenoh.Session:
+        """The second session (opened on first use) whose callbacks never block."""
+        if self._side is None:
+            self._side = self._open_session()
+        return self._side
+
+    def get(self, selector: str, timeout_s: float) -> tuple[list[bytes], list[str]]:
+        """Query `selector` on the side session: every reply's payload (none merged away, as
+        Zenoh's default does to replies on one key), and the error replies' texts (both empty
+        when nothing answered within `timeout_s`)."""
+        payloads, errors = [], []
+        replies = self._side_session().get(
+            selector, timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE
+        )
+        for reply in replies:
+            if reply.ok is not None:
+                payloads.append(reply.ok.payload.to_bytes())
+            else:
+                errors.append(reply.err.payload.to_string())
+        return payloads, errors
 
     def _feed(self, kind: str, message: Any) -> None:
         with self._feedback_lock:
@@ -179,8 +200,9 @@ class ServiceShell:
 
         return on_sample
 
-    def serve(self, key: str, handler: QueryHandler) -> None:
-        """Answer queries on `key` with `handler(query)` on the query thread (not Zenoh's)."""
+    def serve(self, key: str, handler: QueryHandler, side: bool = False) -> None:
+        """Answer queries on `key` with `handler(query)` on the query thread (not Zenoh's);
+        `side`: on the side session, for queries other services make mid-stream (`get`)."""
 
         def on_query(query: zenoh.Query) -> None:
             try:
@@ -189,7 +211,8 @@ class ServiceShell:
                 self.counters.add("queries.busy")
                 query.reply_err(f"{self.service}/{self.instance} is busy: query queue full")
 
-        self._declared.append(self.session.declare_queryable(key, on_query))
+        session = self._side_session() if side else self.session
+        self._declared.append(session.declare_queryable(key, on_query))
 
     def add_stats(self, source: Callable[[], dict[str, float]]) -> None:
         """Merge the gauges `source()` returns into the stats this service reports."""
@@ -269,8 +292,8 @@ class ServiceShell:
                 self.log.debug("undeclare failed during close", exc_info=True)
         self._declared.clear()
         self._publishers.clear()
-        if self._feedback_session is not None:
-            self._feedback_session.close()
+        if self._side is not None:
+            self._side.close()
         self.session.close()
         self.log.info("%s/%s closed", self.service, self.instance)
 
