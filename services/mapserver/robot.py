@@ -49,7 +49,7 @@ class RobotMap:
             self.keyframes = saved if saved is not None else Keyframes()
         self.redrawn_seq = -1 if snap is None else snap.redrawn_seq
         self.last_seq = -1 if snap is None else snap.last_seq
-        self.last_insert_seq = -1
+        self.last_insert_seq = -1 if snap is None else snap.last_insert_seq
         self.streams: set[str] = set()  # the kinds of message this run has had
         self.dirty: CellBox | None = None
         self.saved = self.state
@@ -139,4 +139,5 @@ class RobotMap:
             self.last_seq,
             self.keyframes,
             self.redrawn_seq,
+            self.last_insert_seq,
         )

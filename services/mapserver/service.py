@@ -2,7 +2,9 @@
 library's map update; keeps the matcher's poses as each robot's trajectory; serves the maps on
 queryables, publishes rate-limited change notices and snapshots every robot atomically to the
 data directory (a restart resumes from there). With loop closure on (SCANFLOW_BACKEND_*, as the
-matchers) it keeps every inserted scan and repeats the matcher's map redraws.
+matchers) it keeps every inserted scan and repeats the matcher's map redraws. An insert or a
+redraw that shows inserts missing before it (a link that dropped, a restart from a snapshot)
+gets them from the matcher again first, so the map stays the matcher's.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from scanflow.wire import (
 )
 
 from services.common.process import init_process
+from services.common.resend import resend_selector
 from services.common.shell import ServiceShell
 from services.mapserver import replies
 from services.mapserver.robot import RobotMap
@@ -105,6 +108,8 @@ class MapServer:
                 robot_id, self.new_grid, keep_keyframes=self.keep_keyframes
             )
         if isinstance(message, MapRedrawMessage):  # follows the insert of its own scan
+            if len(message.keyframe_seqs):
+                self._catch_up(robot, int(message.keyframe_seqs[-1]))
             robot.redraw(message, self.params)
             self.shell.counters.add("redrawn")
             return
@@ -120,10 +125,44 @@ class MapServer:
             robot.reset()
         robot.streams.add(kind)
         if isinstance(message, MapInsertMessage):
+            if message.previous_seq is not None:
+                self._catch_up(robot, message.previous_seq)
             robot.insert(message)
             self.shell.counters.add("inserted")
         else:
             robot.apply(message)
+
+    def _catch_up(self, robot: RobotMap, through: int) -> None:
+        """Insert what the matcher inserted after this robot's last insert here, through seq
+        `through`, asked for again; logged and counted (`inserts_lost`) when it cannot send
+        them all: the map then lacks those scans."""
+        after = robot.last_insert_seq
+        if through <= after:
+            return
+        key = keys.map_key(robot.robot_id, "resend", self.shell.prefix)
+        payloads, errors = self.shell.get(
+            resend_selector(key, after, through), self.settings.resend_timeout_s
+        )
+        try:
+            inserts = sorted((MapInsertMessage.decode(p) for p in payloads), key=lambda m: m.seq)
+            chained = [m.previous_seq for m in inserts] == [
+                after if after >= 0 else None, *(m.seq for m in inserts[:-1])
+            ]
+            if not inserts or not chained or inserts[-1].seq != through:
+                raise LookupError("; ".join(errors) or f"{len(inserts)} came, not the chain")
+        except (SchemaError, LookupError) as exc:
+            n = self.shell.counters.add("inserts_lost")
+            self.shell.log.warning(
+                "robot %s: inserts after seq %d through %d never came, and the matcher did not "
+                "send them again (%s); the map lacks them (%d such gaps)",
+                robot.robot_id, after, through, exc, n,
+            )
+            return
+        for insert in inserts:
+            robot.insert(insert)
+        self.shell.counters.add("inserts_resent", len(inserts))
+        self.shell.log.info("robot %s: inserts after seq %d through %d came again (%d)",
+                            robot.robot_id, after, through, len(inserts))
 
     def new_grid(self) -> OccupancyGrid:
         """A new robot's map: the prior map the matchers start on, else an empty grid."""

@@ -33,6 +33,7 @@ class Snapshot:
     last_seq: int
     keyframes: Keyframes | None = None
     redrawn_seq: int = -1  # the scan of the last redraw (its path already holds up to it)
+    last_insert_seq: int = -1  # the last insert in the map (the next names the one before it)
 
 
 def snapshot_path(data_dir: Path, robot_id: str) -> Path:
@@ -45,7 +46,7 @@ def save_snapshot(data_dir: Path, snap: Snapshot) -> None:
     arrays = npz_arrays(snap.grid)
     arrays.update(
         stamps_s=snap.stamps_s, poses=snap.poses, last_seq=np.int64(snap.last_seq),
-        redrawn_seq=np.int64(snap.redrawn_seq),
+        redrawn_seq=np.int64(snap.redrawn_seq), last_insert_seq=np.int64(snap.last_insert_seq),
     )
     if snap.keyframes is not None:
         arrays.update(snap.keyframes.arrays(snap.robot_id))
@@ -66,9 +67,13 @@ def load_snapshots(data_dir: Path) -> tuple[list[Snapshot], list[str]]:
                     raise ValueError(f"poses {poses.shape} do not fit {len(stamps_s)} stamps")
                 last_seq = int(data["last_seq"])
                 redrawn_seq = int(data["redrawn_seq"]) if "redrawn_seq" in data else -1
+                # Older files: the inserts up to the last pose are likely in.
+                last_insert_seq = int(data.get("last_insert_seq", last_seq))
                 keyframes = Keyframes.from_arrays(robot_id, data)
         except (OSError, KeyError, ValueError) as exc:
             skipped.append(f"robot {robot_id}: snapshot not loaded ({type(exc).__name__}: {exc})")
             continue
-        snaps.append(Snapshot(robot_id, grid, stamps_s, poses, last_seq, keyframes, redrawn_seq))
+        snaps.append(Snapshot(
+            robot_id, grid, stamps_s, poses, last_seq, keyframes, redrawn_seq, last_insert_seq
+        ))
     return snaps, skipped

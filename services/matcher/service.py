@@ -13,7 +13,8 @@ map snapshot and last pose seed the front end. An operator's pose on `<prefix>/<
 initial_pose` (InitialPoseMessage, echoed once taken) puts the robot there: its next scan is
 matched from it, or, for a robot not seen yet, its first scan. Match requests are answered
 on `<prefix>/match` (any scans) and `<prefix>/<robot>/match` (also against that robot's
-current map).
+current map). Each insert names the one before it (`previous_seq`), and the last
+`resend_inserts` are kept to send again to a map server that missed some (`map/resend`).
 
 With SCANFLOW_BACKEND_LOOP_CLOSURE a `Mapper` runs around each robot's front end (keyframes,
 loop closures, the pose graph). When it redraws the map, the matcher sends a MapRedrawMessage
@@ -59,7 +60,9 @@ from scanflow.wire import (
 
 from services.common.keyframes import scan_nodes
 from services.common.process import init_process
+from services.common.resend import resend_range
 from services.common.shell import ServiceShell
+from services.matcher.recent import RecentInserts
 from services.matcher.requests import answer
 from services.matcher.shard import owns
 
@@ -89,6 +92,7 @@ class MatcherService:
         self.frontends: dict[str, Frontend] = {}
         self.mappers: dict[str, Mapper] = {}  # robots tracked with loop closure
         self.initial_poses: dict[str, Pose2D] = {}  # operators' poses for robots not seen yet
+        self.recent: dict[str, RecentInserts] = {}  # per robot: its run's last inserts
         self.lock = threading.Lock()  # the worker updates maps that match requests read
         prefix = self.shell.prefix
         self.shell.subscribe(
@@ -96,6 +100,7 @@ class MatcherService:
         )
         self.shell.serve(keys.scan_match(prefix), self._on_match)
         self.shell.serve(keys.initial_pose("*", prefix), self._on_initial_pose)
+        self.shell.serve(keys.map_key("*", "resend", prefix), self._on_resend, side=True)
         self.shell.add_stats(lambda: {"robots": len(self.frontends)})
 
     def owns(self, robot_id: str) -> bool:
@@ -149,11 +154,14 @@ class MatcherService:
         then the estimate (in the redrawn map's frame, with the correction, after a redraw)."""
         prefix = self.shell.prefix
         if out.inserted:
+            recent = self.recent[robot_id]
             insert = MapInsertMessage(
                 robot_id, out.seq, out.stamp_s, out.pose, scan.points, scan.no_return_points,
-                scan.mount,
+                scan.mount, recent.last_seq,
             )
-            self.shell.put(keys.map_key(robot_id, "insert", prefix), insert.encode())
+            payload = insert.encode()
+            recent.add(insert.seq, insert.previous_seq, payload)
+            self.shell.put(keys.map_key(robot_id, "insert", prefix), payload)
         correction = None if redraw is None else redraw.correction
         if redraw is not None:
             self._put_redraw(redraw)
@@ -196,6 +204,7 @@ class MatcherService:
             self.shell.serve(keys.robot_match(robot_id, self.shell.prefix), self._on_match)
         with self.lock:
             self.frontends[robot_id] = new
+            self.recent[robot_id] = RecentInserts(self.settings.resend_inserts)
             if mapper is None:
                 self.mappers.pop(robot_id, None)
             else:
@@ -249,10 +258,26 @@ class MatcherService:
         return Frontend(self.frontend_settings, initial_pose=pose, grid=grid), path
 
     def _query(self, selector: str) -> object | None:
-        for reply in self.shell.session.get(selector, timeout=SEED_TIMEOUT_S):
-            if reply.ok is not None:
-                return decode_any(reply.ok.payload.to_bytes())
-        return None
+        payloads, _ = self.shell.get(selector, SEED_TIMEOUT_S)
+        return decode_any(payloads[0]) if payloads else None
+
+    def _on_resend(self, query: zenoh.Query) -> None:
+        """Send an owned robot's recent inserts again (the map server missed them); other
+        shards' robots are left to their matcher."""
+        robot_id = keys.robot_of(str(query.key_expr), self.shell.prefix)
+        if not self.owns(robot_id):
+            return
+        after, through = resend_range(query.parameters)
+        recent = self.recent.get(robot_id)
+        if recent is None:
+            raise LookupError(f"robot {robot_id}: this matcher has sent no inserts of it")
+        payloads = recent.between(after, through)
+        key = keys.map_key(robot_id, "resend", self.shell.prefix)
+        for payload in payloads:
+            query.reply(key, payload)
+        self.shell.counters.add("inserts_resent", len(payloads))
+        self.shell.log.info("robot %s: sent inserts %d..%d again (%d)", robot_id, after + 1,
+                            through, len(payloads))
 
     def _on_initial_pose(self, query: zenoh.Query) -> None:
         """Put an owned robot at the operator's pose (kept for its first scan if not seen yet);

@@ -173,6 +173,10 @@ class MatcherSettings(KernelServiceSettings):
     robots: Annotated[list[str], NoDecode] = Field(
         default_factory=list, description="track only these robots (empty = by shard)"
     )
+    resend_inserts: int = Field(
+        256, ge=0, description="per robot, keep the last this many map inserts to send again "
+        "to a map server that missed them (about 10 kB each)",
+    )
 
     _split = field_validator("robots", mode="before")(_split_csv)
 
@@ -193,6 +197,9 @@ class MapServerSettings(KernelServiceSettings):
     data_dir: str = "scanflow-data"
     snapshot_interval_s: float = Field(10.0, gt=0.0)
     changed_rate_hz: float = Field(2.0, gt=0.0, description="at most this many change notices/s")
+    resend_timeout_s: float = Field(
+        2.0, gt=0.0, description="wait this long for a matcher to send missed inserts again"
+    )
 
 
 class GatewaySettings(ProcessSettings):

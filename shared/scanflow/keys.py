@@ -14,7 +14,10 @@ Layout (``<prefix>`` defaults to ``scanflow``; ``<robot>`` is a robot id):
 | <prefix>/<robot>/map/image            | queryable  | MapImageMessage (png/pgm/yaml) |
 | <prefix>/<robot>/map/region           | queryable  | MapRegionMessage               |
 | <prefix>/<robot>/map/changed          | pub/sub    | MapChangedMessage              |
-| <prefix>/<robot>/map/insert           | pub/sub    | MapInsertMessage (**)          |
+| <prefix>/<robot>/map/insert           | pub/sub    | MapInsertMessage (**), or      |
+|                                       |            | MapRedrawMessage (loop closure)|
+| <prefix>/<robot>/map/keyframes        | queryable  | KeyframesMessage (map server)  |
+| <prefix>/<robot>/map/resend           | queryable  | MapInsertMessage... (matcher)  |
 | <prefix>/<robot>/trajectory           | queryable  | TrajectoryMessage              |
 | <prefix>/match                        | queryable  | MatchRequest (scan-to-scan)    |
 | <prefix>/health/<service>/<instance>  | liveliness | (token, no payload)            |
@@ -26,6 +29,8 @@ relies on the order of two keys (see the README's services section).
 
 (**) the scans the matcher's front end inserted into its map, each with the pose it went in at;
 the map server inserts the same points at the same pose, so its map equals the front end's.
+Each names the insert before it; a map server that missed some asks the matcher for them again
+on `map/resend?after=A;through=B` (services.common.resend).
 
 Ids are single chunks (see `check_id`); a prefix may span several chunks ("site1/scanflow").
 Robot ids "health" and "stats" are reserved: their keys would collide with the service keys.

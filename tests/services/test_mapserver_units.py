@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
+from scanflow.config import MapServerSettings, ZenohSettings
 from scanflow.geometry import Pose2D
 from scanflow.maps.export import load_npz, save_npz
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
@@ -11,6 +14,7 @@ from scanflow.wire import MapInsertMessage, MapRedrawMessage, PoseEstimateMessag
 
 from services.mapserver import replies
 from services.mapserver.robot import RobotMap
+from services.mapserver.service import MapServer
 from services.mapserver.snapshot import load_snapshots, save_snapshot
 from services.matcher.shard import owns
 
@@ -71,6 +75,7 @@ def test_snapshot_round_trip(tmp_path):
     (snap,), skipped = load_snapshots(tmp_path)
     again = new_robot(snap)
     assert again.last_seq == 2 and again.state == robot.state and skipped == []
+    assert again.last_insert_seq == 2  # the next insert names its predecessor: checked
     np.testing.assert_array_equal(again.map.grid.log_odds, robot.map.grid.log_odds)
     np.testing.assert_array_equal(again.trajectory.poses, robot.trajectory.poses)
     assert not list(tmp_path.glob(".*"))  # no temporary files left behind
@@ -235,3 +240,23 @@ def test_a_new_run_on_a_resumed_map_starts_the_kept_keyframes_afresh(tmp_path):
     assert resumed.keyframes.seqs == [0]
     save_snapshot(tmp_path, resumed.snapshot())
     assert replies.keyframes(resumed).seqs.tolist() == [0]
+
+
+def test_inserts_missed_that_no_matcher_sends_again_are_counted_and_named(tmp_path, caplog):
+    """No matcher answers the resend query (an isolated session): the gap is logged with its
+    seqs and counted, and the insert that showed it still goes in."""
+    server = MapServer(
+        MapServerSettings(data_dir=str(tmp_path), resend_timeout_s=0.2),
+        ZenohSettings(mode="peer", connect=[]),
+    )
+    try:
+        server.handle("insert", insert(0))
+        server.handle("insert", replace(insert(2), previous_seq=0))  # chained: no query
+        assert "inserts_lost" not in server.shell.counters.snapshot()
+        server.handle("insert", replace(insert(9), previous_seq=5))
+        robot = server.robots["r"]
+        assert robot.last_insert_seq == 9 and robot.map.revision == 3
+        assert server.shell.counters.get("inserts_lost") == 1
+        assert "inserts after seq 2 through 5 never came" in caplog.text
+    finally:
+        server.shell.close(flush_s=0.0)

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scanflow.backend import Mapper
 from scanflow.config import BackendSettings, FrontendSettings, MatcherSettings, ZenohSettings
 from scanflow.frontend import Frontend
 from scanflow.geometry import Pose2D
 from scanflow.wire import MAX_PAYLOAD_BYTES, MapRedrawMessage, TrajectoryMessage
 
+from services.matcher.recent import RecentInserts
 from services.matcher.service import MatcherService
 
 LOOP_CLOSURE = BackendSettings.model_construct(loop_closure=True)
@@ -64,3 +66,19 @@ def test_an_operators_pose_before_a_resumed_robots_first_scan_is_a_weak_link() -
         assert "r" not in service.initial_poses
     finally:
         service.shell.close(flush_s=0.0)
+
+
+def test_recent_inserts_send_a_chain_again_or_name_what_they_keep() -> None:
+    recent = RecentInserts(3)
+    assert recent.last_seq is None
+    for seq, previous in ((0, None), (3, 0), (5, 3), (9, 5)):
+        recent.add(seq, previous, f"insert {seq}".encode())
+    assert recent.last_seq == 9
+    assert recent.between(0, 9) == [b"insert 3", b"insert 5", b"insert 9"]
+    assert recent.between(3, 5) == [b"insert 5"]
+    with pytest.raises(LookupError, match=r"after seq -1 through 3 .* seqs 3\.\.9"):
+        recent.between(-1, 3)  # the run's first is no longer kept
+    with pytest.raises(LookupError, match="through 7"):
+        recent.between(5, 7)  # no insert of seq 7
+    with pytest.raises(LookupError, match="the last 0 inserts: none"):
+        RecentInserts(0).between(-1, 0)
