@@ -54,6 +54,26 @@ def ring_in_process() -> tuple[Pipeline, list, list[tuple[int, Pose2D, np.ndarra
     return pipeline, outputs, redraws
 
 
+def assert_served_as_in_process(bus, pipeline: Pipeline, expected: list, redraws: list) -> None:
+    """The map server's map and path, once it has handled the last pose and the last insert,
+    are the in-process pipeline's, bit for bit."""
+    last = (expected[-1].seq, pipeline.mapper.keyframe_seqs[-1])
+
+    def handled() -> tuple[float, float]:
+        gauges = bus.stats("mapserver").gauges
+        return (gauges["seq.robot/pose.last"], gauges["robot.last_insert_seq"])
+
+    bus.wait_until(lambda: handled() == last, 30.0, "map server caught up")
+    served, want = bus.map_grid(), pipeline.frontend.map.grid
+    assert served.extent == want.extent, bus.stats("mapserver").counters
+    np.testing.assert_array_equal(served.log_odds, want.log_odds)
+    np.testing.assert_array_equal(served.observed, want.observed)
+    (path,) = bus.get(keys.trajectory("robot"))
+    seq, _, at_redraw, _ = redraws[-1]
+    after = [o.pose.to_array() for o in expected[seq + 1:]]
+    np.testing.assert_array_equal(path.poses, np.vstack([at_redraw, *after]))
+
+
 def test_a_loop_closing_run_equals_the_in_process_pipeline(launcher, bus, start):
     start("deskew", **ODOM_WAIT, **LOOP_CLOSURE)
     start("matcher", **LOOP_CLOSURE)
@@ -81,18 +101,7 @@ def test_a_loop_closing_run_equals_the_in_process_pipeline(launcher, bus, start)
         np.testing.assert_array_equal(message.poses, path)
         np.testing.assert_array_equal(message.keyframe_seqs, keyframes)
 
-    bus.wait_until(
-        lambda: bus.stats("mapserver").counters.get("received.pose", 0) >= len(expected),
-        30.0, "map server caught up",
-    )
-    served, want = bus.map_grid(), pipeline.frontend.map.grid
-    assert served.extent == want.extent
-    np.testing.assert_array_equal(served.log_odds, want.log_odds)
-    np.testing.assert_array_equal(served.observed, want.observed)
-    (path,) = bus.get(keys.trajectory("robot"))
-    seq, _, at_redraw, _ = expected_redraws[-1]
-    after = [o.pose.to_array() for o in expected[seq + 1:]]
-    np.testing.assert_array_equal(path.poses, np.vstack([at_redraw, *after]))
+    assert_served_as_in_process(bus, pipeline, expected, expected_redraws)
 
     matcher, mapserver = bus.stats("matcher"), bus.stats("mapserver")
     assert matcher.counters["backend.redraws"] == len(expected_redraws)
@@ -107,6 +116,35 @@ def test_a_loop_closing_run_equals_the_in_process_pipeline(launcher, bus, start)
     (echo,) = bus.get(keys.initial_pose("robot"), payload=request)
     assert echo.pose == Pose2D(1.0, 0.0, 0.0)
     assert bus.stats("matcher").counters["initial_poses"] == 1
+
+
+def test_a_map_server_killed_before_the_redraw_catches_up_and_follows_it(
+    launcher, bus, start, tmp_path
+):
+    """The map server killed mid-lap and restarted from its snapshot: the matcher sends the
+    inserts it missed again, so it holds every keyframe when the redraw comes, and its map
+    and path end as the in-process pipeline's."""
+    snapshots = {"SCANFLOW_MAPSERVER_SNAPSHOT_INTERVAL_S": "0.5"}
+    start("deskew", **ODOM_WAIT, **LOOP_CLOSURE)
+    start("matcher", **LOOP_CLOSURE)
+    start("mapserver", **LOOP_CLOSURE, **snapshots)
+    poses = bus.record(keys.pose())
+    ingest = launcher.start("ingest", **RING, SCANFLOW_INGEST_RATE="4")  # 20 s
+    bus.wait_until(lambda: len(poses) >= 300, 60.0, "300 poses before the crash")
+    bus.wait_until(lambda: (tmp_path / "data" / "robot.snapshot.npz").exists(), 10.0,
+                   "a snapshot")
+    launcher.kill("mapserver")
+    start("mapserver", **LOOP_CLOSURE, **snapshots)
+    ingest.wait(180.0)
+    assert ingest.returncode == 0, launcher.log_text("ingest")
+    pipeline, expected, expected_redraws = ring_in_process()
+    assert expected_redraws[0][0] > 300  # the redraw comes after the restart
+    bus.wait_until(lambda: poses and poses[-1].seq == 799, 60.0, "the last pose")
+    assert_served_as_in_process(bus, pipeline, expected, expected_redraws)
+    mapserver = bus.stats("mapserver")
+    assert mapserver.counters["inserts_resent"] > 0, mapserver.counters
+    assert mapserver.counters["redrawn"] == len(expected_redraws)
+    assert "inserts_lost" not in mapserver.counters and "errors.insert" not in mapserver.counters
 
 
 def test_a_redraw_the_map_server_cannot_follow_is_counted_and_the_map_kept(launcher, bus, start):
