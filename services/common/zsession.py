@@ -9,7 +9,8 @@ from scanflow.config import ZenohSettings
 
 
 def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
-    """A `zenoh.Config` with mode, connect/listen endpoints and scouting from `settings`."""
+    """A `zenoh.Config` with mode, connect/listen endpoints, scouting and how long a blocked
+    link may wait (`block_close_s`) from `settings`."""
     config = zenoh.Config()
     config.insert_json5("mode", json.dumps(settings.mode))
     if settings.connect:
@@ -17,6 +18,10 @@ def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
     if settings.listen:
         config.insert_json5("listen/endpoints", json.dumps(list(settings.listen)))
     config.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
+    config.insert_json5(
+        "transport/link/tx/queue/congestion_control/block/wait_before_close",
+        json.dumps(round(settings.block_close_s * 1e6)),
+    )
     return config
 
 

@@ -53,6 +53,11 @@ class ZenohSettings(BaseSettings):
     listen: Annotated[list[str], NoDecode] = Field(default_factory=list)
     prefix: str = "scanflow"
     multicast_scouting: bool = False
+    block_close_s: float = Field(
+        60.0, gt=0.0, description="a link whose reader holds a reliable message back this long "
+        "is closed, and what it held is lost (a service whose worker stalls; Zenoh's own "
+        "default is 5 s)",
+    )
 
     _split = field_validator("connect", "listen", mode="before")(_split_csv)
 
