@@ -67,6 +67,7 @@ class ServiceShell:
         self._feedback: deque[tuple[str, Any]] = deque()
         self._feedback_lock = threading.Lock()
         self._feedback_size = queue_size
+        self._keep: dict[str, Callable[[Any], bool]] = {}  # per kind: feedback never dropped
         self._declared: list[Any] = []
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._stats_sources: list[Callable[[], dict[str, float]]] = []
@@ -133,10 +134,19 @@ class ServiceShell:
         callback = self._sample_callback(kind, decode, sink or self.inbox.put)
         self._declared.append(self.session.declare_subscriber(key, callback))
 
-    def subscribe_feedback(self, key: str, kind: str, decode: Callable[[bytes], Any]) -> None:
+    def subscribe_feedback(
+        self,
+        key: str,
+        kind: str,
+        decode: Callable[[bytes], Any],
+        keep: Callable[[Any], bool] | None = None,
+    ) -> None:
         """Decode every sample on `key` on a second session whose callback never blocks; the
         worker takes them (through `handle`) before its next inbox item. At most `queue_size`
-        wait: past that the oldest goes, counted as `feedback_overflow.<kind>` (hints only)."""
+        wait: past that the oldest goes, counted as `feedback_overflow.<kind>` (hints only),
+        unless `keep(message)` says it must not (it is then the oldest after it that goes)."""
+        if keep is not None:
+            self._keep[kind] = keep
         callback = self._sample_callback(kind, decode, self._feed)
         self._declared.append(self._side_session().declare_subscriber(key, callback))
 
@@ -164,14 +174,23 @@ class ServiceShell:
     def _feed(self, kind: str, message: Any) -> None:
         with self._feedback_lock:
             full = len(self._feedback) >= self._feedback_size
-            if full:
-                self._feedback.popleft()
+            dropped = self._drop_oldest_hint() if full else None
             self._feedback.append((kind, message))
-        if full:
-            n = self.counters.add(f"feedback_overflow.{kind}")
+        if dropped is not None:
+            n = self.counters.add(f"feedback_overflow.{dropped}")
             if n <= _LOG_FIRST or n % _LOG_EVERY == 0:
-                self.log.warning("feedback queue full: dropped the oldest %s (#%d)", kind, n)
+                self.log.warning("feedback queue full: dropped the oldest %s (#%d)", dropped, n)
         self.inbox.offer(_WAKE, None)  # a full inbox wakes the worker anyway
+
+    def _drop_oldest_hint(self) -> str | None:
+        """Drop the oldest waiting feedback that may go, and name its kind; None when all must
+        stay (the lane then grows past its size)."""
+        for i, (kind, message) in enumerate(self._feedback):
+            keep = self._keep.get(kind)
+            if keep is None or not keep(message):
+                del self._feedback[i]
+                return kind
+        return None
 
     def _take_feedback(self) -> list[tuple[str, Any]]:
         with self._feedback_lock:

@@ -79,7 +79,10 @@ class DeskewService:
         # odometry anyway, so the two subscribers' callbacks need not keep their relative order.
         self.shell.subscribe(keys.raw_scan("*", prefix), "scan", ScanMessage.decode)
         self.shell.subscribe(keys.odom("*", prefix), "odom", OdometryMessage.decode)
-        self.shell.subscribe_feedback(keys.pose("*", prefix), "pose", PoseEstimateMessage.decode)
+        self.shell.subscribe_feedback(  # a map frame's correction is no hint: never dropped
+            keys.pose("*", prefix), "pose", PoseEstimateMessage.decode,
+            keep=lambda pose: pose.correction is not None,
+        )
         self.shell.add_stats(lambda: {"robots": len(self.robots), "pending": self._pending()})
 
     def handle(

@@ -62,3 +62,22 @@ def test_failing_idle_work_is_logged_counted_and_the_worker_goes_on(caplog) -> N
         shell.close(flush_s=0.0)
     assert handled == ["scan"] and stats.counters["errors.idle"] == 1
     assert "idle work failed" in caplog.text and "disk full" in caplog.text
+
+
+def test_a_full_feedback_lane_drops_the_oldest_hint_but_never_what_it_must_keep() -> None:
+    """Feedback past queue_size drops the oldest waiting item, counted, except the ones
+    `keep` marks (deskew: a pose carrying a map frame's correction)."""
+    settings = DeskewSettings.model_construct(queue_size=3)
+    shell = ServiceShell("deskew", settings, ZenohSettings(mode="peer", connect=[]))
+    try:
+        shell._keep["pose"] = lambda message: message.startswith("correction")
+        for message in ("correction 0", "hint 1", "hint 2", "hint 3", "hint 4"):
+            shell._feed("pose", message)
+        shell._keep["pose"] = lambda message: True
+        shell._feed("pose", "correction 5")  # everything waiting must stay: the lane grows
+        assert [m for _, m in shell._take_feedback()] == [
+            "correction 0", "hint 3", "hint 4", "correction 5"
+        ]
+        assert shell.counters.get("feedback_overflow.pose") == 2
+    finally:
+        shell.close(flush_s=0.0)
