@@ -16,6 +16,7 @@ answer them (`serve(..., side=True)`): their replies must not wait behind a bloc
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import queue
@@ -220,8 +221,10 @@ class ServiceShell:
         return on_sample
 
     def serve(self, key: str, handler: QueryHandler, side: bool = False) -> None:
-        """Answer queries on `key` with `handler(query)` on the query thread (not Zenoh's);
-        `side`: on the side session, for queries other services make mid-stream (`get`)."""
+        """Answer queries on `key` with `handler(query)` on the query thread (not Zenoh's).
+        `side`: for quick queries other services make mid-stream (`get`): on the side session,
+        answered at once on its Zenoh thread, never queued behind a slow query (a whole-map
+        search takes seconds)."""
 
         def on_query(query: zenoh.Query) -> None:
             try:
@@ -230,8 +233,11 @@ class ServiceShell:
                 self.counters.add("queries.busy")
                 query.reply_err(f"{self.service}/{self.instance} is busy: query queue full")
 
-        session = self._side_session() if side else self.session
-        self._declared.append(session.declare_queryable(key, on_query))
+        if side:
+            answer = functools.partial(self._answer, handler)
+            self._declared.append(self._side_session().declare_queryable(key, answer))
+        else:
+            self._declared.append(self.session.declare_queryable(key, on_query))
 
     def add_stats(self, source: Callable[[], dict[str, float]]) -> None:
         """Merge the gauges `source()` returns into the stats this service reports."""
@@ -357,15 +363,18 @@ class ServiceShell:
                 handler, query = self._queries.get(timeout=0.1)
             except queue.Empty:
                 continue
-            try:
-                handler(query)
-                self.counters.add("queries.answered")
-            except Exception as exc:  # a bad query gets an error reply, the service goes on
-                self.counters.add("queries.failed")
-                self.log.warning("query %s failed: %s", query.selector, exc)
-                query.reply_err(f"{type(exc).__name__}: {exc}")
-            finally:
-                query.drop()
+            self._answer(handler, query)
+
+    def _answer(self, handler: QueryHandler, query: zenoh.Query) -> None:
+        try:
+            handler(query)
+            self.counters.add("queries.answered")
+        except Exception as exc:  # a bad query gets an error reply, the service goes on
+            self.counters.add("queries.failed")
+            self.log.warning("query %s failed: %s", query.selector, exc)
+            query.reply_err(f"{type(exc).__name__}: {exc}")
+        finally:
+            query.drop()
 
     def _count_malformed(self, kind: str, key: str, exc: Exception) -> None:
         n = self.counters.add(f"malformed.{kind}")

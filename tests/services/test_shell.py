@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import logging
+import threading
 import time
 
-from scanflow.config import DeskewSettings, ZenohSettings
+from scanflow.config import DeskewSettings, MatcherSettings, ZenohSettings
 
+from services.common.launch import free_port
 from services.common.shell import ServiceShell
+from services.common.zsession import open_session
 
 
 def test_a_slow_message_is_logged_counted_and_measured(caplog) -> None:
@@ -81,3 +84,30 @@ def test_a_full_feedback_lane_drops_the_oldest_hint_but_never_what_it_must_keep(
         assert shell.counters.get("feedback_overflow.pose") == 2
     finally:
         shell.close(flush_s=0.0)
+
+
+def test_a_side_query_is_answered_while_a_slow_query_holds_the_query_thread() -> None:
+    """Queryables served `side=True` (the matcher's resend) answer at once, not queued behind
+    a slow query on the query thread (a whole-map search takes seconds)."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_session(ZenohSettings(mode="router", listen=[endpoint], connect=[]))
+    shell = ServiceShell("matcher", MatcherSettings(), ZenohSettings(connect=[endpoint]))
+    started = threading.Event()
+
+    def slow(query) -> None:
+        started.set()
+        time.sleep(3.0)
+        query.reply(query.key_expr, b"slow")
+
+    shell.serve("scanflow-test/slow", slow)
+    shell.serve("scanflow-test/side", lambda q: q.reply(q.key_expr, b"side"), side=True)
+    shell.start(install_signals=False)
+    try:
+        waiting = threading.Thread(target=shell.get, args=("scanflow-test/slow", 10.0))
+        waiting.start()
+        assert started.wait(5.0)
+        assert shell.get("scanflow-test/side", 1.0) == ([b"side"], [])
+        waiting.join()
+    finally:
+        shell.close(flush_s=0.0)
+        router.close()
