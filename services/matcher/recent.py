@@ -2,13 +2,17 @@
 
 A map server finds a missed insert by the chain of `MapInsertMessage.previous_seq` (a link to
 the router that dropped, a map server restarted from a snapshot a few seconds old) and asks
-for what it lacks (services.common.resend).
+for what it lacks (services.common.resend). Past the last few, a robot tracked with loop
+closure still has every insert: its back end keeps each keyframe (`keyframe_inserts`).
 """
 
 from __future__ import annotations
 
 import threading
 from collections import deque
+
+from scanflow.backend import Mapper
+from scanflow.wire import MapInsertMessage
 
 from services.common.resend import FIRST
 
@@ -41,3 +45,29 @@ class RecentInserts:
                 f"(the last {len(kept)} inserts: {span})"
             )
         return [payload for _, _, payload in kept[start : end + 1]]
+
+
+def keyframe_inserts(
+    mapper: Mapper, robot_id: str, after: int, through: int
+) -> list[MapInsertMessage]:
+    """The inserts after seq `after` (-1: from the first) through seq `through`, rebuilt from
+    the back end's keyframes (every insert is one) at the poses they are drawn at now: the
+    pose each went in at, or where the last redraw put it. LookupError when it lacks them."""
+    seqs = mapper.keyframe_seqs
+    try:
+        start = 0 if after == FIRST else seqs.index(after) + 1
+        end = seqs.index(through)
+    except ValueError:
+        span = f"seqs {seqs[0]}..{seqs[-1]}" if seqs else "none"
+        raise LookupError(
+            f"the back end's keyframes ({len(seqs)}: {span}) do not hold seqs {after} and "
+            f"{through}"
+        ) from None
+    inserts = []
+    for k in range(start, end + 1):
+        node = mapper.nodes[k]
+        inserts.append(MapInsertMessage(
+            robot_id, seqs[k], node.stamp_s, mapper.drawn_pose(k), node.points, node.no_return,
+            node.mount, seqs[k - 1] if k > 0 else None,
+        ))
+    return inserts

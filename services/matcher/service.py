@@ -14,7 +14,8 @@ initial_pose` (InitialPoseMessage, echoed once taken) puts the robot there: its 
 matched from it, or, for a robot not seen yet, its first scan. Match requests are answered
 on `<prefix>/match` (any scans) and `<prefix>/<robot>/match` (also against that robot's
 current map). Each insert names the one before it (`previous_seq`), and the last
-`resend_inserts` are kept to send again to a map server that missed some (`map/resend`).
+`resend_inserts` are kept to send again to a map server that missed some (`map/resend`); with
+loop closure, older ones are rebuilt from the back end's keyframes.
 
 With SCANFLOW_BACKEND_LOOP_CLOSURE a `Mapper` runs around each robot's front end (keyframes,
 loop closures, the pose graph). When it redraws the map, the matcher sends a MapRedrawMessage
@@ -62,7 +63,7 @@ from services.common.keyframes import scan_nodes
 from services.common.process import init_process
 from services.common.resend import resend_range
 from services.common.shell import ServiceShell
-from services.matcher.recent import RecentInserts
+from services.matcher.recent import RecentInserts, keyframe_inserts
 from services.matcher.requests import answer
 from services.matcher.shard import owns
 
@@ -271,7 +272,18 @@ class MatcherService:
         recent = self.recent.get(robot_id)
         if recent is None:
             raise LookupError(f"robot {robot_id}: this matcher has sent no inserts of it")
-        payloads = recent.between(after, through)
+        try:
+            payloads = recent.between(after, through)
+        except LookupError as not_recent:
+            with self.lock:  # the worker adds keyframes and redraws
+                mapper = self.mappers.get(robot_id)
+                if mapper is None:  # no back end: nothing older is kept
+                    raise
+                try:
+                    inserts = keyframe_inserts(mapper, robot_id, after, through)
+                except LookupError as exc:
+                    raise LookupError(f"{not_recent}; {exc}") from None
+            payloads = [insert.encode() for insert in inserts]
         key = keys.map_key(robot_id, "resend", self.shell.prefix)
         for payload in payloads:
             query.reply(key, payload)

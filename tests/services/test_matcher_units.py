@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scanflow.backend import Mapper
+from scanflow.backend import Mapper, SavedRun
+from scanflow.backend.loops import ScanNode
 from scanflow.config import BackendSettings, FrontendSettings, MatcherSettings, ZenohSettings
 from scanflow.frontend import Frontend
 from scanflow.geometry import Pose2D
 from scanflow.wire import MAX_PAYLOAD_BYTES, MapRedrawMessage, TrajectoryMessage
 
-from services.matcher.recent import RecentInserts
+from services.matcher.recent import RecentInserts, keyframe_inserts
 from services.matcher.service import MatcherService
 
 LOOP_CLOSURE = BackendSettings.model_construct(loop_closure=True)
@@ -82,3 +83,21 @@ def test_recent_inserts_send_a_chain_again_or_name_what_they_keep() -> None:
         recent.between(5, 7)  # no insert of seq 7
     with pytest.raises(LookupError, match="the last 0 inserts: none"):
         RecentInserts(0).between(-1, 0)
+
+
+def test_inserts_past_the_recent_ones_come_from_the_back_ends_keyframes() -> None:
+    """Every insert of a robot tracked with loop closure is a keyframe: rebuilt at the pose
+    it is drawn at, chained by seq; seqs it does not hold are named."""
+    seqs, poses = [2, 5, 9], np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.1], [2.0, 0.5, 0.2]])
+    nodes = [ScanNode(0.1 * s, np.full((3, 2), s, float), np.zeros((1, 2)), Pose2D(0.1, 0, 0))
+             for s in seqs]
+    saved = SavedRun(nodes, seqs, poses, np.array([0.2, 0.5, 0.9]), poses)
+    mapper = Mapper(Frontend(FrontendSettings()), LOOP_CLOSURE, saved)
+    inserts = keyframe_inserts(mapper, "r", 2, 9)
+    assert [(m.seq, m.previous_seq) for m in inserts] == [(5, 2), (9, 5)]
+    assert [m.pose for m in inserts] == [Pose2D.from_array(p) for p in poses[1:]]
+    np.testing.assert_array_equal(inserts[1].points, nodes[2].points)
+    assert inserts[0].mount == Pose2D(0.1, 0, 0) and inserts[0].stamp_s == 0.5
+    assert [m.previous_seq for m in keyframe_inserts(mapper, "r", -1, 2)] == [None]
+    with pytest.raises(LookupError, match=r"keyframes \(3: seqs 2\.\.9\) do not hold seqs 3"):
+        keyframe_inserts(mapper, "r", 3, 9)

@@ -166,6 +166,10 @@ class Mapper:
         anchors = self.graph.poses[np.asarray(self._scan_node)]
         return compose_arrays(anchors, offsets)
 
+    def drawn_pose(self, k: int) -> Pose2D:
+        """Where keyframe `k` is drawn in the front end's current map."""
+        return self._map_poses[k]
+
     def stamps_s(self) -> NDArray[np.float64]:
         """Every scan's stamp, in the order of `trajectory()`."""
         return np.asarray(self._scan_stamps, dtype=np.float64)
