@@ -22,7 +22,7 @@ class RecentInserts:
 
     def __init__(self, capacity: int) -> None:
         self._kept: deque[tuple[int, int, bytes]] = deque(maxlen=capacity)  # seq, previous
-        self._lock = threading.Lock()  # the worker adds while the query thread reads
+        self._lock = threading.Lock()  # the worker adds while a resend query reads
         self.last_seq: int | None = None  # the run's last insert (None: none yet, or unknown)
 
     def add(self, seq: int, previous_seq: int | None, payload: bytes) -> None:

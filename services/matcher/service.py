@@ -263,8 +263,9 @@ class MatcherService:
         return decode_any(payloads[0]) if payloads else None
 
     def _on_resend(self, query: zenoh.Query) -> None:
-        """Send an owned robot's recent inserts again (the map server missed them); other
-        shards' robots are left to their matcher."""
+        """Send an owned robot's inserts again (the map server missed them): the recent ones,
+        or with loop closure the back end's keyframes; other shards' robots are left to their
+        matcher."""
         robot_id = keys.robot_of(str(query.key_expr), self.shell.prefix)
         if not self.owns(robot_id):
             return
