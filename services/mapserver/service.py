@@ -140,9 +140,12 @@ class MapServer:
         if through <= after:
             return
         key = keys.map_key(robot.robot_id, "resend", self.shell.prefix)
-        payloads, errors = self.shell.get(
-            resend_selector(key, after, through), self.settings.resend_timeout_s
-        )
+        try:  # the message that showed the gap goes in whatever happens here
+            payloads, errors = self.shell.get(
+                resend_selector(key, after, through), self.settings.resend_timeout_s
+            )
+        except (zenoh.ZError, RuntimeError) as exc:  # no side session, a refused query
+            payloads, errors = [], [f"the query failed: {exc}"]
         try:
             inserts = sorted((MapInsertMessage.decode(p) for p in payloads), key=lambda m: m.seq)
             chained = [m.previous_seq for m in inserts] == [

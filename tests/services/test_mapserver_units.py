@@ -260,3 +260,23 @@ def test_inserts_missed_that_no_matcher_sends_again_are_counted_and_named(tmp_pa
         assert "inserts after seq 2 through 5 never came" in caplog.text
     finally:
         server.shell.close(flush_s=0.0)
+
+
+def test_a_resend_query_that_fails_loses_the_gap_not_the_insert(tmp_path, caplog) -> None:
+    """The side session cannot open (no router) or the query is refused: the gap is counted
+    and named with the reason, and the insert that showed it still goes in."""
+    server = MapServer(MapServerSettings(data_dir=str(tmp_path)),
+                       ZenohSettings(mode="peer", connect=[]))
+
+    def unreachable(selector: str, timeout_s: float):
+        raise RuntimeError("cannot open a Zenoh session")
+
+    server.shell.get = unreachable
+    try:
+        server.handle("insert", insert(0))
+        server.handle("insert", replace(insert(4), previous_seq=2))
+        assert server.robots["r"].last_insert_seq == 4
+        assert server.shell.counters.get("inserts_lost") == 1
+        assert "the query failed: cannot open a Zenoh session" in caplog.text
+    finally:
+        server.shell.close(flush_s=0.0)
