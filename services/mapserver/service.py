@@ -31,7 +31,7 @@ from scanflow.wire import (
 )
 
 from services.common.process import init_process
-from services.common.resend import resend_selector
+from services.common.resend import FIRST, resend_selector
 from services.common.shell import ServiceShell
 from services.mapserver import replies
 from services.mapserver.robot import RobotMap
@@ -149,7 +149,7 @@ class MapServer:
         try:
             inserts = sorted((MapInsertMessage.decode(p) for p in payloads), key=lambda m: m.seq)
             chained = [m.previous_seq for m in inserts] == [
-                after if after >= 0 else None, *(m.seq for m in inserts[:-1])
+                None if after == FIRST else after, *(m.seq for m in inserts[:-1])
             ]
             if not inserts or not chained or inserts[-1].seq != through:
                 raise LookupError("; ".join(errors) or f"{len(inserts)} came, not the chain")

@@ -66,7 +66,7 @@ def load_snapshots(data_dir: Path) -> tuple[list[Snapshot], list[str]]:
                 if poses.shape != (len(stamps_s), 3):
                     raise ValueError(f"poses {poses.shape} do not fit {len(stamps_s)} stamps")
                 last_seq = int(data["last_seq"])
-                redrawn_seq = int(data["redrawn_seq"]) if "redrawn_seq" in data else -1
+                redrawn_seq = int(data.get("redrawn_seq", -1))
                 # Older files: the inserts up to the last pose are likely in.
                 last_insert_seq = int(data.get("last_insert_seq", last_seq))
                 keyframes = Keyframes.from_arrays(robot_id, data)

@@ -91,6 +91,13 @@ class Pose2D:
         c, s = math.cos(self.theta), math.sin(self.theta)
         return np.array([[c, -s], [s, c]])
 
+    def frame_jacobian(self) -> NDArray[np.float64]:
+        """diag(R, 1): how a pose's (x, y, theta) error turns when the pose is re-expressed
+        through this frame (a covariance C becomes J C J^T)."""
+        jacobian = np.eye(3)
+        jacobian[:2, :2] = self.rotation_matrix()
+        return jacobian
+
     def to_matrix(self) -> NDArray[np.float64]:
         """Homogeneous 3x3 matrix."""
         m = np.eye(3)

@@ -95,8 +95,7 @@ class FrontendOutput:
         redrawn): the pose moved, the covariance's position block turned with it."""
         covariance = self.covariance
         if np.all(np.isfinite(covariance)):  # "no information" (inf) stays as it is
-            c, s = math.cos(correction.theta), math.sin(correction.theta)
-            turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            turn = correction.frame_jacobian()
             covariance = turn @ covariance @ turn.T
         return replace(self, pose=correction * self.pose, covariance=covariance)
 

@@ -224,8 +224,7 @@ def match(
 def in_frame(frame: Pose2D, result: MatchResult) -> MatchResult:
     """`result` (a pose in some frame b) re-expressed in frame a, `frame` being T_a_b: the pose
     left-multiplied, its covariance and weak direction rotated with it (J = diag(R, 1))."""
-    jacobian = np.eye(3)
-    jacobian[:2, :2] = frame.rotation_matrix()
+    jacobian = frame.frame_jacobian()
     weak = result.weak_direction
     if weak is not None:
         weak = tuple(float(v) for v in jacobian @ np.asarray(weak))
