@@ -624,11 +624,71 @@ def test_non_bytes_input_is_a_decode_error() -> None:
         wire.decode_any("scan")  # type: ignore[arg-type]
 
 
+def _big_deskewed(n: int) -> wire.DeskewedScanMessage:
+    return wire.DeskewedScanMessage("r", 0, 0.0, np.zeros((n, 2)), "", False, n, 0)
+
+
 def test_encoding_over_the_limit_is_refused() -> None:
-    n = wire.MAX_PAYLOAD_BYTES // 24 + 1
-    msg = wire.TrajectoryMessage("r", np.zeros(n), np.zeros((n, 3)))
+    msg = _big_deskewed(wire.MAX_PAYLOAD_BYTES // 16 + 1)
     with pytest.raises(wire.MessageError, match="over MAX_PAYLOAD_BYTES"):
         msg.encode()
+
+
+def test_bulk_messages_may_be_bigger_than_the_payload_limit() -> None:
+    """A path (or a map, keyframes) grows with the run: past 16 MiB it still goes on the wire
+    (a 700k-pose trajectory here), and comes back bit for bit."""
+    n = wire.MAX_PAYLOAD_BYTES // 24 + 1
+    rng = np.random.default_rng(0)
+    msg = wire.TrajectoryMessage("r", np.arange(n, dtype=np.float64), rng.normal(size=(n, 3)))
+    data = msg.encode()
+    assert len(data) > wire.MAX_PAYLOAD_BYTES
+    for back in (wire.decode_any(data), wire.TrajectoryMessage.decode(data)):
+        assert isinstance(back, wire.TrajectoryMessage)
+        assert back.poses.tobytes() == msg.poses.tobytes()
+        assert back.stamps_s.tobytes() == msg.stamps_s.tobytes()
+
+
+def test_bulk_messages_over_their_own_limit_are_refused(monkeypatch) -> None:
+    monkeypatch.setattr(wire.codec, "MAX_BULK_BYTES", wire.MAX_PAYLOAD_BYTES + 1024)
+    n = wire.MAX_PAYLOAD_BYTES // 24 + 1024
+    msg = wire.TrajectoryMessage("r", np.zeros(n), np.zeros((n, 3)))
+    with pytest.raises(wire.MessageError, match="over MAX_BULK_BYTES"):
+        msg.encode()
+    with pytest.raises(wire.PayloadTooLarge, match="over MAX_BULK_BYTES"):
+        wire.decode_any(bytes(wire.codec.MAX_BULK_BYTES + 1))
+
+
+def test_a_big_payload_of_another_type_is_refused_before_unpacking(monkeypatch) -> None:
+    """Only the bulk types may pass 16 MiB; the type is read off the payload's first bytes, so a
+    big scan is refused without being unpacked."""
+    data = wire.codec.pack_message("deskewed_scan", _big_deskewed(2**20 + 1).to_fields(), True)
+    assert len(data) > wire.MAX_PAYLOAD_BYTES
+
+    def unpacked(*args: Any, **kwargs: Any) -> None:
+        raise AssertionError("a big payload of a type that may not be big was unpacked")
+
+    monkeypatch.setattr(msgpack, "unpackb", unpacked)
+    for decode in (wire.decode_any, wire.DeskewedScanMessage.decode):
+        with pytest.raises(wire.PayloadTooLarge, match="its type 'deskewed_scan' is not one"):
+            decode(data)
+
+
+def test_a_second_type_key_does_not_smuggle_a_big_payload_past_the_limit() -> None:
+    """The first key says trajectory (a bulk type), a later one says scan: msgpack keeps the
+    later one, and the size is checked again against it."""
+    packer = msgpack.Packer(use_bin_type=True)
+    fields = {"type": "trajectory", "v": wire.SCHEMA_VERSION, "pad": bytes(wire.MAX_PAYLOAD_BYTES)}
+    data = packer.pack_map_header(4) + b"".join(
+        packer.pack(k) + packer.pack(v) for k, v in [*fields.items(), ("type", "scan")]
+    )
+    with pytest.raises(wire.PayloadTooLarge, match=r"over MAX_PAYLOAD_BYTES=\d+ for 'scan'"):
+        wire.decode_any(data)
+
+
+@pytest.mark.parametrize("head", [b"", b"\x81", b"\x81\xa4type", b"\x81\xa4type\x05", b"\x90"])
+def test_a_big_payload_whose_type_cannot_be_read_first_is_refused(head: bytes) -> None:
+    with pytest.raises(wire.PayloadTooLarge, match="its type None is not one"):
+        wire.decode_any(head + bytes(wire.MAX_PAYLOAD_BYTES + 1))
 
 
 @pytest.mark.parametrize(

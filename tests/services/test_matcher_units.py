@@ -9,7 +9,7 @@ from scanflow.backend.loops import ScanNode
 from scanflow.config import BackendSettings, FrontendSettings, MatcherSettings, ZenohSettings
 from scanflow.frontend import Frontend
 from scanflow.geometry import Pose2D
-from scanflow.wire import MAX_PAYLOAD_BYTES, MapRedrawMessage, TrajectoryMessage
+from scanflow.wire import MapRedrawMessage, TrajectoryMessage, codec
 
 from services.matcher.recent import RecentInserts, keyframe_inserts
 from services.matcher.service import MatcherService
@@ -24,12 +24,14 @@ def matcher() -> MatcherService:
     )
 
 
-def test_a_redraw_too_big_for_the_wire_is_counted_not_raised() -> None:
-    """A path of ~500k scans no longer fits one message: the redraw is dropped, counted and
-    logged, and the estimate after it still goes out (the caller carries on)."""
+def test_a_redraw_too_big_for_the_wire_is_counted_not_raised(monkeypatch) -> None:
+    """A path past MAX_BULK_BYTES (~16M scans; made small here) no longer fits one message:
+    the redraw is dropped, counted and logged, and the estimate after it still goes out (the
+    caller carries on)."""
+    monkeypatch.setattr(codec, "MAX_BULK_BYTES", 2**20)
     service = matcher()
     try:
-        n = MAX_PAYLOAD_BYTES // 32 + 1
+        n = 2**20 // 32 + 1
         huge = MapRedrawMessage("r", n, Pose2D(), np.zeros(0, np.int64), np.zeros((0, 3)),
                                 np.zeros(n), np.zeros((n, 3)))
         service._put_redraw(huge)

@@ -7,6 +7,10 @@ and shape. Anything wrong with a payload raises a `DecodeError` (subclasses `Ver
 `SchemaError`, `PayloadTooLarge`) naming the field; building a message with bad fields raises
 `MessageError`. Decoded arrays are read-only views of the payload.
 
+A payload is at most MAX_PAYLOAD_BYTES (16 MiB: a scan, an estimate, an insert), except the
+`BULK` types, which grow with the run (a map, its region, a path, a redraw, the keyframes):
+up to MAX_BULK_BYTES (512 MiB). Zenoh splits a big payload into fragments on its own.
+
 Changing any message's fields bumps SCHEMA_VERSION (2: `DeskewedScanMessage.no_return_points`;
 3: the sensor `mount` on scans, deskewed scans and map inserts; 4: `MapRedrawMessage`,
 `KeyframesMessage` and `PoseEstimateMessage.correction`, loop closure in the services):
@@ -15,7 +19,12 @@ instead of dropping or missing a field.
 """
 
 from scanflow.wire.base import Message, decode_any, message_types
-from scanflow.wire.codec import ALLOWED_DTYPES, MAX_PAYLOAD_BYTES, SCHEMA_VERSION
+from scanflow.wire.codec import (
+    ALLOWED_DTYPES,
+    MAX_BULK_BYTES,
+    MAX_PAYLOAD_BYTES,
+    SCHEMA_VERSION,
+)
 from scanflow.wire.errors import (
     DecodeError,
     MessageError,
@@ -47,6 +56,7 @@ from scanflow.wire.stats import ServiceStatsMessage
 __all__ = [
     "ALLOWED_DTYPES",
     "MAP_IMAGE_FORMATS",
+    "MAX_BULK_BYTES",
     "MAX_PAYLOAD_BYTES",
     "SCHEMA_VERSION",
     "DecodeError",

@@ -19,6 +19,7 @@ from scanflow.wire.errors import DecodeError, MessageError, SchemaError
 from scanflow.wire.schema import Schema, decode_fields, encode_fields
 
 _REGISTRY: dict[str, type[Message]] = {}
+_BULK: set[str] = set()  # the types that may be up to MAX_BULK_BYTES
 
 
 class Message:
@@ -30,12 +31,16 @@ class Message:
 
     TYPE: ClassVar[str]
     WIRE: ClassVar[Schema]
+    # A map, a path or keyframes grows with the run: up to MAX_BULK_BYTES, not MAX_PAYLOAD_BYTES.
+    BULK: ClassVar[bool] = False
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
         if cls.TYPE in _REGISTRY:
             raise TypeError(f"wire type {cls.TYPE!r} is registered twice")
         _REGISTRY[cls.TYPE] = cls
+        if cls.BULK:
+            _BULK.add(cls.TYPE)
 
     def to_fields(self) -> dict[str, Any]:
         """The message's own fields as msgpack-ready values (arrays as envelopes)."""
@@ -47,12 +52,12 @@ class Message:
         return cls(**decode_fields(cls.WIRE, fields))
 
     def encode(self) -> bytes:
-        return pack_message(self.TYPE, self.to_fields())
+        return pack_message(self.TYPE, self.to_fields(), self.BULK)
 
     @classmethod
     def decode(cls, data: bytes | bytearray | memoryview) -> Self:
         """Decode a payload that must hold this message type; raises DecodeError otherwise."""
-        type_name, fields = unpack_message(data)
+        type_name, fields = unpack_message(data, _BULK)
         if type_name != cls.TYPE:
             raise SchemaError(f"message.type: expected {cls.TYPE!r}, got {short(type_name)}")
         return cls.build(fields)
@@ -69,7 +74,7 @@ class Message:
 
 def decode_any(data: bytes | bytearray | memoryview) -> Message:
     """Decode any scanflow message, dispatching on its `type` field."""
-    type_name, fields = unpack_message(data)
+    type_name, fields = unpack_message(data, _BULK)
     cls = _REGISTRY.get(type_name)
     if cls is None:
         known = ", ".join(sorted(_REGISTRY))

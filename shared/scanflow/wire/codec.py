@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import reprlib
+from collections.abc import Container
 from typing import Any
 
 import msgpack
@@ -26,7 +27,11 @@ from scanflow.wire.errors import (
 )
 
 SCHEMA_VERSION = 4  # 2: no-return points; 3: the sensor `mount`; 4: map redraws
-MAX_PAYLOAD_BYTES = 16 * 1024 * 1024
+MAX_PAYLOAD_BYTES = 16 * 1024 * 1024  # any message
+# A bulk message (a map, a path, keyframes: it grows with the run) may be this big; it stays
+# under Zenoh's own 1 GiB (`transport/link/rx/max_message_size`), so ours is the error seen.
+MAX_BULK_BYTES = 512 * 1024 * 1024
+_PEEK_BYTES = 256  # holds the map header, the "type" key and any type tag
 MAX_STR_BYTES = 64 * 1024
 MAX_MAP_LEN = 4096
 MAX_ARRAY_LEN = 16
@@ -50,25 +55,38 @@ def clip(text: str) -> str:
     return text if len(text) <= MAX_ERROR_CHARS else text[:MAX_ERROR_CHARS] + "..."
 
 
-def pack_message(type_name: str, fields: dict[str, Any]) -> bytes:
-    """The msgpack bytes of one message; refuses to write what a reader would reject as too big."""
+def _limit(bulk: bool) -> str:
+    return f"MAX_BULK_BYTES={MAX_BULK_BYTES}" if bulk else f"MAX_PAYLOAD_BYTES={MAX_PAYLOAD_BYTES}"
+
+
+def pack_message(type_name: str, fields: dict[str, Any], bulk: bool = False) -> bytes:
+    """The msgpack bytes of one message, its `type` the first key (`unpack_message` reads it
+    first); refuses to write what a reader would reject as too big (`bulk`: MAX_BULK_BYTES)."""
     data = msgpack.packb({"type": type_name, "v": SCHEMA_VERSION, **fields}, use_bin_type=True)
-    if len(data) > MAX_PAYLOAD_BYTES:
-        raise MessageError(
-            f"{type_name} encodes to {len(data)} bytes, over MAX_PAYLOAD_BYTES={MAX_PAYLOAD_BYTES}"
-        )
+    if len(data) > (MAX_BULK_BYTES if bulk else MAX_PAYLOAD_BYTES):
+        raise MessageError(f"{type_name} encodes to {len(data)} bytes, over {_limit(bulk)}")
     return data
 
 
-def unpack_message(data: Any) -> tuple[str, Fields]:
-    """Check size, msgpack syntax, version and type tag; return the type and its fields."""
+def unpack_message(data: Any, bulk_types: Container[str] = ()) -> tuple[str, Fields]:
+    """Check size, msgpack syntax, version and type tag; return the type and its fields.
+
+    A payload over MAX_PAYLOAD_BYTES is read only if its first key is a `type` in
+    `bulk_types`, and only up to MAX_BULK_BYTES: the tag is read off its first bytes, so other
+    big payloads are refused before anything is unpacked."""
     if not isinstance(data, bytes | bytearray | memoryview):
         raise DecodeError(f"payload must be bytes, got {type(data).__name__}")
     size = memoryview(data).nbytes
     if size > MAX_PAYLOAD_BYTES:
-        raise PayloadTooLarge(
-            f"payload is {size} bytes, over MAX_PAYLOAD_BYTES={MAX_PAYLOAD_BYTES}"
-        )
+        if size > MAX_BULK_BYTES:
+            raise PayloadTooLarge(f"payload is {size} bytes, over {_limit(True)}")
+        tag = _leading_type(data)
+        if tag not in bulk_types:
+            bulky = ", ".join(sorted(bulk_types)) or "none"
+            raise PayloadTooLarge(
+                f"payload is {size} bytes, over {_limit(False)} (its type {short(tag)} is not "
+                f"one that may be bigger: {bulky})"
+            )
     if size == 0:
         raise DecodeError("payload is empty")
     try:
@@ -76,7 +94,7 @@ def unpack_message(data: Any) -> tuple[str, Fields]:
             data,
             raw=False,
             strict_map_key=True,
-            max_bin_len=MAX_PAYLOAD_BYTES,
+            max_bin_len=MAX_BULK_BYTES,
             max_str_len=MAX_STR_BYTES,
             max_array_len=MAX_ARRAY_LEN,
             max_map_len=MAX_MAP_LEN,
@@ -91,8 +109,27 @@ def unpack_message(data: Any) -> tuple[str, Fields]:
             f"message.v: schema version {version} unsupported (this reader: {SCHEMA_VERSION})"
         )
     type_name = fields.text("type")
+    if size > MAX_PAYLOAD_BYTES and type_name not in bulk_types:  # a second "type" key
+        raise PayloadTooLarge(
+            f"payload is {size} bytes, over {_limit(False)} for {short(type_name)}"
+        )
     fields.where = type_name
     return type_name, fields
+
+
+def _leading_type(data: bytes | bytearray | memoryview) -> str | None:
+    """The payload's `type` tag if it is the first key of its map (None otherwise), read from
+    its first bytes alone."""
+    unpacker = msgpack.Unpacker(raw=False, max_buffer_size=_PEEK_BYTES, max_str_len=_PEEK_BYTES)
+    unpacker.feed(bytes(memoryview(data)[:_PEEK_BYTES]))
+    try:
+        unpacker.read_map_header()
+        if unpacker.unpack() != "type":
+            return None
+        tag = unpacker.unpack()
+    except (msgpack.OutOfData, *_UNPACK_ERRORS):
+        return None
+    return tag if isinstance(tag, str) else None
 
 
 def encode_array(values: ArrayLike, dtype: str) -> dict[str, Any]:
@@ -114,9 +151,9 @@ def decode_array(envelope: Any, where: str, dtype: str) -> NDArray[Any]:
         raise SchemaError(
             f"{where}.s: expected a list of at most {MAX_NDIM} sizes, got {short(shape)}"
         )
-    if not all(type(n) is int and 0 <= n <= MAX_PAYLOAD_BYTES for n in shape):
+    if not all(type(n) is int and 0 <= n <= MAX_BULK_BYTES for n in shape):
         raise SchemaError(
-            f"{where}.s: sizes must be integers in 0..{MAX_PAYLOAD_BYTES}, got {short(shape)}"
+            f"{where}.s: sizes must be integers in 0..{MAX_BULK_BYTES}, got {short(shape)}"
         )
     raw = env.blob("b")
     itemsize = _DTYPES[dtype].itemsize

@@ -325,6 +325,7 @@ class TrajectoryMessage(Message):
     """A robot's estimated path: `poses[i]` (x, y, theta) at `stamps_s[i]`, optional covariances."""
 
     TYPE = "trajectory"
+    BULK = True
     WIRE: ClassVar[Schema] = {
         "robot_id": TEXT,
         "stamps_s": array("<f8"),

@@ -101,6 +101,7 @@ class MapRedrawMessage(Message):
     """
 
     TYPE = "map_redraw"
+    BULK = True
     WIRE: ClassVar[Schema] = {
         "robot_id": TEXT,
         "seq": INT,
@@ -144,6 +145,7 @@ class KeyframesMessage(Message):
     """
 
     TYPE = "keyframes"
+    BULK = True
     WIRE: ClassVar[Schema] = {
         "robot_id": TEXT,
         "seqs": array("<i8"),
@@ -251,6 +253,7 @@ class MapRegionMessage(Message):
     """A window of a map: `occupancy[i, j]` is cell (row0 + i, col0 + j) of the grid in `meta`."""
 
     TYPE = "map_region"
+    BULK = True
     WIRE: ClassVar[Schema] = {
         "meta": FieldCodec(
             MapMetaMessage.to_fields,
@@ -302,6 +305,7 @@ class MapImageMessage(Message):
     """An exported map file (`format` tells which exporter wrote `data`)."""
 
     TYPE = "map_image"
+    BULK = True
     WIRE: ClassVar[Schema] = {"robot_id": TEXT, "revision": INT, "format": TEXT, "data": BLOB}
     robot_id: str
     revision: int
