@@ -67,8 +67,6 @@ from services.matcher.recent import RecentInserts, keyframe_inserts
 from services.matcher.requests import answer
 from services.matcher.shard import owns
 
-SEED_TIMEOUT_S = 5.0
-
 
 class MatcherService:
     """Tracks the robots of its shard; answers match requests."""
@@ -172,7 +170,7 @@ class MatcherService:
         self.shell.counters.add(f"status.{out.status}")
 
     def _put_redraw(self, redraw: MapRedrawMessage) -> None:
-        """Send the redraw; one too big for the wire (a path of ~500k scans) is logged and
+        """Send the redraw; one too big for the wire (a path of ~16M scans) is logged and
         counted, and the map server then keeps its map unredrawn."""
         try:
             payload = redraw.encode()
@@ -259,7 +257,7 @@ class MatcherService:
         return Frontend(self.frontend_settings, initial_pose=pose, grid=grid), path
 
     def _query(self, selector: str) -> object | None:
-        payloads, _ = self.shell.get(selector, SEED_TIMEOUT_S)
+        payloads, _ = self.shell.get(selector, self.settings.resume_timeout_s)
         return decode_any(payloads[0]) if payloads else None
 
     def _on_resend(self, query: zenoh.Query) -> None:

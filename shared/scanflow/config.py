@@ -182,6 +182,11 @@ class MatcherSettings(KernelServiceSettings):
         256, ge=0, description="per robot, keep the last this many map inserts to send again "
         "to a map server that missed them (about 10 kB each)",
     )
+    resume_timeout_s: float = Field(
+        30.0, gt=0.0, description="how long a robot seen mid-stream waits for the map server's "
+        "map, path and keyframes (a long run's keyframes are hundreds of MB; an absent map "
+        "server answers at once)",
+    )
 
     _split = field_validator("robots", mode="before")(_split_csv)
 
