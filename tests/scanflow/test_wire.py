@@ -247,6 +247,18 @@ def keyframes(draw: st.DrawFn) -> wire.KeyframesMessage:
     )
 
 
+@st.composite
+def resumes(draw: st.DrawFn) -> wire.ResumeMessage:
+    robot_id, n = draw(ids), draw(small_n)
+    kept = draw(st.none() | keyframes())
+    if kept is not None:
+        kept = dataclasses.replace(kept, robot_id=robot_id)
+    return wire.ResumeMessage(
+        robot_id, draw(counts), draw(st.binary()), draw(f64_arrays(n)),
+        draw(f64_arrays((n, 3))), kept,
+    )
+
+
 STRATEGIES: dict[str, st.SearchStrategy[wire.Message]] = {
     "scan": scan_messages,
     "scan_deskewed": deskewed_messages(),
@@ -262,6 +274,7 @@ STRATEGIES: dict[str, st.SearchStrategy[wire.Message]] = {
     "map_insert": map_inserts(),
     "map_redraw": map_redraws(),
     "keyframes": keyframes(),
+    "resume": resumes(),
     "service_stats": service_stats,
     "initial_pose": st.builds(wire.InitialPoseMessage, ids, poses),
 }
@@ -337,7 +350,7 @@ def test_decoded_arrays_are_read_only() -> None:
 def test_every_payload_carries_type_and_version() -> None:
     data = wire.MapImageMessage("r", 1, "png", b"x").encode()
     assert msgpack.unpackb(data)["type"] == "map_image"
-    assert msgpack.unpackb(data)["v"] == wire.SCHEMA_VERSION == 4
+    assert msgpack.unpackb(data)["v"] == wire.SCHEMA_VERSION == 5
 
 
 def test_message_helpers_carry_match_results() -> None:
@@ -395,8 +408,9 @@ SCAN = wire.ScanMessage(LaserScan(np.array([1.0, np.nan, 3.0]), 0.0, 0.1, robot_
 
 
 def test_wrong_version_is_a_version_error() -> None:
-    # 1: before no_return_points, 2: before the sensor mount, 3: before map redraws
-    for version in (1, 2, 3, 5):
+    # 1: before no_return_points, 2: before the sensor mount, 3: before map redraws,
+    # 4: before the resume message
+    for version in (1, 2, 3, 4, 6):
         with pytest.raises(wire.VersionError, match=rf"\.v: schema version {version}"):
             wire.decode_any(_payload(SCAN, v=version))
 
@@ -825,10 +839,12 @@ def _examples() -> list[wire.Message]:
             "r", 9, Pose2D(0.1, -0.2, 0.03), np.array([2, 5]), np.ones((2, 3)), np.arange(3.0),
             np.zeros((3, 3)),
         ),
-        wire.KeyframesMessage(
+        kept := wire.KeyframesMessage(
             "r", np.array([1, 4]), np.array([0.1, 0.4]), np.zeros((2, 3)), np.zeros((2, 3)),
             np.array([2, 1]), np.ones((3, 2)), np.array([0, 1]), np.ones((1, 2)),
         ),
+        wire.ResumeMessage("r", 4, b"PK\x03\x04", np.arange(2.0), np.ones((2, 3)), kept),
+        wire.ResumeMessage("r", 0, b"", np.zeros(0), np.zeros((0, 3))),
         wire.ServiceStatsMessage("deskew", "a", 1.0, {"in": 3}, {"lag_s": 0.5}),
         wire.InitialPoseMessage("r", Pose2D(1.5, -2.0, 0.3)),
     ]

@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 from scanflow.config import MapServerSettings, MatcherSettings, ZenohSettings
-from scanflow.wire import MAX_PAYLOAD_BYTES, KeyframesMessage, decode_any
+from scanflow.wire import MAX_PAYLOAD_BYTES, KeyframesMessage, ResumeMessage, decode_any
 
 from bench.link_stall import run
 from services.common.launch import free_port
@@ -37,7 +37,7 @@ def test_a_reader_that_stalls_longer_than_zenohs_default_loses_nothing() -> None
 
 
 def test_a_bulk_message_past_the_payload_limit_crosses_a_router() -> None:
-    """A map server's keyframes (or a path, a map) grow past 16 MiB on a long run: one reply,
+    """A map server's resume answer (or a path, a map) grows past 16 MiB on a long run: one reply,
     and one put (a redraw travels so), of ~40 MiB each reach the other side whole."""
     rng = np.random.default_rng(1)
     n = 5 * MAX_PAYLOAD_BYTES // 32  # 40 MiB of points
@@ -46,7 +46,7 @@ def test_a_bulk_message_past_the_payload_limit_crosses_a_router() -> None:
         "r", np.array([4, 9]), np.array([0.1, 0.2]), np.zeros((2, 3)), np.zeros((2, 3)),
         np.array([n - 5, 5]), points, np.array([0, 0]), np.zeros((0, 2)),
     )
-    payload = kept.encode()
+    payload = ResumeMessage("r", 7, b"", np.zeros(1), np.zeros((1, 3)), kept).encode()
     assert len(payload) > 2 * MAX_PAYLOAD_BYTES
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_session(ZenohSettings(mode="router", listen=[endpoint], connect=[]))
@@ -65,8 +65,8 @@ def test_a_bulk_message_past_the_payload_limit_crosses_a_router() -> None:
         assert done.wait(30.0)
         for data in (*replies, *heard):
             back = decode_any(data)
-            assert isinstance(back, KeyframesMessage)
-            assert back.hits.tobytes() == points.tobytes()
+            assert isinstance(back, ResumeMessage) and back.keyframes is not None
+            assert back.keyframes.hits.tobytes() == points.tobytes()
         assert (len(replies), len(heard), errors) == (1, 1, [])
     finally:
         client.close(flush_s=0.0)

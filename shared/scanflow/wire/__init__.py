@@ -8,12 +8,13 @@ and shape. Anything wrong with a payload raises a `DecodeError` (subclasses `Ver
 `MessageError`. Decoded arrays are read-only views of the payload.
 
 A payload is at most MAX_PAYLOAD_BYTES (16 MiB: a scan, an estimate, an insert), except the
-`BULK` types, which grow with the run (a map, its region, a path, a redraw, the keyframes):
+`BULK` types, which grow with the run (a map, its region, a path, a redraw, a resume):
 up to MAX_BULK_BYTES (512 MiB). Zenoh splits a big payload into fragments on its own.
 
 Changing any message's fields bumps SCHEMA_VERSION (2: `DeskewedScanMessage.no_return_points`;
 3: the sensor `mount` on scans, deskewed scans and map inserts; 4: `MapRedrawMessage`,
-`KeyframesMessage` and `PoseEstimateMessage.correction`, loop closure in the services):
+`KeyframesMessage` and `PoseEstimateMessage.correction`, loop closure in the services;
+5: `ResumeMessage`, a restarted matcher's one consistent answer from the map server):
 readers refuse other versions with a VersionError, so services of two versions fail loudly
 instead of dropping or missing a field.
 """
@@ -49,6 +50,7 @@ from scanflow.wire.maps import (
     MapMetaMessage,
     MapRedrawMessage,
     MapRegionMessage,
+    ResumeMessage,
 )
 from scanflow.wire.scans import DeskewedScanMessage, OdometryMessage, ScanMessage
 from scanflow.wire.stats import ServiceStatsMessage
@@ -77,6 +79,7 @@ __all__ = [
     "OdometryMessage",
     "PayloadTooLarge",
     "PoseEstimateMessage",
+    "ResumeMessage",
     "ScanMessage",
     "SchemaError",
     "ServiceStatsMessage",

@@ -121,6 +121,14 @@ def check_text(name: str, value: str, allow_empty: bool = False) -> str:
     return value
 
 
+def check_path(message: Any) -> None:
+    """Check and set a message's `stamps_s` (N,) and `poses` (N, 3): a robot's path."""
+    stamps = check_array("stamps_s", message.stamps_s, np.float64, (None,))
+    poses = check_array("poses", message.poses, np.float64, (len(stamps), 3))
+    object.__setattr__(message, "stamps_s", stamps)
+    object.__setattr__(message, "poses", poses)
+
+
 def check_array(
     name: str,
     values: ArrayLike,

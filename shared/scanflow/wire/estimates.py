@@ -20,6 +20,7 @@ from scanflow.wire.base import (
     check_array,
     check_count,
     check_finite,
+    check_path,
     check_pose,
     check_text,
 )
@@ -339,12 +340,8 @@ class TrajectoryMessage(Message):
 
     def __post_init__(self) -> None:
         check_text("robot_id", self.robot_id)
-        stamps = check_array("stamps_s", self.stamps_s, np.float64, (None,))
-        poses = check_array("poses", self.poses, np.float64, (len(stamps), 3))
-        object.__setattr__(self, "stamps_s", stamps)
-        object.__setattr__(self, "poses", poses)
+        check_path(self)
         if self.covariances is not None:
-            cov = check_array(
-                "covariances", self.covariances, np.float64, (len(stamps), 3, 3), allow_inf=True
-            )
+            shape = (len(self.stamps_s), 3, 3)
+            cov = check_array("covariances", self.covariances, np.float64, shape, allow_inf=True)
             object.__setattr__(self, "covariances", cov)

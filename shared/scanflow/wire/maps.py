@@ -19,6 +19,7 @@ from scanflow.wire.base import (
     check_array,
     check_count,
     check_finite,
+    check_path,
     check_pose,
     check_seqs,
     check_text,
@@ -129,23 +130,19 @@ class MapRedrawMessage(Message):
             self, "keyframe_poses",
             check_array("keyframe_poses", self.keyframe_poses, np.float64, (len(seqs), 3)),
         )
-        stamps = check_array("stamps_s", self.stamps_s, np.float64, (None,))
-        object.__setattr__(self, "stamps_s", stamps)
-        object.__setattr__(
-            self, "poses", check_array("poses", self.poses, np.float64, (len(stamps), 3))
-        )
+        check_path(self)
 
 
 @dataclass(frozen=True, eq=False)
 class KeyframesMessage(Message):
-    """The keyframes a map server keeps for loop closure (a matcher resuming a robot rebuilds
-    its back end from them): keyframe i is the scan of seq `seqs[i]` at `stamps_s[i]`, drawn
-    at `poses[i]` with its lidar at `mounts[i]`; its hits are the next `hit_counts[i]` rows of
-    `hits`, its no-return points the next `miss_counts[i]` rows of `misses`.
+    """The keyframes a map server keeps for loop closure (in a ResumeMessage: a matcher resuming
+    a robot rebuilds its back end from them; and in its snapshots): keyframe i is the scan of
+    seq `seqs[i]` at `stamps_s[i]`, drawn at `poses[i]` with its lidar at `mounts[i]`; its hits
+    are the next `hit_counts[i]` rows of `hits`, its no-return points the next
+    `miss_counts[i]` rows of `misses`.
     """
 
     TYPE = "keyframes"
-    BULK = True
     WIRE: ClassVar[Schema] = {
         "robot_id": TEXT,
         "seqs": array("<i8"),
@@ -193,6 +190,51 @@ class KeyframesMessage(Message):
         hits = np.split(self.hits, np.cumsum(self.hit_counts)[:-1])
         misses = np.split(self.misses, np.cumsum(self.miss_counts)[:-1])
         return list(zip(hits, misses, strict=True))
+
+
+@dataclass(frozen=True, eq=False)
+class ResumeMessage(Message):
+    """What a matcher that meets a robot mid-stream (it restarted) carries on from, taken by
+    the map server at one instant: its map (`map_npz`, the native .npz file) at `revision`, the
+    path so far (`poses` at `stamps_s`) and, when it keeps them (loop closure), the
+    `keyframes`. One answer rather than three queries: a redraw cannot fall between the map and
+    the keyframes and leave them in two frames.
+    """
+
+    TYPE = "resume"
+    BULK = True
+    WIRE: ClassVar[Schema] = {
+        "robot_id": TEXT,
+        "revision": INT,
+        "map_npz": BLOB,
+        "stamps_s": array("<f8"),
+        "poses": array("<f8"),
+        "keyframes": optional(
+            FieldCodec(
+                KeyframesMessage.to_fields,
+                lambda fields, name: KeyframesMessage.from_fields(fields.nested(name)),
+            )
+        ),
+    }
+    robot_id: str
+    revision: int
+    map_npz: bytes
+    stamps_s: NDArray[np.float64]
+    poses: NDArray[np.float64]
+    keyframes: KeyframesMessage | None = None
+
+    def __post_init__(self) -> None:
+        check_text("robot_id", self.robot_id)
+        object.__setattr__(self, "revision", check_count("revision", self.revision))
+        if not isinstance(self.map_npz, bytes | bytearray | memoryview):
+            raise MessageError(f"map_npz must be bytes, got {type(self.map_npz).__name__}")
+        object.__setattr__(self, "map_npz", bytes(self.map_npz))
+        check_path(self)
+        kept = self.keyframes
+        if kept is not None and kept.robot_id != self.robot_id:
+            raise MessageError(
+                f"keyframes.robot_id must be {self.robot_id!r}, got {kept.robot_id!r}"
+            )
 
 
 @dataclass(frozen=True, eq=False)
