@@ -1,5 +1,5 @@
 """What the map server's queryables answer: metadata, exported images, regions, trajectory,
-and the keyframes kept for loop closure."""
+and what a restarted matcher resumes from (with loop closure, the kept keyframes too)."""
 
 from __future__ import annotations
 
@@ -11,10 +11,10 @@ import numpy as np
 from scanflow.maps.export import save_map_server, save_npz, save_png
 from scanflow.maps.grid import CellBox
 from scanflow.wire import (
-    KeyframesMessage,
     MapImageMessage,
     MapMetaMessage,
     MapRegionMessage,
+    ResumeMessage,
     TrajectoryMessage,
 )
 
@@ -68,11 +68,11 @@ def trajectory(robot: RobotMap) -> TrajectoryMessage:
     return TrajectoryMessage(robot.robot_id, robot.trajectory.stamps_s, robot.trajectory.poses)
 
 
-def keyframes(robot: RobotMap) -> KeyframesMessage:
-    """The keyframes and their poses (LookupError when this server keeps none)."""
-    if robot.keyframes is None:
-        raise LookupError(
-            f"robot {robot.robot_id}: this map server keeps no keyframes "
-            "(SCANFLOW_BACKEND_LOOP_CLOSURE is off here)"
-        )
-    return robot.keyframes.message(robot.robot_id)
+def resume(robot: RobotMap) -> ResumeMessage:
+    """The map (npz), the path and the kept keyframes (None when this server keeps none: loop
+    closure is off here), all of one instant: the caller holds the map server's lock."""
+    kept = None if robot.keyframes is None else robot.keyframes.message(robot.robot_id)
+    return ResumeMessage(
+        robot.robot_id, robot.map.revision, image(robot, "npz").data,
+        robot.trajectory.stamps_s, robot.trajectory.poses, kept,
+    )

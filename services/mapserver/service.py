@@ -90,7 +90,7 @@ class MapServer:
         self._serve(lambda r: keys.map_key(r, "region", prefix), _region)
         self._serve(lambda r: keys.trajectory(r, prefix), lambda r, _p: replies.trajectory(r))
         self._serve(
-            lambda r: keys.map_key(r, "keyframes", prefix), lambda r, _p: replies.keyframes(r)
+            lambda r: keys.map_key(r, "resume", prefix), lambda r, _p: replies.resume(r)
         )
         self.shell.add_stats(self._gauges)
 

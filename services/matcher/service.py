@@ -8,10 +8,11 @@ Per scan it publishes the pose estimate; for each scan the front end put into it
 publishes that scan (no-return beams included) with the pose it went in at on `map/insert`, so
 the map server inserts exactly the same scans at the same poses. A new robot starts on the
 prior map when SCANFLOW_FRONTEND_PRIOR_MAP names one (the map server starts from the same
-file). A robot first seen mid-stream (this matcher restarted) resumes from the map server: its
-map snapshot and last pose seed the front end. An operator's pose on `<prefix>/<robot>/
-initial_pose` (InitialPoseMessage, echoed once taken) puts the robot there: its next scan is
-matched from it, or, for a robot not seen yet, its first scan. Match requests are answered
+file). A robot first seen mid-stream (this matcher restarted) resumes from the map server's
+one answer on `map/resume` (ResumeMessage): its map and last pose seed the front end. An
+operator's pose on `<prefix>/<robot>/initial_pose` (InitialPoseMessage, echoed once taken)
+puts the robot there: its next scan is matched from it, or, for a robot not seen yet, its
+first scan. Match requests are answered
 on `<prefix>/match` (any scans) and `<prefix>/<robot>/match` (also against that robot's
 current map). Each insert names the one before it (`previous_seq`), and the last
 `resend_inserts` are kept to send again to a map server that missed some (`map/resend`); with
@@ -22,8 +23,8 @@ loop closures, the pose graph). When it redraws the map, the matcher sends a Map
 on the inserts' key (between the same inserts it made, so the map server redraws at the same
 point of the stream), and the scan's pose estimate carries the frame's `correction`, which the
 deskewer's motion prior and the gateway's pose cache follow. A robot resumed from the map
-server mid-stream gets its back end back from the map server's keyframes (the closures found
-before are in their poses); without them it is tracked without loop closure.
+server mid-stream gets its back end back from the keyframes in that answer (the closures
+found before are in their poses); without them it is tracked without loop closure.
 """
 
 from __future__ import annotations
@@ -45,18 +46,16 @@ from scanflow.maps.matching_map import MatchingMap
 from scanflow.matching.global_search import GLOBAL_METHOD
 from scanflow.warmup import warm_up
 from scanflow.wire import (
+    DecodeError,
     DeskewedScanMessage,
     InitialPoseMessage,
-    KeyframesMessage,
-    MapImageMessage,
     MapInsertMessage,
     MapRedrawMessage,
     MapRef,
     MatchRequest,
     MessageError,
     PoseEstimateMessage,
-    TrajectoryMessage,
-    decode_any,
+    ResumeMessage,
 )
 
 from services.common.keyframes import scan_nodes
@@ -196,9 +195,9 @@ class MatcherService:
             if self.backend.loop_closure:
                 mapper = Mapper(new, self.backend)
         else:
-            new, path = seeded
+            new, resumed = seeded
             if self.backend.loop_closure:
-                mapper = self._resumed_back_end(robot_id, new, path)
+                mapper = self._resumed_back_end(robot_id, new, resumed)
         if frontend is None:
             self.shell.serve(keys.robot_match(robot_id, self.shell.prefix), self._on_match)
         with self.lock:
@@ -216,49 +215,49 @@ class MatcherService:
         return new
 
     def _resumed_back_end(
-        self, robot_id: str, frontend: Frontend, path: TrajectoryMessage
+        self, robot_id: str, frontend: Frontend, resumed: ResumeMessage
     ) -> Mapper | None:
         """The back end carried on from the map server's keyframes of `robot_id`; None (the
         robot is tracked without loop closure, counted) when it has none to give."""
-        kept = self._query(keys.map_key(robot_id, "keyframes", self.shell.prefix))
-        if not isinstance(kept, KeyframesMessage) or len(kept.seqs) == 0:
+        kept = resumed.keyframes
+        if kept is None or len(kept.seqs) == 0:
             self.shell.counters.add("backend.resumed_without")
             self.shell.log.warning(
-                "robot %s: the map server has no keyframes to resume loop closure from; "
-                "tracked without it", robot_id,
+                "robot %s: the map server %s; tracked without loop closure", robot_id,
+                "keeps no keyframes (SCANFLOW_BACKEND_LOOP_CLOSURE is off there)"
+                if kept is None else "has no keyframes to resume it from",
             )
             return None
-        saved = SavedRun(scan_nodes(kept), kept.seqs.tolist(), kept.poses, path.stamps_s,
-                         path.poses)
+        saved = SavedRun(scan_nodes(kept), kept.seqs.tolist(), kept.poses, resumed.stamps_s,
+                         resumed.poses)
         self.shell.counters.add("backend.resumed")
         self.shell.log.info("robot %s: loop closure resumed on %d keyframes", robot_id,
                             len(kept.seqs))
         return Mapper(frontend, self.backend, saved)
 
-    def _seeded(self, robot_id: str) -> tuple[Frontend, TrajectoryMessage] | None:
-        """A front end continuing the map server's map and last pose of `robot_id`, and the
-        path so far, if any."""
-        prefix = self.shell.prefix
-        image = self._query(f"{keys.map_key(robot_id, 'image', prefix)}?format=npz")
-        path = self._query(keys.trajectory(robot_id, prefix))
-        if not isinstance(image, MapImageMessage) or not isinstance(path, TrajectoryMessage):
-            self.shell.log.info("robot %s: no map to resume from, starting fresh", robot_id)
+    def _seeded(self, robot_id: str) -> tuple[Frontend, ResumeMessage] | None:
+        """A front end continuing the map server's map and last pose of `robot_id`, and all
+        it answered (the path, the keyframes), if it knows the robot."""
+        selector = keys.map_key(robot_id, "resume", self.shell.prefix)
+        payloads, errors = self.shell.get(selector, self.settings.resume_timeout_s)
+        resumed = None
+        try:
+            resumed = ResumeMessage.decode(payloads[0]) if payloads else None
+        except DecodeError as exc:  # another schema version, say: say so, start afresh
+            errors.append(f"its answer is unreadable: {exc}")
+        if resumed is None or len(resumed.poses) == 0:
+            self.shell.log.info("robot %s: no map to resume from, starting fresh%s", robot_id,
+                                f" ({'; '.join(errors)})" if errors else "")
             return None
-        if len(path.poses) == 0:
-            return None
-        with np.load(io.BytesIO(image.data), allow_pickle=False) as data:
+        with np.load(io.BytesIO(resumed.map_npz), allow_pickle=False) as data:
             grid = grid_from_npz(data, f"the map server's map of {robot_id}")
-        pose = Pose2D.from_array(path.poses[-1])
+        pose = Pose2D.from_array(resumed.poses[-1])
         self.shell.counters.add("resumed_robots")
         self.shell.log.info(
             "robot %s: resumed from the map server (revision %d, %d poses, last %s)",
-            robot_id, image.revision, len(path.poses), pose,
+            robot_id, resumed.revision, len(resumed.poses), pose,
         )
-        return Frontend(self.frontend_settings, initial_pose=pose, grid=grid), path
-
-    def _query(self, selector: str) -> object | None:
-        payloads, _ = self.shell.get(selector, self.settings.resume_timeout_s)
-        return decode_any(payloads[0]) if payloads else None
+        return Frontend(self.frontend_settings, initial_pose=pose, grid=grid), resumed
 
     def _on_resend(self, query: zenoh.Query) -> None:
         """Send an owned robot's inserts again (the map server missed them): the recent ones,

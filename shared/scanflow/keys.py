@@ -16,7 +16,7 @@ Layout (``<prefix>`` defaults to ``scanflow``; ``<robot>`` is a robot id):
 | <prefix>/<robot>/map/changed          | pub/sub    | MapChangedMessage              |
 | <prefix>/<robot>/map/insert           | pub/sub    | MapInsertMessage (**), or      |
 |                                       |            | MapRedrawMessage (loop closure)|
-| <prefix>/<robot>/map/keyframes        | queryable  | KeyframesMessage (map server)  |
+| <prefix>/<robot>/map/resume           | queryable  | ResumeMessage (map server)     |
 | <prefix>/<robot>/map/resend           | queryable  | MapInsertMessage... (matcher)  |
 | <prefix>/<robot>/trajectory           | queryable  | TrajectoryMessage              |
 | <prefix>/match                        | queryable  | MatchRequest (scan-to-scan)    |

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import io
 from dataclasses import replace
 
 import numpy as np
 import pytest
 from scanflow.config import MapServerSettings, ZenohSettings
 from scanflow.geometry import Pose2D
-from scanflow.maps.export import load_npz, save_npz
+from scanflow.maps.export import grid_from_npz, load_npz, save_npz
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
 from scanflow.wire import MapInsertMessage, MapRedrawMessage, PoseEstimateMessage
 
@@ -138,9 +139,15 @@ def test_a_redraw_redraws_the_kept_keyframes_at_their_new_poses_and_takes_the_pa
     assert robot.map.revision == revision + 1  # a new revision, never an old one again
     assert robot.take_change(1.0) is not None  # the whole map changed
     np.testing.assert_array_equal(robot.trajectory.poses, path)
-    served = replies.keyframes(robot)  # what a restarted matcher resumes from
-    assert served.seqs.tolist() == [0, 2]
+    resume = replies.resume(robot)  # what a restarted matcher resumes from: all redrawn
+    served = resume.keyframes
+    assert served is not None and served.seqs.tolist() == [0, 2]
     np.testing.assert_allclose(served.poses, [p.to_array() for p in moved], atol=1e-12)
+    np.testing.assert_array_equal(resume.poses, path)
+    assert resume.revision == robot.map.revision
+    with np.load(io.BytesIO(resume.map_npz)) as data:
+        drawn = grid_from_npz(data, "the resume's map")
+    np.testing.assert_array_equal(drawn.log_odds, want.map.grid.log_odds)
     robot.apply(pose(2, Pose2D(9.0, 9.0, 0.0)))  # the redraw's path already holds scan 2
     robot.apply(pose(3, Pose2D(1.5, 0.5, 0.1)))
     assert len(robot.trajectory) == 4 and robot.last_seq == 3
@@ -160,8 +167,7 @@ def test_a_redraw_that_does_not_fit_is_refused_and_changes_nothing():
     unkept = new_robot()
     with pytest.raises(ValueError, match="SCANFLOW_BACKEND_LOOP_CLOSURE is off here"):
         unkept.redraw(redraw([], [], np.zeros((0, 3)), 0), OccupancyParams())
-    with pytest.raises(LookupError, match="keeps no keyframes"):
-        replies.keyframes(unkept)
+    assert replies.resume(unkept).keyframes is None  # the matcher names why
     np.testing.assert_array_equal(robot.map.grid.log_odds, before[0])
     assert robot.map.revision == before[1] and len(robot.keyframes) == 2
 
@@ -239,7 +245,7 @@ def test_a_new_run_on_a_resumed_map_starts_the_kept_keyframes_afresh(tmp_path):
     resumed.apply(pose(0))
     assert resumed.keyframes.seqs == [0]
     save_snapshot(tmp_path, resumed.snapshot())
-    assert replies.keyframes(resumed).seqs.tolist() == [0]
+    assert replies.resume(resumed).keyframes.seqs.tolist() == [0]
 
 
 def test_inserts_missed_that_no_matcher_sends_again_are_counted_and_named(tmp_path, caplog):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 from scanflow.backend import Mapper, SavedRun
@@ -9,7 +11,9 @@ from scanflow.backend.loops import ScanNode
 from scanflow.config import BackendSettings, FrontendSettings, MatcherSettings, ZenohSettings
 from scanflow.frontend import Frontend
 from scanflow.geometry import Pose2D
-from scanflow.wire import MapRedrawMessage, TrajectoryMessage, codec
+from scanflow.maps.export import npz_arrays, write_npz
+from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
+from scanflow.wire import MapRedrawMessage, ResumeMessage, codec
 
 from services.matcher.recent import RecentInserts, keyframe_inserts
 from services.matcher.service import MatcherService
@@ -57,16 +61,53 @@ def test_an_operators_pose_before_a_resumed_robots_first_scan_is_a_weak_link() -
 
         frontend_of: dict[str, Frontend] = {}
 
-        def seeded(robot_id: str) -> tuple[Frontend, TrajectoryMessage]:
+        def seeded(robot_id: str) -> tuple[Frontend, ResumeMessage]:
             frontend = Frontend(FrontendSettings())
             frontend_of[robot_id] = frontend
-            return frontend, TrajectoryMessage(robot_id, np.zeros(0), np.zeros((0, 3)))
+            return frontend, ResumeMessage(robot_id, 0, b"", np.zeros(0), np.zeros((0, 3)))
 
         service._seeded = seeded
-        service._resumed_back_end = lambda robot_id, frontend, path: Spy(frontend, LOOP_CLOSURE)
+        service._resumed_back_end = lambda robot_id, frontend, resumed: Spy(frontend, LOOP_CLOSURE)
         frontend = service._frontend("r", seq=12)
         assert frontend is frontend_of["r"] and relocated == [True]
         assert "r" not in service.initial_poses
+    finally:
+        service.shell.close(flush_s=0.0)
+
+
+def test_a_robot_resumes_from_the_map_servers_one_answer_or_says_why_not(
+    tmp_path, caplog
+) -> None:
+    """The map server's answer (here served on the matcher's own session) seeds the front end
+    at the path's last pose; an answer without keyframes (loop closure off there) leaves the
+    robot without loop closure, counted and named; an unreadable one starts it afresh."""
+    caplog.set_level(logging.INFO)
+    service = matcher()
+    grid = OccupancyGrid(OccupancyParams())
+    grid.insert_scan(np.array([[2.0, 0.0], [2.0, 0.5]]), np.zeros(2))
+    npz = write_npz(tmp_path / "map.npz", npz_arrays(grid)).read_bytes()
+    path = np.array([[0.0, 0.0, 0.0], [0.4, 0.1, 0.2]])
+    answers = {
+        "a": ResumeMessage("a", grid.revision, npz, np.array([1.0, 2.0]), path).encode(),
+        "b": b"\x81\xa4type\xa6resume",  # another version's, say
+    }
+    service.shell.serve(
+        "scanflow/*/map/resume",
+        lambda q: q.reply(q.key_expr, answers[str(q.key_expr).split("/")[1]]), side=True,
+    )
+    try:
+        seeded = service._seeded("a")
+        assert seeded is not None
+        frontend, resumed = seeded
+        assert frontend.initial_pose == Pose2D.from_array(path[-1])
+        np.testing.assert_array_equal(frontend.map.grid.log_odds, grid.log_odds)
+        assert service._resumed_back_end("a", frontend, resumed) is None
+        assert service.shell.counters.get("backend.resumed_without") == 1
+        assert "keeps no keyframes (SCANFLOW_BACKEND_LOOP_CLOSURE is off there)" in caplog.text
+        assert service._seeded("b") is None
+        assert "robot b: no map to resume from, starting fresh (its answer is unreadable" in (
+            caplog.text
+        )
     finally:
         service.shell.close(flush_s=0.0)
 
