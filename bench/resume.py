@@ -1,7 +1,7 @@
 """What a restarted matcher pays to resume a robot's loop closure, and up to how long a run it
-can: the map server's keyframes (`KeyframesMessage`) built and encoded, sent through a router
-as the reply to one query, decoded, and turned into the back end (`Mapper(..., SavedRun)`), for
-runs of growing length.
+can: the map server's answer (`ResumeMessage`: the path and the keyframes; the map, under 1 MB
+on these logs, left out) built and encoded, sent through a router as the reply to one query,
+decoded, and turned into the back end (`Mapper(..., SavedRun)`), for runs of growing length.
 
     python -m bench.resume [--data LOG] [--keyframes 1916,5000,20000,60000] [--json]
 
@@ -25,7 +25,7 @@ from scanflow.backend import Mapper, SavedRun
 from scanflow.config import BackendSettings, FrontendSettings, ZenohSettings
 from scanflow.frontend import Frontend
 from scanflow.io.carmen import Keyframe, load_keyframes
-from scanflow.wire import KeyframesMessage, MapInsertMessage, TrajectoryMessage, decode_any
+from scanflow.wire import MapInsertMessage, ResumeMessage
 
 from services.common.keyframes import scan_nodes
 from services.common.launch import free_port
@@ -79,11 +79,10 @@ def run(frames: list[Keyframe], count: int, scans_per_keyframe: int) -> dict[str
     kept = kept_keyframes(frames, count)
     row: dict[str, Any] = {"keyframes": count, "points": sum(len(n.points) for n in kept.nodes)}
     scans = count * scans_per_keyframe
-    path = TrajectoryMessage(ROBOT, np.arange(scans, dtype=np.float64), np.zeros((scans, 3)))
+    stamps, path = np.arange(scans, dtype=np.float64), np.zeros((scans, 3))
     t0 = time.perf_counter()
     try:
-        payload = kept.message(ROBOT).encode()
-        row["trajectory_mib"] = round(len(path.encode()) / 2**20, 1)
+        payload = ResumeMessage(ROBOT, 0, b"", stamps, path, kept.message(ROBOT)).encode()
     except ValueError as exc:  # MessageError: over the wire's limit
         row["refused"] = str(exc)
         return row
@@ -95,12 +94,13 @@ def run(frames: list[Keyframe], count: int, scans_per_keyframe: int) -> dict[str
         row["refused"] = error or "no reply"
         return row
     t0 = time.perf_counter()
-    message = decode_any(got)
-    assert isinstance(message, KeyframesMessage)
-    nodes = scan_nodes(message)
+    resumed = ResumeMessage.decode(got)
+    assert resumed.keyframes is not None
+    nodes = scan_nodes(resumed.keyframes)
     row["decode_nodes_ms"] = round((time.perf_counter() - t0) * 1e3, 1)
     t0 = time.perf_counter()
-    saved = SavedRun(nodes, message.seqs.tolist(), message.poses, path.stamps_s, path.poses)
+    kept_seqs, kept_poses = resumed.keyframes.seqs.tolist(), resumed.keyframes.poses
+    saved = SavedRun(nodes, kept_seqs, kept_poses, resumed.stamps_s, resumed.poses)
     mapper = Mapper(Frontend(FrontendSettings()), BackendSettings(loop_closure=True), saved)
     row["mapper_ms"] = round((time.perf_counter() - t0) * 1e3, 1)
     row["resumed_keyframes"] = mapper.graph.node_count
