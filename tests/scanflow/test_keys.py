@@ -48,8 +48,9 @@ def test_builders_give_valid_zenoh_keys_and_robot_of_inverts(robot, prefix, buil
 
 
 @settings(max_examples=100, deadline=None)
-@given(st.text(max_size=70).filter(lambda s: not keys._ID_RE.match(s)))
+@given(st.text(max_size=70).filter(lambda s: not keys._ID_RE.match(s) and s != "*"))
 def test_invalid_ids_are_rejected_with_the_value(bad: str) -> None:
+    """Anything but an id, or "*" (every robot: the wildcard subscriptions use)."""
     with pytest.raises(keys.KeyExprError, match="robot id"):
         keys.raw_scan(bad)
 
