@@ -29,7 +29,7 @@ from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from scanflow.maps.grid import CellBox, GridSpec, boxes_of, grown_box
-from scanflow.maps.raycast import mark_rays
+from scanflow.maps.raycast import ray_length, trace_ray
 
 HIT_UNITS_PER_CELL = 256  # hit offsets are stored in 1/256 of a cell
 HIT_COUNT_MAX = 255
@@ -181,6 +181,79 @@ def _accumulate_hits(hit_xy, hit_n, rows, cols, units):  # type: ignore[no-untyp
         hit_n[r, c] += 1
         hit_xy[0, r, c] += units[k, 0]
         hit_xy[1, r, c] += units[k, 1]
+
+
+@njit(cache=True, nogil=True)
+def _update_cells(  # type: ignore[no-untyped-def]
+    log_odds, observed, box, origin, hits, misses, miss_lo, hit_lo, lo_min, lo_max, threshold
+):
+    """One scan's update, in storage cells: every cell a beam to a hit passes (the hit
+    excluded) or a no-return beam reaches (its end included) gets `miss_lo` once, every hit
+    cell `hit_lo` once (and no miss), each clamped to [lo_min, lo_max] and marked observed.
+    Visits the beams' cells only, and a scratch mask of their bounding box `box` (row0, col0,
+    row1, col1) for "done already". Returns the (K, 2) cells whose occupied state (observed and
+    log-odds > threshold) flipped, row-major."""
+    row0, col0 = box[0], box[1]
+    done = np.zeros((box[2] - row0, box[3] - col0), dtype=np.uint8)  # 1 free, 2 hit, 3 hit done
+    for i in range(hits.shape[0]):
+        done[hits[i, 0] - row0, hits[i, 1] - col0] = 2
+    longest, total = 1, 0
+    for ends in (hits, misses):
+        for i in range(ends.shape[0]):
+            length = ray_length(origin[0], origin[1], ends[i, 0], ends[i, 1])
+            longest, total = max(longest, length), total + length
+    ray = np.empty((longest, 2), dtype=np.int64)
+    flipped = np.empty(total, dtype=np.int64)  # no cell is visited more than its rays visit it
+    n = _clear(log_odds, observed, done, row0, col0, origin, hits, 1, ray, miss_lo, lo_min,
+               lo_max, threshold, flipped, 0)
+    n = _clear(log_odds, observed, done, row0, col0, origin, misses, 0, ray, miss_lo, lo_min,
+               lo_max, threshold, flipped, n)
+    for i in range(hits.shape[0]):
+        r, c = hits[i, 0], hits[i, 1]
+        if _visit(log_odds, observed, done, row0, col0, r, c, 2, hit_lo, lo_min, lo_max,
+                  threshold):
+            flipped[n] = r * log_odds.shape[1] + c
+            n += 1
+    order = np.sort(flipped[:n])
+    cells = np.empty((n, 2), dtype=np.int64)
+    cells[:, 0] = order // log_odds.shape[1]
+    cells[:, 1] = order % log_odds.shape[1]
+    return cells
+
+
+@njit(cache=True, nogil=True)
+def _clear(  # type: ignore[no-untyped-def]
+    log_odds, observed, done, row0, col0, origin, ends, short, ray, miss_lo, lo_min, lo_max,
+    threshold, flipped, n,
+):
+    """The free-space part of `_update_cells`: the rays to `ends`, each but its last `short`
+    cells, clear every cell not done yet; flipped cells go on `flipped[n:]`, the new n is
+    returned."""
+    for i in range(ends.shape[0]):
+        count = trace_ray(ray, origin[0], origin[1], ends[i, 0], ends[i, 1])
+        for k in range(count - short):
+            r, c = ray[k, 0], ray[k, 1]
+            if _visit(log_odds, observed, done, row0, col0, r, c, 0, miss_lo, lo_min, lo_max,
+                      threshold):
+                flipped[n] = r * log_odds.shape[1] + c
+                n += 1
+    return n
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _visit(  # type: ignore[no-untyped-def]
+    log_odds, observed, done, row0, col0, r, c, waiting, delta, lo_min, lo_max, threshold
+):
+    """Update cell (r, c) by `delta`, clamped, if its scratch state is `waiting` (then it is
+    done: 1 after a miss, 3 after a hit); whether its occupied state flipped."""
+    if done[r - row0, c - col0] != waiting:
+        return False
+    done[r - row0, c - col0] = waiting + 1
+    before = observed[r, c] and log_odds[r, c] > threshold
+    value = min(max(log_odds[r, c] + delta, lo_min), lo_max)
+    log_odds[r, c] = value
+    observed[r, c] = True
+    return before != (value > threshold)
 
 
 @njit(cache=True)
@@ -535,37 +608,29 @@ class OccupancyGrid:
         box = CellBox.around(np.concatenate((origin_cell, hit_cells, miss_ends)))
         storage = self._reserve(box)
 
-        free_mask = np.zeros(box.shape, dtype=bool)
-        mark_rays(free_mask, box, np.broadcast_to(origin_cell, hit_cells.shape), hit_cells)
-        mark_rays(
-            free_mask, box, np.broadcast_to(origin_cell, miss_ends.shape), miss_ends, True
+        corner = np.array([storage.row0, storage.col0])
+        flipped = _update_cells(
+            self._log_odds,
+            self._observed,
+            np.array([box.row0, box.col0, box.row1, box.col1]) - np.tile(corner, 2),
+            origin_cell[0] - corner,
+            hit_cells - corner,
+            miss_ends - corner,
+            np.float32(self.params.miss_log_odds),
+            np.float32(self.params.hit_log_odds),
+            np.float32(self.params.log_odds_min),
+            np.float32(self.params.log_odds_max),
+            np.float32(self.params.threshold_log_odds()),
         )
-        hit_mask = np.zeros(box.shape, dtype=bool)
-        hit_mask[hit_cells[:, 0] - box.row0, hit_cells[:, 1] - box.col0] = True
-        free_mask &= ~hit_mask
-
-        region = box.slices_in(storage)
-        log_odds = self._log_odds[region]
-        observed = self._observed[region]
-        threshold = self.params.threshold_log_odds()
-        occupied_before = observed & (log_odds > threshold)
-        log_odds[free_mask] += np.float32(self.params.miss_log_odds)
-        log_odds[hit_mask] += np.float32(self.params.hit_log_odds)
-        np.clip(log_odds, self.params.log_odds_min, self.params.log_odds_max, out=log_odds)
-        observed |= hit_mask | free_mask
-        occupied_after = observed & (log_odds > threshold)
-        flipped = occupied_before != occupied_after
         self._add_hits(hits, hit_cells, storage)
 
         self._extent = box.union(self._extent)
         self.revision += 1
-        hit_in_box = hit_cells - np.array([box.row0, box.col0])
-        moved = occupied_after[hit_in_box[:, 0], hit_in_box[:, 1]]
-        # Few cells flip in a box of up to ~1e6: list them from the rows that hold one.
-        rows = np.flatnonzero(flipped.any(axis=1))
-        row_at, col = np.nonzero(flipped[rows])
-        flipped_cells = np.column_stack((rows[row_at] + box.row0, col + box.col0))
-        return InsertResult(box, flipped_cells, hit_cells[moved])
+        rows, cols = (hit_cells - corner).T
+        moved = self._observed[rows, cols] & (
+            self._log_odds[rows, cols] > np.float32(self.params.threshold_log_odds())
+        )
+        return InsertResult(box, flipped + corner, hit_cells[moved])
 
     def _add_hits(
         self, hits: NDArray[np.float64], hit_cells: NDArray[np.int64], storage: CellBox

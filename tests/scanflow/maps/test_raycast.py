@@ -1,11 +1,10 @@
-"""Ray marking must give exactly the cells of the textbook integer Bresenham line."""
+"""Rays must be exactly the cells of the textbook integer Bresenham line, and of the rounding
+formula the grid traced with before."""
 
 import numpy as np
-import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from scanflow.maps.grid import CellBox
-from scanflow.maps.raycast import mark_rays
+from scanflow.maps.raycast import ray_length, trace_ray
 
 
 def bresenham_reference(r0: int, c0: int, r1: int, c1: int) -> list[tuple[int, int]]:
@@ -28,34 +27,39 @@ def bresenham_reference(r0: int, c0: int, r1: int, c1: int) -> list[tuple[int, i
 
 
 coord = st.integers(-60, 60)
-ray = st.tuples(coord, coord, coord, coord)
+cell = st.tuples(coord, coord)
 
 
-@settings(max_examples=200, deadline=None)
-@given(rays=st.lists(ray, min_size=1, max_size=12), include_end=st.booleans())
-def test_mark_rays_equals_reference_bresenham(rays, include_end):
-    box = CellBox(-61, -61, 62, 62)
-    mask = np.zeros(box.shape, dtype=bool)
-    arr = np.array(rays, dtype=np.int64)
-    mark_rays(mask, box, arr[:, :2], arr[:, 2:], include_end=include_end)
-    expected = np.zeros(box.shape, dtype=bool)
-    for r0, c0, r1, c1 in rays:
-        cells = bresenham_reference(r0, c0, r1, c1)
-        if not include_end:
-            cells = cells[:-1]
-        for r, c in cells:
-            expected[r - box.row0, c - box.col0] = True
-    np.testing.assert_array_equal(mask, expected)
+def rounded_cells(r0: int, c0: int, r1: int, c1: int) -> list[tuple[int, int]]:
+    """The ray as the grid traced it until 2d18b1b: cell k of n = max(|dr|, |dc|) is
+    a + round(k * (b - a) / n), halves rounded away from zero; both ends included."""
+    dr, dc = r1 - r0, c1 - c0
+    n = max(abs(dr), abs(dc))
+    den = 2 * max(n, 1)
+    cells = []
+    for k in range(n + 1):
+        a, b = k * dr, k * dc
+        step_r, step_c = (2 * abs(a) + n) // den, (2 * abs(b) + n) // den
+        cells.append((r0 + (-step_r if a < 0 else step_r), c0 + (-step_c if b < 0 else step_c)))
+    return cells
 
 
-def test_mark_rays_rejects_cells_outside_box():
-    box = CellBox(0, 0, 10, 10)
-    mask = np.zeros(box.shape, dtype=bool)
-    with pytest.raises(ValueError, match="end_cells"):
-        mark_rays(mask, box, np.array([[1, 1]]), np.array([[1, 10]]))
-    assert not mask.any()
+def traced(r0: int, c0: int, r1: int, c1: int) -> list[tuple[int, int]]:
+    cells = np.full((ray_length(r0, c0, r1, c1) + 1, 2), -999, dtype=np.int64)
+    count = trace_ray(cells, r0, c0, r1, c1)
+    assert count == ray_length(r0, c0, r1, c1) and (cells[count] == -999).all()
+    return [tuple(c) for c in cells[:count].tolist()]
 
 
-def test_mark_rays_rejects_wrong_mask_shape():
-    with pytest.raises(ValueError, match="mask"):
-        mark_rays(np.zeros((3, 3), bool), CellBox(0, 0, 4, 4), np.zeros((1, 2)), np.ones((1, 2)))
+@settings(max_examples=300, deadline=None)
+@given(start=cell, end=cell)
+def test_a_ray_is_the_reference_bresenham_line(start, end):
+    assert traced(*start, *end) == bresenham_reference(*start, *end)
+
+
+def test_every_short_ray_is_the_one_the_grid_traced_before() -> None:
+    """All rays from a cell to the 33 x 33 cells around it: the same cells as the rounding
+    formula the grid used until 2d18b1b, so maps come out bit for bit as before."""
+    for dr in range(-16, 17):
+        for dc in range(-16, 17):
+            assert traced(3, -2, 3 + dr, -2 + dc) == rounded_cells(3, -2, 3 + dr, -2 + dc)
