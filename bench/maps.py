@@ -4,8 +4,9 @@ A simulated 40 m x 40 m building (4 x 4 rooms of 10 m with 1.2 m doors) is mappe
 a robot driving a serpentine through every row of rooms with a 360-beam, 10 m lidar, one scan
 every 0.25 m; then it drives the same path again over the mapped area (steady state).
 
-With --data LOG, also the matching views that gn, csm and NDT read, on a real log's map (every
-keyframe inserted at its corrected pose): the per-scan refresh of the level-0 likelihood field,
+With --data LOG, also the insert time of every keyframe at its corrected pose (their sum is
+what redrawing the whole map costs the back end), and the matching views that gn, csm and NDT
+read, on that map: the per-scan refresh of the level-0 likelihood field,
 of the 3-level pyramid, of the max-pool stack, of the NDT cells and of the overlapping NDT
 cells the ndt matcher reads (its three cell sizes) while the map is small (after --small-scans
 scans) and at the end, each next to the full rebuild it replaces. The refresh should not grow
@@ -240,9 +241,13 @@ def view_refresh(
     out: dict[str, object] = {"log": log.name, "scans": len(frames), "tile_cells": tile_cells}
     views = ("field0", "pyramid", "maxpool", "ndt", "overlapping")
     samples_ms: dict[str, list[float]] = {view: [] for view in views}
+    insert_s: list[float] = []
+    first, at = frames[0], frames[0].true_pose * frames[0].scan.mount
+    MatchingMap().update(first.true_pose.transform_points(first.scan.robot_points()), (at.x, at.y))
     for i, frame in enumerate(frames):
         pose, sensor = frame.true_pose, frame.true_pose * frame.scan.mount
-        world.update(pose.transform_points(frame.scan.robot_points()), (sensor.x, sensor.y))
+        points = pose.transform_points(frame.scan.robot_points())
+        insert_s.append(timed(lambda: world.update(points, (sensor.x, sensor.y))))  # noqa: B023
         # Views read after every scan, as a front end would: each refresh covers one scan.
         field0_s = timed(lambda: world.likelihood_field(0))
         times = {
@@ -273,6 +278,9 @@ def view_refresh(
             **rebuild_views(world, rebuilds),
         }
         samples_ms = {key: [] for key in samples_ms}
+    # Every keyframe inserted once: what a loop closure's redraw of the whole map costs.
+    out["insert_ms"] = summary_ms(insert_s)
+    out["inserts_total_s"] = round(sum(insert_s), 3)
     return out
 
 
@@ -304,7 +312,10 @@ def print_table(r: dict[str, object]) -> None:
 
 
 def print_views(v: dict[str, object]) -> None:
+    ins = v["insert_ms"]
     print(f"matching views on {v['log']} ({v['scans']} scans at the corrected poses):")
+    print(f"insert p50 {ins['p50']} mean {ins['mean']} p95 {ins['p95']} ms "  # type: ignore[index]
+          f"(all {v['inserts_total_s']} s)")
     for name in ("small", "large"):
         w = v[name]  # type: ignore[index]
         print(
