@@ -336,6 +336,11 @@ class BackendSettings(BaseSettings):
         3, ge=0, description="a closure waits this many keyframes for another that implies the "
         "same correction before it enters the graph; 0 = every closure enters at once"
     )
+    busy_search_every: int = Field(
+        1, ge=1, description="while closures keep entering the graph (one entered within the "
+        "last confirm_keyframes keyframes), search for closures at every n-th keyframe only; "
+        "1 = at every keyframe"
+    )
     confirm_m: float = Field(0.05, gt=0.0, description="two corrections agree within this")
     confirm_deg: float = Field(0.5, gt=0.0, description="and this")
     keyframe_std_m: float = Field(

@@ -118,6 +118,8 @@ class Mapper:
         self._scan_node: list[int] = []  # per scan: the keyframe it hangs from
         self._scan_offset: list[NDArray[np.float64]] = []  # its pose relative to that keyframe
         self._waiting: list[_Waiting] = []  # recent closures, entered or waiting for another
+        self._entered_at = -1  # the last keyframe whose search put a closure in the graph
+        self._searched_at = -1  # the last keyframe searched for closures
         self._pending = 0  # keyframes since the last optimisation
         self._unoptimised = False
         self._relocated = False  # the front end was put somewhere since the last keyframe
@@ -239,10 +241,15 @@ class Mapper:
     def _close_loops(self, k: int) -> list[LoopClosure]:
         """Verified closures of keyframe k, each entering the graph once another one of the
         last `confirm_keyframes` keyframes implies the same correction (a wrong closure rarely
-        agrees with another)."""
+        agrees with another). While closures keep entering (a revisit), only every
+        `busy_search_every`-th keyframe is searched: its neighbours would say the same."""
         s = self.settings
-        poses, travelled = self.graph.poses, np.asarray(self._travelled_m)
         self._waiting = [w for w in self._waiting if w.closure.newer >= k - s.confirm_keyframes]
+        busy = self._entered_at >= 0 and k - self._entered_at <= s.confirm_keyframes
+        if busy and k - self._searched_at < s.busy_search_every:
+            return []
+        self._searched_at = k
+        poses, travelled = self.graph.poses, np.asarray(self._travelled_m)
         added: list[LoopClosure] = []
         for j in loop_candidates(poses, travelled, k, s):
             closure = self.detector.verify(self.nodes, poses, j, k)
@@ -263,6 +270,8 @@ class Mapper:
             if agreeing:
                 added.append(self._add_closure(closure))
             self._waiting.append(_Waiting(closure, correction, entered=bool(agreeing)))
+        if added:
+            self._entered_at = k
         return added
 
     def _agree(self, waiting: _Waiting, closure: LoopClosure, correction: Pose2D) -> bool:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import replace
 
@@ -84,6 +85,33 @@ def test_without_confirmation_every_closure_enters(drive: Drive) -> None:
     confirmed, _ = _run(drive)
     eager, _ = _run(drive, SETTINGS.model_copy(update={"confirm_keyframes": 0}))
     assert len(eager.closures) >= len(confirmed.closures)
+
+
+def test_while_closures_keep_entering_every_other_keyframe_is_searched(drive: Drive) -> None:
+    """busy_search_every=2: every keyframe is searched until a closure enters, then every
+    other one while they keep entering; the ring is still closed as well."""
+    settings = SETTINGS.model_copy(update={"busy_search_every": 2})
+    mapper = Mapper(Frontend(default_settings()), settings)
+    verify = mapper.detector.verify
+    searched: list[int] = []
+
+    def counted(nodes, poses, j, k):  # type: ignore[no-untyped-def]
+        if not searched or searched[-1] != k:
+            searched.append(k)
+        return verify(nodes, poses, j, k)
+
+    mapper.detector.verify = counted  # type: ignore[method-assign]
+    _feed(mapper, drive)
+    every, _ = _run(drive)
+    entered = sorted({c.newer for c in mapper.closures})
+    assert entered and len(mapper.closures) < len(every.closures)
+    steps = list(itertools.pairwise(searched))
+    assert all(b - a == 1 for a, b in steps if b <= entered[0])
+    busy = [(a, b) for a, b in steps
+            if any(0 < a - e <= settings.confirm_keyframes for e in entered)]
+    assert busy and all(b - a == 2 for a, b in busy)
+    after = _position_errors(mapper.trajectory(), drive.truth)
+    assert after.max() < 1.2 * _position_errors(every.trajectory(), drive.truth).max()
 
 
 def test_a_single_wrong_closure_waits_and_is_dropped(drive: Drive) -> None:
