@@ -12,11 +12,11 @@ file). A robot first seen mid-stream (this matcher restarted) resumes from the m
 one answer on `map/resume` (ResumeMessage): its map and last pose seed the front end. An
 operator's pose on `<prefix>/<robot>/initial_pose` (InitialPoseMessage, echoed once taken)
 puts the robot there: its next scan is matched from it, or, for a robot not seen yet, its
-first scan. Match requests are answered
-on `<prefix>/match` (any scans) and `<prefix>/<robot>/match` (also against that robot's
-current map). Each insert names the one before it (`previous_seq`), and the last
-`resend_inserts` are kept to send again to a map server that missed some (`map/resend`); with
-loop closure, older ones are rebuilt from the back end's keyframes.
+first scan. Match requests are answered on `<prefix>/match` (any scans) and
+`<prefix>/<robot>/match` (also against that robot's current map). Each insert names the one
+before it (`previous_seq`), and the last `resend_inserts` are kept to send again to a map
+server that missed some (`map/resend`); with loop closure, older ones are rebuilt from the
+back end's keyframes.
 
 With SCANFLOW_BACKEND_LOOP_CLOSURE a `Mapper` runs around each robot's front end (keyframes,
 loop closures, the pose graph). When it redraws the map, the matcher sends a MapRedrawMessage
