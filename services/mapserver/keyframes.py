@@ -4,7 +4,8 @@ them: every keyframe with the pose it is drawn at."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import secrets
+from collections.abc import Callable, Mapping
 
 import numpy as np
 from numpy.typing import NDArray
@@ -24,6 +25,7 @@ class Keyframes:
         self.seqs: list[int] = []
         self.nodes: list[ScanNode] = []
         self.poses: list[Pose2D] = []  # where each is drawn in the map now
+        self.run = secrets.token_hex(4)  # names this run's keyframes on disk (a new run: anew)
 
     def __len__(self) -> int:
         return len(self.seqs)
@@ -33,6 +35,7 @@ class Keyframes:
         map resumed from a snapshot) starts the kept keyframes afresh, as its tracker did."""
         if self.seqs and scan.seq <= self.seqs[-1]:
             self.seqs, self.nodes, self.poses = [], [], []
+            self.run = secrets.token_hex(4)
         self.seqs.append(scan.seq)
         self.nodes.append(ScanNode(scan.stamp_s, scan.points, scan.no_return_points, scan.mount))
         self.poses.append(scan.pose)
@@ -53,19 +56,22 @@ class Keyframes:
         """The keyframes are drawn at `poses` (N, 3) now (after a redraw)."""
         self.poses = [Pose2D.from_array(p) for p in poses]
 
-    def message(self, robot_id: str) -> KeyframesMessage:
+    def message(self, robot_id: str, first: int = 0, end: int | None = None) -> KeyframesMessage:
+        """Keyframes first..end-1 (default: all) as one message."""
+        nodes, poses = self.nodes[first:end], self.poses[first:end]
+
         def rows(name: str) -> NDArray[np.float64]:
-            return np.concatenate([getattr(n, name) for n in self.nodes] or [np.zeros((0, 2))])
+            return np.concatenate([getattr(n, name) for n in nodes] or [np.zeros((0, 2))])
 
         def counts(name: str) -> NDArray[np.int64]:
-            return np.array([len(getattr(n, name)) for n in self.nodes], dtype=np.int64)
+            return np.array([len(getattr(n, name)) for n in nodes], dtype=np.int64)
 
         return KeyframesMessage(
             robot_id,
-            np.asarray(self.seqs, dtype=np.int64),
-            np.array([n.stamp_s for n in self.nodes], dtype=np.float64),
-            np.array([p.to_array() for p in self.poses]).reshape(-1, 3),
-            np.array([n.mount.to_array() for n in self.nodes]).reshape(-1, 3),
+            np.asarray(self.seqs[first:end], dtype=np.int64),
+            np.array([n.stamp_s for n in nodes], dtype=np.float64),
+            np.array([p.to_array() for p in poses]).reshape(-1, 3),
+            np.array([n.mount.to_array() for n in nodes]).reshape(-1, 3),
             counts("points"),
             rows("points"),
             counts("no_return"),
@@ -80,24 +86,51 @@ class Keyframes:
         kept.nodes = scan_nodes(message)
         return kept
 
-    def arrays(self, robot_id: str) -> dict[str, NDArray[np.generic]]:
-        """The keyframes as named arrays (for a snapshot .npz)."""
-        fields = self.message(robot_id)
-        return {f"{_PREFIX}{name}": getattr(fields, name) for name in _ARRAYS}
+    def arrays(self, robot_id: str, stored: int = 0) -> dict[str, NDArray[np.generic]]:
+        """The keyframes as named arrays for a snapshot .npz: every seq and pose, and the scans
+        of those past the first `stored` (which are in files of their own: `KeyframeChunks`).
+        With `stored` 0 these are exactly the arrays of a whole `message`."""
+        tail = self.message(robot_id, stored)
+        arrays = {f"{_PREFIX}{name}": getattr(tail, name) for name in _ARRAYS}
+        arrays.update({
+            f"{_PREFIX}seqs": np.asarray(self.seqs, dtype=np.int64),
+            f"{_PREFIX}poses": np.array([p.to_array() for p in self.poses]).reshape(-1, 3),
+            f"{_PREFIX}stored": np.int64(stored),
+            f"{_PREFIX}run": np.array(self.run),
+        })
+        return arrays
 
     @classmethod
     def from_arrays(
-        cls, robot_id: str, data: Mapping[str, NDArray[np.generic]]
+        cls,
+        robot_id: str,
+        data: Mapping[str, NDArray[np.generic]],
+        stored: Callable[[str, list[int]], list[ScanNode]] = lambda run, seqs: [],
     ) -> Keyframes | None:
-        """The keyframes saved by `arrays` (None when the file holds none); KeyError or
-        ValueError (the message's own checks) when they are incomplete or inconsistent."""
+        """The keyframes saved by `arrays` (None when the file holds none); `stored(run,
+        seqs)` gives the scans of the first keyframes, kept elsewhere. KeyError or ValueError
+        (the message's own checks) when they are incomplete or inconsistent."""
         if f"{_PREFIX}seqs" not in data:
             return None
+        seqs = np.asarray(data[f"{_PREFIX}seqs"]).tolist()
+        poses = np.asarray(data[f"{_PREFIX}poses"])
+        first = int(data.get(f"{_PREFIX}stored", 0))
         saved = {name: np.asarray(data[f"{_PREFIX}{name}"]) for name in _ARRAYS}
-        return cls.from_message(KeyframesMessage(robot_id, **saved))
+        tail = KeyframesMessage(
+            robot_id, **{**saved, "seqs": np.asarray(seqs[first:], dtype=np.int64),
+                         "poses": poses[first:]}
+        )
+        kept = cls.from_message(tail)
+        if f"{_PREFIX}run" in data:
+            kept.run = str(data[f"{_PREFIX}run"])
+        kept.nodes = (stored(kept.run, seqs[:first]) if first else []) + kept.nodes
+        kept.seqs, kept.poses = seqs, [Pose2D.from_array(p) for p in poses]
+        if len(kept.nodes) != len(seqs):
+            raise ValueError(f"{len(kept.nodes)} keyframe scans for {len(seqs)} keyframes")
+        return kept
 
 
-_ARRAYS = tuple(name for name in KeyframesMessage.WIRE if name != "robot_id")
+_ARRAYS = tuple(name for name in KeyframesMessage.WIRE if name not in ("robot_id",))
 
 
 def _at(seqs: NDArray[np.int64], i: int) -> str:

@@ -193,7 +193,7 @@ class MapServer:
         """Persist every robot whose map or trajectory moved since its last snapshot."""
         for robot in self.robots.values():
             if robot.last_seq >= 0 and robot.saved != robot.state:
-                save_snapshot(self.data_dir, robot.snapshot())
+                save_snapshot(self.data_dir, robot.snapshot(), self.settings.keyframes_per_file)
                 robot.saved = robot.state
                 self.shell.counters.add("snapshots")
         self._last_snapshot_s = time.monotonic()

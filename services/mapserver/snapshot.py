@@ -3,23 +3,35 @@
 One file, replaced atomically, so a crash leaves either the previous snapshot or the new one,
 never a map without its trajectory. The file is a map in scanflow's native format (`load_npz`
 reads it) with the trajectory and the last applied pose seq beside the map arrays, and, with
-loop closure on, the keyframes' scans (a later redraw needs them); a restart loads it back and
-carries on from that seq.
+loop closure on, the keyframes (a later redraw needs their scans); a restart loads it back and
+carries on from that seq. The keyframes' scans, which never change and grow with the run, are
+written once, by chunks, into `<robot>.keyframes/`: a snapshot costs the same late in a long
+run as early (20,000 keyframes took 3.2 s per snapshot when each rewrote them all).
 """
 
 from __future__ import annotations
 
+import functools
+import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
+from scanflow.backend import ScanNode
+from scanflow.config import MapServerSettings
 from scanflow.maps.export import grid_from_npz, npz_arrays, write_npz
 from scanflow.maps.occupancy import OccupancyGrid
+from scanflow.wire import KeyframesMessage
 
+from services.common.keyframes import scan_nodes
 from services.mapserver.keyframes import Keyframes
 
 SUFFIX = ".snapshot.npz"
+_CHUNK = tuple(name for name in KeyframesMessage.WIRE if name != "robot_id")
+_PER_FILE = "keyframes_per_file"
+PER_FILE: int = MapServerSettings.model_fields["keyframes_per_file"].default
 
 
 @dataclass
@@ -40,17 +52,66 @@ def snapshot_path(data_dir: Path, robot_id: str) -> Path:
     return data_dir / f"{robot_id}{SUFFIX}"
 
 
-def save_snapshot(data_dir: Path, snap: Snapshot) -> None:
-    """Write the robot's map, trajectory and last seq as one file, replaced atomically."""
+def save_snapshot(data_dir: Path, snap: Snapshot, per_file: int = PER_FILE) -> None:
+    """Write the robot's map, trajectory and last seq as one file, replaced atomically. The
+    keyframes' scans go `per_file` to a file of their own, each written once (a scan never
+    changes): the snapshot holds their seqs and poses, and the scans of the last few."""
     data_dir.mkdir(parents=True, exist_ok=True)
     arrays = npz_arrays(snap.grid)
     arrays.update(
         stamps_s=snap.stamps_s, poses=snap.poses, last_seq=np.int64(snap.last_seq),
         redrawn_seq=np.int64(snap.redrawn_seq), last_insert_seq=np.int64(snap.last_insert_seq),
     )
+    chunks: set[Path] = set()
     if snap.keyframes is not None:
-        arrays.update(snap.keyframes.arrays(snap.robot_id))
+        stored, chunks = _save_chunks(data_dir, snap.robot_id, snap.keyframes, per_file)
+        arrays.update(snap.keyframes.arrays(snap.robot_id, stored))
+        arrays[_PER_FILE] = np.int64(per_file)
     write_npz(snapshot_path(data_dir, snap.robot_id), arrays)
+    folder = _chunk_dir(data_dir, snap.robot_id)  # another run's chunks, once none refers to them
+    for path in folder.glob("*.npz") if folder.is_dir() else ():
+        if path not in chunks:
+            path.unlink(missing_ok=True)
+
+
+def _chunk_dir(data_dir: Path, robot_id: str) -> Path:
+    return data_dir / f"{robot_id}.keyframes"
+
+
+def _chunk_path(data_dir: Path, robot_id: str, run: str, per_file: int, index: int) -> Path:
+    return _chunk_dir(data_dir, robot_id) / f"{run}-{per_file}-{index:06d}.npz"
+
+
+def _save_chunks(
+    data_dir: Path, robot_id: str, kept: Keyframes, per_file: int
+) -> tuple[int, set[Path]]:
+    """Write each full file of `per_file` keyframes' scans not on disk yet; how many
+    keyframes the files hold, and the files."""
+    full = len(kept) // per_file
+    paths = [_chunk_path(data_dir, robot_id, kept.run, per_file, i) for i in range(full)]
+    for i, path in enumerate(paths):
+        if not path.exists():
+            path.parent.mkdir(exist_ok=True)
+            message = kept.message(robot_id, i * per_file, (i + 1) * per_file)
+            write_npz(path, {name: getattr(message, name) for name in _CHUNK}, compressed=False)
+    return full * per_file, set(paths)
+
+
+def _load_chunks(
+    data_dir: Path, robot_id: str, per_file: int, run: str, seqs: list[int]
+) -> list[ScanNode]:
+    """The scans of keyframes `seqs` from the run's files of `per_file` (ValueError if one is
+    missing or holds other keyframes)."""
+    nodes: list[ScanNode] = []
+    for i in range(math.ceil(len(seqs) / per_file)):
+        path = _chunk_path(data_dir, robot_id, run, per_file, i)
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {name: data[name] for name in _CHUNK}
+        message = KeyframesMessage(robot_id, **arrays)
+        if message.seqs.tolist() != seqs[i * per_file:(i + 1) * per_file]:
+            raise ValueError(f"{path.name} holds other keyframes than the snapshot names")
+        nodes += scan_nodes(message)
+    return nodes
 
 
 def load_snapshots(data_dir: Path) -> tuple[list[Snapshot], list[str]]:
@@ -69,7 +130,7 @@ def load_snapshots(data_dir: Path) -> tuple[list[Snapshot], list[str]]:
                 redrawn_seq = int(data.get("redrawn_seq", -1))
                 # Older files: the inserts up to the last pose are likely in.
                 last_insert_seq = int(data.get("last_insert_seq", last_seq))
-                keyframes = Keyframes.from_arrays(robot_id, data)
+                keyframes = _keyframes(data_dir, robot_id, data, skipped)
         except (OSError, KeyError, ValueError) as exc:
             skipped.append(f"robot {robot_id}: snapshot not loaded ({type(exc).__name__}: {exc})")
             continue
@@ -77,3 +138,20 @@ def load_snapshots(data_dir: Path) -> tuple[list[Snapshot], list[str]]:
             robot_id, grid, stamps_s, poses, last_seq, keyframes, redrawn_seq, last_insert_seq
         ))
     return snaps, skipped
+
+
+def _keyframes(
+    data_dir: Path, robot_id: str, data: Mapping[str, NDArray[np.generic]], skipped: list[str]
+) -> Keyframes | None:
+    """The snapshot's keyframes; None, named in `skipped`, when they (or a chunk file) cannot
+    be read: the map and the path still can, only this run's redraws cannot be followed."""
+    try:
+        per_file = int(data.get(_PER_FILE, 1))
+        chunks = functools.partial(_load_chunks, data_dir, robot_id, per_file)
+        return Keyframes.from_arrays(robot_id, data, chunks)
+    except (OSError, KeyError, ValueError) as exc:
+        skipped.append(
+            f"robot {robot_id}: keyframes not loaded ({type(exc).__name__}: {exc}); its map and "
+            "path are, but the map server cannot follow this run's redraws"
+        )
+        return None

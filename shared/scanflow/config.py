@@ -210,6 +210,10 @@ class MapServerSettings(KernelServiceSettings):
     resend_timeout_s: float = Field(
         2.0, gt=0.0, description="wait this long for a matcher to send missed inserts again"
     )
+    keyframes_per_file: int = Field(
+        256, ge=1, description="with loop closure, snapshots keep the keyframes' scans this "
+        "many to a file, each file written once (~1.4 MB at 360 beams)",
+    )
 
 
 class GatewaySettings(ProcessSettings):

@@ -125,8 +125,11 @@ def test_a_map_server_killed_before_the_redraw_catches_up_and_follows_it(
     """The map server killed mid-lap and restarted from its snapshot: the matcher sends the
     inserts it missed again (from its last inserts, or, keeping none, from the back end's
     keyframes), so it holds every keyframe when the redraw comes, and its map and path end
-    as the in-process pipeline's."""
-    snapshots = {"SCANFLOW_MAPSERVER_SNAPSHOT_INTERVAL_S": "0.5"}
+    as the in-process pipeline's. Its snapshot keeps the keyframes' scans 8 to a file."""
+    snapshots = {
+        "SCANFLOW_MAPSERVER_SNAPSHOT_INTERVAL_S": "0.5",
+        "SCANFLOW_MAPSERVER_KEYFRAMES_PER_FILE": "8",
+    }
     start("deskew", **ODOM_WAIT, **LOOP_CLOSURE)
     start("matcher", **LOOP_CLOSURE, SCANFLOW_MATCHER_RESEND_INSERTS=recent)
     start("mapserver", **LOOP_CLOSURE, **snapshots)
@@ -136,6 +139,7 @@ def test_a_map_server_killed_before_the_redraw_catches_up_and_follows_it(
     bus.wait_until(lambda: (tmp_path / "data" / "robot.snapshot.npz").exists(), 10.0,
                    "a snapshot")
     launcher.kill("mapserver")
+    assert list((tmp_path / "data" / "robot.keyframes").glob("*-8-000000.npz"))
     start("mapserver", **LOOP_CLOSURE, **snapshots)
     ingest.wait(180.0)
     assert ingest.returncode == 0, launcher.log_text("ingest")

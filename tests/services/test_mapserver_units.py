@@ -199,7 +199,7 @@ def test_snapshots_keep_the_keyframes_so_a_restart_can_follow_the_next_redraw(tm
     np.testing.assert_array_equal(resumed.map.grid.log_odds, robot.map.grid.log_odds)
 
 
-def test_a_snapshot_with_broken_keyframes_is_skipped_naming_why(tmp_path):
+def test_broken_keyframes_cost_the_keyframes_not_the_map_naming_why(tmp_path):
     robot = RobotMap("r", lambda: OccupancyGrid(OccupancyParams()), keep_keyframes=True)
     robot.insert(insert(0))
     robot.apply(pose(0))
@@ -209,8 +209,9 @@ def test_a_snapshot_with_broken_keyframes_is_skipped_naming_why(tmp_path):
         arrays = dict(data)
     arrays["keyframes_hit_counts"] = np.array([7])
     np.savez(path, **arrays)
-    snaps, skipped = load_snapshots(tmp_path)
-    assert snaps == [] and "hit_counts must be >= 0 and add up to the rows of hits" in skipped[0]
+    (snap,), skipped = load_snapshots(tmp_path)
+    assert snap.keyframes is None and snap.last_seq == 0
+    assert "hit_counts must be >= 0 and add up to the rows of hits" in skipped[0]
 
 
 def test_poses_of_later_scans_that_came_before_the_redraw_are_kept():
@@ -228,6 +229,94 @@ def test_poses_of_later_scans_that_came_before_the_redraw_are_kept():
                  OccupancyParams())
     np.testing.assert_array_equal(robot.trajectory.poses, [*path, [1.5, 0.5, 0.0]])
     np.testing.assert_allclose(robot.trajectory.stamps_s, [0.0, 0.1, 0.2, 0.3])
+
+
+def kept_robot(seqs: range) -> RobotMap:
+    robot = RobotMap("r", lambda: OccupancyGrid(OccupancyParams()), keep_keyframes=True)
+    for seq in seqs:
+        robot.insert(MapInsertMessage(
+            "r", seq, 0.1 * seq, Pose2D(0.1 * seq, 0.0, 0.0), np.full((2, 2), 1.0 + seq),
+            np.full((1, 2), 5.0 + seq), Pose2D(0.2, 0.0, 0.01 * seq),
+        ))
+    robot.apply(pose(seqs[-1]))
+    return robot
+
+
+def assert_same_keyframes(got, want) -> None:
+    assert got.seqs == want.seqs and got.poses == want.poses
+    for a, b in zip(got.nodes, want.nodes, strict=True):
+        assert (a.stamp_s, a.mount) == (b.stamp_s, b.mount)
+        assert a.points.tobytes() == b.points.tobytes()
+        assert a.no_return.tobytes() == b.no_return.tobytes()
+
+
+def test_keyframe_scans_are_written_once_by_chunks_and_read_back(tmp_path):
+    """11 keyframes, 4 to a file: two files, written by the first snapshot and left as they
+    are by the next (a scan never changes); the snapshot holds the last three's scans."""
+    robot = kept_robot(range(0, 22, 2))
+    save_snapshot(tmp_path, robot.snapshot(), 4)
+    chunks = sorted((tmp_path / "r.keyframes").iterdir())
+    assert [p.name.split("-", 1)[1] for p in chunks] == ["4-000000.npz", "4-000001.npz"]
+    written = [p.stat().st_mtime_ns for p in chunks]
+    robot.keyframes.moved(np.array([[0.0, 0.1 * k, 0.0] for k in range(11)]))  # a redraw
+    save_snapshot(tmp_path, robot.snapshot(), 4)
+    assert [p.stat().st_mtime_ns for p in chunks] == written
+    (snap,), skipped = load_snapshots(tmp_path)
+    assert skipped == []
+    assert_same_keyframes(snap.keyframes, robot.keyframes)
+    with np.load(tmp_path / "r.snapshot.npz") as data:
+        assert int(data["keyframes_stored"]) == 8 and data["keyframes_hit_counts"].size == 3
+
+
+def test_a_new_run_writes_its_own_chunks_and_drops_the_old_ones(tmp_path):
+    robot = kept_robot(range(10, 16))
+    save_snapshot(tmp_path, robot.snapshot(), 2)
+    old = set((tmp_path / "r.keyframes").iterdir())
+    assert len(old) == 3
+    for seq in range(5):  # the stream started again: the seqs went back
+        robot.insert(insert(seq))
+    save_snapshot(tmp_path, robot.snapshot(), 2)
+    new = set((tmp_path / "r.keyframes").iterdir())
+    assert len(new) == 2 and not new & old
+    (snap,), _ = load_snapshots(tmp_path)
+    assert snap.keyframes.seqs == [0, 1, 2, 3, 4]
+    assert_same_keyframes(snap.keyframes, robot.keyframes)
+
+
+def test_a_lost_chunk_costs_the_keyframes_not_the_map(tmp_path):
+    robot = kept_robot(range(5))
+    save_snapshot(tmp_path, robot.snapshot(), 2)
+    next((tmp_path / "r.keyframes").iterdir()).unlink()
+    (snap,), skipped = load_snapshots(tmp_path)
+    assert snap.keyframes is None and snap.last_seq == 4
+    np.testing.assert_array_equal(snap.grid.log_odds, robot.map.grid.log_odds)
+    assert len(skipped) == 1 and "keyframes not loaded" in skipped[0], skipped
+    assert "cannot follow this run's redraws" in skipped[0]
+
+
+def test_another_file_size_writes_new_files_and_drops_the_old(tmp_path):
+    """SCANFLOW_MAPSERVER_KEYFRAMES_PER_FILE changed between two restarts of the same run."""
+    robot = kept_robot(range(9))
+    save_snapshot(tmp_path, robot.snapshot(), 2)
+    save_snapshot(tmp_path, robot.snapshot(), 3)
+    names = sorted(p.name.split("-", 1)[1] for p in (tmp_path / "r.keyframes").iterdir())
+    assert names == ["3-000000.npz", "3-000001.npz", "3-000002.npz"]
+    (snap,), skipped = load_snapshots(tmp_path)
+    assert skipped == []
+    assert_same_keyframes(snap.keyframes, robot.keyframes)
+
+
+def test_a_snapshot_written_before_chunks_still_loads(tmp_path):
+    """Files from before the chunks hold every scan inline, and no `stored` or `run`."""
+    robot = kept_robot(range(3))
+    save_snapshot(tmp_path, robot.snapshot())
+    path = tmp_path / "r.snapshot.npz"
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files if k not in ("keyframes_stored", "keyframes_run")}
+    np.savez_compressed(path, **arrays)
+    (snap,), skipped = load_snapshots(tmp_path)
+    assert skipped == []
+    assert_same_keyframes(snap.keyframes, robot.keyframes)
 
 
 def test_a_new_run_on_a_resumed_map_starts_the_kept_keyframes_afresh(tmp_path):

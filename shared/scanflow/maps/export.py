@@ -188,10 +188,11 @@ def npz_arrays(grid: OccupancyGrid) -> dict[str, NDArray]:
     }
 
 
-def write_npz(path: Path | str, arrays: dict[str, NDArray]) -> Path:
-    """Compress `arrays` into one .npz that replaces `path` atomically."""
+def write_npz(path: Path | str, arrays: dict[str, NDArray], compressed: bool = True) -> Path:
+    """`arrays` as one .npz (zlib-compressed unless `compressed` is False: scan points, which
+    hardly compress, are written faster plain) that replaces `path` atomically."""
     buffer = io.BytesIO()
-    np.savez_compressed(buffer, **arrays)
+    (np.savez_compressed if compressed else np.savez)(buffer, **arrays)
     return _write_atomic(Path(path), buffer.getvalue())
 
 
