@@ -3,31 +3,15 @@ and one over the wire's limit is reported as refused, not raised."""
 
 from __future__ import annotations
 
-import math
-
-import numpy as np
 import pytest
-from scanflow.geometry import Pose2D
 from scanflow.io.carmen import Keyframe
-from scanflow.scan import LaserScan
 from scanflow.wire import codec
 
 from bench.resume import run
 
 
-def frames(n: int) -> list[Keyframe]:
-    ranges = np.linspace(1.0, 4.0, 180)
-    return [
-        Keyframe(
-            LaserScan(ranges, -math.pi / 2, math.pi / 180, stamp_s=0.1 * i),
-            Pose2D(0.1 * i, 0.0, 0.0), Pose2D(0.1 * i, 0.0, 0.0),
-        )
-        for i in range(n)
-    ]
-
-
-def test_every_keyframe_is_resumed_and_timed() -> None:
-    row = run(frames(7), 25, 3)
+def test_every_keyframe_is_resumed_and_timed(frames: list[Keyframe]) -> None:
+    row = run(frames, 25, 3)
     assert row["keyframes"] == row["resumed_keyframes"] == 25
     assert row["points"] == 25 * 180
     for step in ("build_encode_ms", "router_ms", "decode_nodes_ms", "mapper_ms"):
@@ -35,8 +19,10 @@ def test_every_keyframe_is_resumed_and_timed() -> None:
     assert "refused" not in row
 
 
-def test_a_run_over_the_wire_limit_is_reported_refused(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_run_over_the_wire_limit_is_reported_refused(
+    frames: list[Keyframe], monkeypatch: pytest.MonkeyPatch
+) -> None:
     monkeypatch.setattr(codec, "MAX_BULK_BYTES", 50_000)
-    row = run(frames(7), 25, 3)
+    row = run(frames, 25, 3)
     assert "over MAX_BULK_BYTES" in row["refused"]
     assert "resumed_keyframes" not in row
