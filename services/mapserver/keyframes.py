@@ -88,10 +88,10 @@ class Keyframes:
 
     def arrays(self, robot_id: str, stored: int = 0) -> dict[str, NDArray[np.generic]]:
         """The keyframes as named arrays for a snapshot .npz: every seq and pose, and the scans
-        of those past the first `stored` (which are in files of their own: `KeyframeChunks`).
+        of those past the first `stored` (the snapshot keeps those in files of their own).
         With `stored` 0 these are exactly the arrays of a whole `message`."""
         tail = self.message(robot_id, stored)
-        arrays = {f"{_PREFIX}{name}": getattr(tail, name) for name in _ARRAYS}
+        arrays = {f"{_PREFIX}{name}": getattr(tail, name) for name in FIELDS}
         arrays.update({
             f"{_PREFIX}seqs": np.asarray(self.seqs, dtype=np.int64),
             f"{_PREFIX}poses": np.array([p.to_array() for p in self.poses]).reshape(-1, 3),
@@ -115,7 +115,7 @@ class Keyframes:
         seqs = np.asarray(data[f"{_PREFIX}seqs"]).tolist()
         poses = np.asarray(data[f"{_PREFIX}poses"])
         first = int(data.get(f"{_PREFIX}stored", 0))
-        saved = {name: np.asarray(data[f"{_PREFIX}{name}"]) for name in _ARRAYS}
+        saved = {name: np.asarray(data[f"{_PREFIX}{name}"]) for name in FIELDS}
         tail = KeyframesMessage(
             robot_id, **{**saved, "seqs": np.asarray(seqs[first:], dtype=np.int64),
                          "poses": poses[first:]}
@@ -130,7 +130,7 @@ class Keyframes:
         return kept
 
 
-_ARRAYS = tuple(name for name in KeyframesMessage.WIRE if name not in ("robot_id",))
+FIELDS = tuple(name for name in KeyframesMessage.WIRE if name != "robot_id")  # as arrays
 
 
 def _at(seqs: NDArray[np.int64], i: int) -> str:

@@ -26,10 +26,9 @@ from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.wire import KeyframesMessage
 
 from services.common.keyframes import scan_nodes
-from services.mapserver.keyframes import Keyframes
+from services.mapserver.keyframes import FIELDS, Keyframes
 
 SUFFIX = ".snapshot.npz"
-_CHUNK = tuple(name for name in KeyframesMessage.WIRE if name != "robot_id")
 _PER_FILE = "keyframes_per_file"
 PER_FILE: int = MapServerSettings.model_fields["keyframes_per_file"].default
 
@@ -68,7 +67,7 @@ def save_snapshot(data_dir: Path, snap: Snapshot, per_file: int = PER_FILE) -> N
         arrays.update(snap.keyframes.arrays(snap.robot_id, stored))
         arrays[_PER_FILE] = np.int64(per_file)
     write_npz(snapshot_path(data_dir, snap.robot_id), arrays)
-    folder = _chunk_dir(data_dir, snap.robot_id)  # another run's chunks, once none refers to them
+    folder = _chunk_dir(data_dir, snap.robot_id)  # files no snapshot refers to any more
     for path in folder.glob("*.npz") if folder.is_dir() else ():
         if path not in chunks:
             path.unlink(missing_ok=True)
@@ -93,7 +92,7 @@ def _save_chunks(
         if not path.exists():
             path.parent.mkdir(exist_ok=True)
             message = kept.message(robot_id, i * per_file, (i + 1) * per_file)
-            write_npz(path, {name: getattr(message, name) for name in _CHUNK}, compressed=False)
+            write_npz(path, {name: getattr(message, name) for name in FIELDS}, compressed=False)
     return full * per_file, set(paths)
 
 
@@ -106,7 +105,7 @@ def _load_chunks(
     for i in range(math.ceil(len(seqs) / per_file)):
         path = _chunk_path(data_dir, robot_id, run, per_file, i)
         with np.load(path, allow_pickle=False) as data:
-            arrays = {name: data[name] for name in _CHUNK}
+            arrays = {name: data[name] for name in FIELDS}
         message = KeyframesMessage(robot_id, **arrays)
         if message.seqs.tolist() != seqs[i * per_file:(i + 1) * per_file]:
             raise ValueError(f"{path.name} holds other keyframes than the snapshot names")
