@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scanflow.maps.export import save_map_server, save_npz, save_png
+from scanflow.maps.export import npz_arrays, npz_bytes, save_map_server, save_png
 from scanflow.maps.grid import CellBox
 from scanflow.wire import (
     MapImageMessage,
@@ -27,20 +27,22 @@ def meta(robot: RobotMap) -> MapMetaMessage:
 
 
 def image(robot: RobotMap, fmt: str) -> MapImageMessage:
-    """The map exported by the library's writers: png, pgm or yaml (map_server), npz (native)."""
+    """The map exported by the library's writers: png, pgm or yaml (map_server), npz (native,
+    built in memory: a resume asks for it under the map server's lock)."""
     grid = robot.map.grid
-    with tempfile.TemporaryDirectory(prefix="scanflow-map-") as tmp:
-        base = Path(tmp) / robot.robot_id
-        if fmt == "png":
-            path = save_png(grid, base.with_suffix(".png"))
-        elif fmt in ("pgm", "yaml"):
-            save_map_server(grid, base.with_suffix(".yaml"))
-            path = base.with_suffix(f".{fmt}")
-        elif fmt == "npz":
-            path = save_npz(grid, base.with_suffix(".npz"))
-        else:
-            raise ValueError(f"format must be png, pgm, yaml or npz, got {fmt!r}")
-        data = path.read_bytes()
+    if fmt == "npz":
+        data = npz_bytes(npz_arrays(grid))
+    elif fmt in ("png", "pgm", "yaml"):
+        with tempfile.TemporaryDirectory(prefix="scanflow-map-") as tmp:
+            base = Path(tmp) / robot.robot_id
+            if fmt == "png":
+                path = save_png(grid, base.with_suffix(".png"))
+            else:
+                save_map_server(grid, base.with_suffix(".yaml"))
+                path = base.with_suffix(f".{fmt}")
+            data = path.read_bytes()
+    else:
+        raise ValueError(f"format must be png, pgm, yaml or npz, got {fmt!r}")
     return MapImageMessage(robot.robot_id, robot.map.revision, fmt, data)  # type: ignore[arg-type]
 
 

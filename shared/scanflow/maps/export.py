@@ -188,12 +188,17 @@ def npz_arrays(grid: OccupancyGrid) -> dict[str, NDArray]:
     }
 
 
-def write_npz(path: Path | str, arrays: dict[str, NDArray], compressed: bool = True) -> Path:
-    """`arrays` as one .npz (zlib-compressed unless `compressed` is False: scan points, which
-    hardly compress, are written faster plain) that replaces `path` atomically."""
+def npz_bytes(arrays: dict[str, NDArray], compressed: bool = True) -> bytes:
+    """`arrays` as the bytes of one .npz, zlib-compressed unless `compressed` is False (scan
+    points, which hardly compress, are written faster plain)."""
     buffer = io.BytesIO()
     (np.savez_compressed if compressed else np.savez)(buffer, **arrays)
-    return _write_atomic(Path(path), buffer.getvalue())
+    return buffer.getvalue()
+
+
+def write_npz(path: Path | str, arrays: dict[str, NDArray], compressed: bool = True) -> Path:
+    """`arrays` as one .npz (`npz_bytes`) that replaces `path` atomically."""
+    return _write_atomic(Path(path), npz_bytes(arrays, compressed))
 
 
 def save_npz(grid: OccupancyGrid, path: Path | str) -> Path:

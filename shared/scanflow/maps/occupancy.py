@@ -609,27 +609,27 @@ class OccupancyGrid:
         storage = self._reserve(box)
 
         corner = np.array([storage.row0, storage.col0])
+        stored_hits = hit_cells - corner
+        threshold = np.float32(self.params.threshold_log_odds())
         flipped = _update_cells(
             self._log_odds,
             self._observed,
             np.array([box.row0, box.col0, box.row1, box.col1]) - np.tile(corner, 2),
             origin_cell[0] - corner,
-            hit_cells - corner,
+            stored_hits,
             miss_ends - corner,
             np.float32(self.params.miss_log_odds),
             np.float32(self.params.hit_log_odds),
             np.float32(self.params.log_odds_min),
             np.float32(self.params.log_odds_max),
-            np.float32(self.params.threshold_log_odds()),
+            threshold,
         )
         self._add_hits(hits, hit_cells, storage)
 
         self._extent = box.union(self._extent)
         self.revision += 1
-        rows, cols = (hit_cells - corner).T
-        moved = self._observed[rows, cols] & (
-            self._log_odds[rows, cols] > np.float32(self.params.threshold_log_odds())
-        )
+        rows, cols = stored_hits.T
+        moved = self._observed[rows, cols] & (self._log_odds[rows, cols] > threshold)
         return InsertResult(box, flipped + corner, hit_cells[moved])
 
     def _add_hits(

@@ -31,6 +31,7 @@ from scanflow.wire.schema import (
     FLAG,
     INT,
     NUMBER,
+    PATH,
     POSE,
     TEXT,
     VECTOR3,
@@ -329,8 +330,7 @@ class TrajectoryMessage(Message):
     BULK = True
     WIRE: ClassVar[Schema] = {
         "robot_id": TEXT,
-        "stamps_s": array("<f8"),
-        "poses": array("<f8"),
+        **PATH,
         "covariances": optional(array("<f8")),
     }
     robot_id: str

@@ -29,6 +29,7 @@ from scanflow.wire.schema import (
     BLOB,
     INT,
     NUMBER,
+    PATH,
     POSE,
     TEXT,
     FieldCodec,
@@ -109,8 +110,7 @@ class MapRedrawMessage(Message):
         "correction": POSE,
         "keyframe_seqs": array("<i8"),
         "keyframe_poses": array("<f8"),
-        "stamps_s": array("<f8"),
-        "poses": array("<f8"),
+        **PATH,
     }
     robot_id: str
     seq: int
@@ -207,8 +207,7 @@ class ResumeMessage(Message):
         "robot_id": TEXT,
         "revision": INT,
         "map_npz": BLOB,
-        "stamps_s": array("<f8"),
-        "poses": array("<f8"),
+        **PATH,
         "keyframes": optional(
             FieldCodec(
                 KeyframesMessage.to_fields,

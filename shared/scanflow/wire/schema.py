@@ -47,6 +47,10 @@ def array(dtype: str) -> FieldCodec:
     )
 
 
+# A robot's path, `poses[i]` (x, y, theta) at `stamps_s[i]` (checked by base.check_path).
+PATH: Schema = {"stamps_s": array("<f8"), "poses": array("<f8")}
+
+
 def optional(codec: FieldCodec) -> FieldCodec:
     """`codec`, or nil for None (the key itself must still be present)."""
     return FieldCodec(
