@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from scanflow.config import BackendSettings
 from scanflow.frontend.acceptance import AcceptanceLimits, rejection_reason
-from scanflow.frontend.tracker import insert_scan
+from scanflow.frontend.tracker import scan_rays
 from scanflow.geometry import Pose2D, compose_arrays
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
@@ -59,10 +59,13 @@ def draw_keyframes(
 ) -> MatchingMap:
     """A new map of `nodes` inserted at `poses` (rows x, y, theta), free space included: a
     candidate's submap, and the back end's whole map."""
-    drawn = MatchingMap(OccupancyGrid(params))
-    for node, pose in zip(nodes, poses, strict=True):
-        insert_scan(drawn, node.points, Pose2D.from_array(pose), node.no_return, node.mount)
-    return drawn
+    grid = OccupancyGrid(params)
+    grid.insert_scans([
+        scan_rays(node.points, Pose2D.from_array(pose), params.max_range_m, node.no_return,
+                  node.mount)
+        for node, pose in zip(nodes, poses, strict=True)
+    ])
+    return MatchingMap(grid)
 
 
 def loop_candidates(

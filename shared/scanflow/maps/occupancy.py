@@ -22,7 +22,9 @@ sub-cell accuracy. Sums and count are halved when the count would pass 255, whic
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -115,6 +117,15 @@ class InsertResult:
     def means_changed(self) -> CellBox | None:
         """Bounding box of the occupied cells that got new hits (None: none did)."""
         return CellBox.around(self.means_cells) if len(self.means_cells) else None
+
+
+class ScanRays(NamedTuple):
+    """One scan's beams in world coordinates: the sensor's position (2,), the (N, 2) points
+    its beams hit and the (M, 2) ends of beams that saw nothing (None: no such beams)."""
+
+    origin: ArrayLike
+    hits: ArrayLike
+    misses: ArrayLike | None = None
 
 
 def _as_points(name: str, value: ArrayLike) -> NDArray[np.float64]:
@@ -254,6 +265,30 @@ def _visit(  # type: ignore[no-untyped-def]
     log_odds[r, c] = value
     observed[r, c] = True
     return before != (value > threshold)
+
+
+@njit(cache=True, nogil=True)
+def _insert_many(  # type: ignore[no-untyped-def]
+    log_odds, observed, hit_xy, hit_n, origins, hits, hit_starts, misses, miss_starts, units,
+    miss_lo, hit_lo, lo_min, lo_max, threshold,
+):
+    """`_update_cells` then `_accumulate_hits` for each scan in turn, in storage cells: scan
+    s has origins[s], hits[hit_starts[s]:hit_starts[s + 1]] and likewise misses."""
+    box = np.empty(4, dtype=np.int64)
+    for s in range(origins.shape[0]):
+        h = hits[hit_starts[s]:hit_starts[s + 1]]
+        m = misses[miss_starts[s]:miss_starts[s + 1]]
+        box[0], box[1] = origins[s, 0], origins[s, 1]
+        box[2], box[3] = origins[s, 0], origins[s, 1]
+        for ends in (h, m):
+            for i in range(ends.shape[0]):
+                box[0], box[1] = min(box[0], ends[i, 0]), min(box[1], ends[i, 1])
+                box[2], box[3] = max(box[2], ends[i, 0]), max(box[3], ends[i, 1])
+        box[2] += 1
+        box[3] += 1
+        _update_cells(log_odds, observed, box, origins[s], h, m, miss_lo, hit_lo, lo_min,
+                      lo_max, threshold)
+        _accumulate_hits(hit_xy, hit_n, h[:, 0], h[:, 1], units[hit_starts[s]:hit_starts[s + 1]])
 
 
 @njit(cache=True)
@@ -572,6 +607,32 @@ class OccupancyGrid:
         scale = np.minimum(1.0, self.params.no_return_clear_m / np.maximum(length, 1e-12))
         return origin + delta * scale[:, None]
 
+    def _checked_rays(
+        self, scan: ScanRays, names: tuple[str, str, str]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """(origin (1, 2), hits, misses) as float arrays; raises naming the field (`names`)
+        for a non-finite or misshapen array or a hit beyond max range."""
+        origin = _as_points(names[0], np.asarray(scan.origin, dtype=np.float64)[None, :])
+        hits = _as_points(names[1], scan.hits)
+        misses = np.empty((0, 2)) if scan.misses is None else _as_points(names[2], scan.misses)
+        ranges_m = np.hypot(*(hits - origin).T)
+        too_far = ranges_m > self.params.max_range_m
+        if too_far.any():
+            raise ValueError(
+                f"{names[1]} range {ranges_m[too_far][0]:.3f} m exceeds "
+                f"max_range_m {self.params.max_range_m} m"
+            )
+        return origin, hits, misses
+
+    def _sensor_model(self) -> tuple[np.float32, ...]:
+        """The kernels' float32 constants: miss and hit log-odds, clamps, occupied threshold."""
+        p = self.params
+        return tuple(
+            np.float32(v)
+            for v in (p.miss_log_odds, p.hit_log_odds, p.log_odds_min, p.log_odds_max,
+                      p.threshold_log_odds())
+        )
+
     def insert_scan(
         self,
         points_world: ArrayLike,
@@ -584,20 +645,10 @@ class OccupancyGrid:
         clear free space up to `params.no_return_clear_m` only (that last cell included).
         Invalid input raises before the grid changes.
         """
-        hits = _as_points("points_world", points_world)
-        origin = _as_points("sensor_origin", np.asarray(sensor_origin, dtype=np.float64)[None, :])
-        misses = (
-            np.empty((0, 2))
-            if no_return_endpoints is None
-            else _as_points("no_return_endpoints", no_return_endpoints)
+        origin, hits, misses = self._checked_rays(
+            ScanRays(sensor_origin, points_world, no_return_endpoints),
+            ("sensor_origin", "points_world", "no_return_endpoints"),
         )
-        ranges_m = np.hypot(*(hits - origin).T)
-        too_far = ranges_m > self.params.max_range_m
-        if too_far.any():
-            raise ValueError(
-                f"points_world range {ranges_m[too_far][0]:.3f} m exceeds "
-                f"max_range_m {self.params.max_range_m} m"
-            )
         if hits.shape[0] == 0 and misses.shape[0] == 0:
             return InsertResult(None)
 
@@ -610,7 +661,7 @@ class OccupancyGrid:
 
         corner = np.array([storage.row0, storage.col0])
         stored_hits = hit_cells - corner
-        threshold = np.float32(self.params.threshold_log_odds())
+        model = self._sensor_model()
         flipped = _update_cells(
             self._log_odds,
             self._observed,
@@ -618,24 +669,56 @@ class OccupancyGrid:
             origin_cell[0] - corner,
             stored_hits,
             miss_ends - corner,
-            np.float32(self.params.miss_log_odds),
-            np.float32(self.params.hit_log_odds),
-            np.float32(self.params.log_odds_min),
-            np.float32(self.params.log_odds_max),
-            threshold,
+            *model,
         )
-        self._add_hits(hits, hit_cells, storage)
+        rows, cols = stored_hits.T
+        _accumulate_hits(self._hit_xy, self._hit_n, rows, cols, self._hit_units(hits, hit_cells))
 
         self._extent = box.union(self._extent)
         self.revision += 1
-        rows, cols = stored_hits.T
-        moved = self._observed[rows, cols] & (self._log_odds[rows, cols] > threshold)
+        moved = self._observed[rows, cols] & (self._log_odds[rows, cols] > model[-1])
         return InsertResult(box, flipped + corner, hit_cells[moved])
 
-    def _add_hits(
-        self, hits: NDArray[np.float64], hit_cells: NDArray[np.int64], storage: CellBox
-    ) -> None:
-        """Accumulate each endpoint's offset inside its cell (see the module docstring)."""
+    def insert_scans(self, scans: Sequence[ScanRays]) -> CellBox | None:
+        """`insert_scan` of each scan in turn, to the same map bit for bit, in one compiled
+        pass: a redraw of many keyframes pays numpy's per-call costs once, not per scan.
+        Returns the box of every cell updated (None: none). Invalid input raises, naming the
+        scan, before the grid changes."""
+        checked = [
+            self._checked_rays(scan, (f"scans[{i}].origin", f"scans[{i}].hits",
+                                      f"scans[{i}].misses"))
+            for i, scan in enumerate(scans)
+        ]
+        checked = [c for c in checked if c[1].shape[0] or c[2].shape[0]]
+        if not checked:
+            return None
+        origins = np.concatenate([origin for origin, _, _ in checked])
+        hits = np.concatenate([h for _, h, _ in checked])
+        hit_starts = np.cumsum([0] + [h.shape[0] for _, h, _ in checked])
+        miss_counts = [m.shape[0] for _, _, m in checked]
+        miss_starts = np.cumsum([0, *miss_counts])
+        misses = self._clipped_no_return(
+            np.repeat(origins, miss_counts, axis=0), np.concatenate([m for _, _, m in checked])
+        )
+        origin_cells = self.world_to_cells(origins)
+        hit_cells = self.world_to_cells(hits)
+        miss_ends = self.world_to_cells(misses)
+        box = CellBox.around(np.concatenate((origin_cells, hit_cells, miss_ends)))
+        storage = self._reserve(box)
+        corner = np.array([storage.row0, storage.col0])
+        _insert_many(
+            self._log_odds, self._observed, self._hit_xy, self._hit_n,
+            origin_cells - corner, hit_cells - corner, hit_starts, miss_ends - corner,
+            miss_starts, self._hit_units(hits, hit_cells), *self._sensor_model(),
+        )
+        self._extent = box.union(self._extent)
+        self.revision += len(checked)
+        return box
+
+    def _hit_units(
+        self, hits: NDArray[np.float64], hit_cells: NDArray[np.int64]
+    ) -> NDArray[np.uint16]:
+        """Each endpoint's (x, y) offset inside its cell in 1/256 (see the module docstring)."""
         offset = np.column_stack(
             (
                 (hits[:, 0] - self.anchor_x_m) / self.resolution_m - hit_cells[:, 1],
@@ -643,10 +726,4 @@ class OccupancyGrid:
             )
         )
         units = np.clip(np.floor(offset * HIT_UNITS_PER_CELL), 0, HIT_UNITS_PER_CELL - 1)
-        _accumulate_hits(
-            self._hit_xy,
-            self._hit_n,
-            hit_cells[:, 0] - storage.row0,
-            hit_cells[:, 1] - storage.col0,
-            units.astype(np.uint16),
-        )
+        return units.astype(np.uint16)

@@ -5,10 +5,19 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scanflow.backend.loops import LoopClosure, LoopDetector, ScanNode, loop_candidates
+from scanflow.backend.loops import (
+    LoopClosure,
+    LoopDetector,
+    ScanNode,
+    draw_keyframes,
+    loop_candidates,
+)
 from scanflow.config import BackendSettings
 from scanflow.frontend import default_settings, occupancy_params
+from scanflow.frontend.tracker import insert_scan
 from scanflow.geometry import IDENTITY, Pose2D
+from scanflow.maps.matching_map import MatchingMap
+from scanflow.maps.occupancy import OccupancyGrid
 
 SETTINGS = BackendSettings.model_construct(loop_closure=True)
 
@@ -87,3 +96,27 @@ def test_submaps_are_cached_until_forgotten(drive) -> None:  # type: ignore[no-u
     assert detector.submap(nodes, drive.truth, 10) is first
     detector.forget_submaps()
     assert detector.submap(nodes, drive.truth, 10) is not first
+
+
+def test_keyframes_are_drawn_as_the_front_end_inserts_them_bit_for_bit(drive) -> None:  # type: ignore[no-untyped-def]
+    """A redraw (all keyframes in one pass) equals the front end's inserts one at a time:
+    sensor mounts, no-return beams and returns beyond the map's range included."""
+    params = occupancy_params(default_settings())
+    rng = np.random.default_rng(5)
+    nodes = []
+    for i, scan in enumerate(drive.scans[:40]):
+        far = scan[:5] * (params.max_range_m + 1.0) / np.hypot(*scan[:5].T)[:, None]
+        misses = scan[5:9] * 3.0 if i % 3 else np.zeros((0, 2))
+        mount = Pose2D(0.1 * (i % 2), -0.05, 0.02 * i)
+        nodes.append(ScanNode(0.1 * i, np.vstack((scan, far)), misses, mount))
+    poses = drive.drifted[:40] + rng.normal(0.0, 0.01, (40, 3))
+    one_at_a_time = MatchingMap(OccupancyGrid(params))
+    for node, pose in zip(nodes, poses, strict=True):
+        insert_scan(one_at_a_time, node.points, Pose2D.from_array(pose), node.no_return,
+                    node.mount)
+    drawn = draw_keyframes(nodes, poses, params).grid
+    want = one_at_a_time.grid
+    assert drawn.extent == want.extent and drawn.revision == want.revision
+    assert drawn.log_odds.tobytes() == want.log_odds.tobytes()
+    assert drawn.observed.tobytes() == want.observed.tobytes()
+    assert drawn.hit_sums.tobytes() == want.hit_sums.tobytes()

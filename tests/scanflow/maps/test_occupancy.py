@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scanflow.maps.grid import CellBox
-from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams, _update_cells
+from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams, ScanRays, _update_cells
 from scanflow.maps.raycast import ray_length, trace_ray
 
 
@@ -237,6 +237,62 @@ def test_bad_input_raises_and_leaves_the_grid_unchanged():
         grid.insert_scan(np.zeros((3, 3)), (0.0, 0.0))
     assert grid.revision == 1
     np.testing.assert_array_equal(grid.log_odds, before)
+
+
+def grid_state(grid: OccupancyGrid) -> tuple:
+    """Everything a map holds: extent, revision, log-odds bits, observed cells, hit sums."""
+    return (grid.extent, grid.revision, grid.log_odds.tobytes(), grid.observed.tobytes(),
+            grid.hit_sums.tobytes())
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    scans=st.lists(
+        st.tuples(
+            st.floats(-4, 4), st.floats(-4, 4), st.floats(0.05, 3.0), st.integers(0, 50),
+            st.integers(0, 8), st.floats(0.1, 12.0),
+        ),
+        max_size=8,
+    ),
+    p_hit=st.floats(0.55, 0.95),
+)
+def test_scans_inserted_together_give_the_map_of_one_at_a_time_bit_for_bit(scans, p_hit):
+    """Rings of hits (repeated, so cells saturate their clamps and hit counts), no-return
+    beams of any length (clipped or not), empty scans, on a grid that already holds a map."""
+    params = OccupancyParams(p_hit=p_hit, log_odds_max=1.0, no_return_clear_m=2.0)
+    one, batch = OccupancyGrid(params, initial_capacity_cells=2), OccupancyGrid(params)
+    first = ring((0.3, -0.2), 1.5, 30)
+    for grid in (one, batch):
+        grid.insert_scan(first, (0.3, -0.2))
+    rays = []
+    for x, y, radius, beams, n_misses, miss_m in scans:
+        angles = np.linspace(0.0, 2.0 * math.pi, n_misses, endpoint=False) + 0.3
+        misses = np.column_stack((x + miss_m * np.cos(angles), y + miss_m * np.sin(angles)))
+        hits = np.repeat(ring((x, y), radius, beams), 3, axis=0) if beams else np.zeros((0, 2))
+        rays.append(ScanRays((x, y), hits, misses if n_misses else None))
+        one.insert_scan(hits, (x, y), misses if n_misses else None)
+    box = batch.insert_scans(rays)
+    assert grid_state(batch) == grid_state(one)
+    touched = [r for r in rays if len(r.hits) or r.misses is not None]
+    assert (box is None) == (not touched)
+
+
+def test_scans_inserted_together_raise_naming_the_scan_and_change_nothing():
+    grid = OccupancyGrid()
+    grid.insert_scan(ring((0.0, 0.0), 2.0), (0.0, 0.0))
+    before = grid_state(grid)
+    good = ScanRays((0.0, 0.0), ring((0.0, 0.0), 1.0))
+    with pytest.raises(ValueError, match=r"scans\[1\].hits has 1 non-finite"):
+        grid.insert_scans([good, ScanRays((0.0, 0.0), [[1.0, np.nan]])])
+    with pytest.raises(ValueError, match=r"scans\[2\].hits range .* exceeds max_range_m"):
+        grid.insert_scans([good, good, ScanRays((0.0, 0.0), [[1e6, 0.0]])])
+    with pytest.raises(ValueError, match=r"scans\[0\].origin"):
+        grid.insert_scans([ScanRays((np.inf, 0.0), [[1.0, 0.0]])])
+    with pytest.raises(ValueError, match=r"scans\[1\].misses must have shape"):
+        grid.insert_scans([good, ScanRays((0.0, 0.0), [[1.0, 0.0]], np.zeros((2, 3)))])
+    assert grid_state(grid) == before
+    assert grid.insert_scans([]) is None
+    assert grid_state(grid) == before
 
 
 def test_views_are_read_only():
