@@ -23,10 +23,9 @@ from numpy.typing import NDArray
 
 from scanflow.config import BackendSettings
 from scanflow.frontend.acceptance import AcceptanceLimits, rejection_reason
-from scanflow.frontend.tracker import scan_rays
 from scanflow.geometry import Pose2D, compose_arrays
 from scanflow.maps.matching_map import MatchingMap
-from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
+from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams, RayBatch
 from scanflow.matching import match
 
 SUBMAPS_KEPT = 64  # candidate submaps cached between keyframes (a few MB)
@@ -54,17 +53,50 @@ class LoopClosure:
     rival_ratio: float  # best distinct rival's search score / the best's (0: none)
 
 
+def keyframe_rays(
+    nodes: list[ScanNode], poses: NDArray[np.float64], max_range_m: float
+) -> RayBatch:
+    """Every keyframe's beams in the map, at its pose (rows x, y, theta): the floats the front
+    end's `insert_scan` computes for each, with numpy called once for all of them."""
+    placed = [Pose2D.from_array(pose) for pose in poses]
+    sensors = [pose * node.mount for pose, node in zip(placed, nodes, strict=True)]
+    mounts = np.array([(n.mount.x, n.mount.y) for n in nodes], dtype=np.float64).reshape(-1, 2)
+    frames = np.array(
+        [(math.cos(p.theta), math.sin(p.theta), p.x, p.y) for p in placed], dtype=np.float64
+    ).reshape(-1, 4)
+
+    def in_map(
+        arrays: list[NDArray[np.float64]], reach_m: float
+    ) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+        """The finite points (robot frame) within `reach_m` of their sensor, in the map."""
+        points = np.concatenate([np.zeros((0, 2)), *(a.reshape(-1, 2) for a in arrays)])
+        owner = np.repeat(np.arange(len(arrays)), [a.size // 2 for a in arrays])
+        keep = np.isfinite(points).all(axis=1)
+        if math.isfinite(reach_m):
+            m = mounts[owner]
+            keep &= np.hypot(points[:, 0] - m[:, 0], points[:, 1] - m[:, 1]) <= reach_m
+        points, owner = points[keep], owner[keep]
+        c, s, x, y = frames[owner].T
+        world = np.empty_like(points)
+        world[:, 0] = c * points[:, 0] - s * points[:, 1] + x  # as Pose2D.transform_points
+        world[:, 1] = s * points[:, 0] + c * points[:, 1] + y
+        starts = np.searchsorted(owner, np.arange(len(arrays) + 1))
+        return world, starts
+
+    hits, hit_starts = in_map([n.points for n in nodes], max_range_m)
+    misses, miss_starts = in_map([n.no_return for n in nodes], math.inf)
+    origins = np.array([(p.x, p.y) for p in sensors], dtype=np.float64).reshape(-1, 2)
+    return RayBatch(origins, hits, hit_starts, misses, miss_starts)
+
+
 def draw_keyframes(
     nodes: list[ScanNode], poses: NDArray[np.float64], params: OccupancyParams
 ) -> MatchingMap:
     """A new map of `nodes` inserted at `poses` (rows x, y, theta), free space included: a
-    candidate's submap, and the back end's whole map."""
+    candidate's submap, and the back end's whole map. The same map, bit for bit, as the front
+    end's inserts of the same scans one at a time."""
     grid = OccupancyGrid(params)
-    grid.insert_scans([
-        scan_rays(node.points, Pose2D.from_array(pose), params.max_range_m, node.no_return,
-                  node.mount)
-        for node, pose in zip(nodes, poses, strict=True)
-    ])
+    grid.insert_scans(keyframe_rays(nodes, poses, params.max_range_m))
     return MatchingMap(grid)
 
 

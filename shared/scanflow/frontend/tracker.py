@@ -45,7 +45,7 @@ from scanflow.frontend.prediction import MotionPredictor, Prediction
 from scanflow.frontend.trajectory import TrajectoryStore
 from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.maps.matching_map import MatchingMap
-from scanflow.maps.occupancy import InsertResult, OccupancyGrid, OccupancyParams, ScanRays
+from scanflow.maps.occupancy import InsertResult, OccupancyGrid, OccupancyParams
 from scanflow.matching import MatchResult, match
 from scanflow.matching.api import as_points
 from scanflow.matching.global_search import localise_globally
@@ -114,27 +114,6 @@ class _Step:
     match_time_s: float = 0.0
 
 
-def scan_rays(
-    points_m: ArrayLike,
-    pose: Pose2D,
-    max_range_m: float,
-    no_return_m: ArrayLike | None = None,
-    mount: Pose2D = IDENTITY,
-) -> ScanRays:
-    """A scan's beams in the map: its endpoints (robot frame) within `max_range_m` of the
-    sensor and its no-return beam ends, the robot at `pose` (T_map_base), the sensor at `mount`
-    on it."""
-    points = as_points(points_m, "points_m")
-    reach = np.hypot(points[:, 0] - mount.x, points[:, 1] - mount.y)
-    misses = None
-    if no_return_m is not None:
-        misses = pose.transform_points(as_points(no_return_m, "no_return_m"))
-    origin = pose * mount
-    return ScanRays(
-        (origin.x, origin.y), pose.transform_points(points[reach <= max_range_m]), misses
-    )
-
-
 def insert_scan(
     matching_map: MatchingMap,
     points_m: ArrayLike,
@@ -142,10 +121,20 @@ def insert_scan(
     no_return_m: ArrayLike | None = None,
     mount: Pose2D = IDENTITY,
 ) -> InsertResult:
-    """Insert a scan (`scan_rays`) and clear along its no-return beams (up to the grid's
-    no_return_clear_m): the one insertion the front end and the map server both use."""
-    rays = scan_rays(points_m, pose, matching_map.grid.params.max_range_m, no_return_m, mount)
-    return matching_map.update(rays.hits, rays.origin, no_return_endpoints=rays.misses)
+    """Insert a scan's endpoints (robot frame) within the grid's max range of the sensor, and
+    clear along its no-return beams (up to the grid's no_return_clear_m), the robot at `pose`
+    (T_map_base) and the sensor at `mount` on it: the one insertion the front end and the map
+    server both use."""
+    points = as_points(points_m, "points_m")
+    reach = np.hypot(points[:, 0] - mount.x, points[:, 1] - mount.y)
+    in_range = reach <= matching_map.grid.params.max_range_m
+    misses = None
+    if no_return_m is not None:
+        misses = pose.transform_points(as_points(no_return_m, "no_return_m"))
+    origin = pose * mount
+    return matching_map.update(
+        pose.transform_points(points[in_range]), (origin.x, origin.y), no_return_endpoints=misses
+    )
 
 
 def default_settings() -> FrontendSettings:

@@ -128,10 +128,73 @@ class ScanRays(NamedTuple):
     misses: ArrayLike | None = None
 
 
-def _as_points(name: str, value: ArrayLike) -> NDArray[np.float64]:
+@dataclass(frozen=True, eq=False)
+class RayBatch:
+    """Many scans' beams, for `OccupancyGrid.insert_scans`: scan s has `origins[s]`, the hits
+    `hits[hit_starts[s]:hit_starts[s + 1]]` and the no-return ends `misses[miss_starts[s]:
+    miss_starts[s + 1]]` (world coordinates)."""
+
+    origins: NDArray[np.float64]  # (S, 2)
+    hits: NDArray[np.float64]  # (H, 2)
+    hit_starts: NDArray[np.int64]  # (S + 1,)
+    misses: NDArray[np.float64]  # (M, 2)
+    miss_starts: NDArray[np.int64]  # (S + 1,)
+
+    def __post_init__(self) -> None:
+        for name in ("origins", "hits", "misses"):
+            object.__setattr__(self, name, np.ascontiguousarray(_shaped(name, getattr(self, name))))
+        scans = self.origins.shape[0]
+        for name, rows in (("hit_starts", self.hits.shape[0]),
+                           ("miss_starts", self.misses.shape[0])):
+            s = np.ascontiguousarray(getattr(self, name), dtype=np.int64)
+            object.__setattr__(self, name, s)
+            if (s.shape != (scans + 1,) or s[0] != 0 or s[-1] != rows
+                    or (np.diff(s) < 0).any()):
+                raise ValueError(
+                    f"{name} must rise from 0 to {rows} in {scans + 1} steps, got "
+                    f"{s.tolist()[:8]}"
+                )
+
+    @staticmethod
+    def of(scans: Sequence[ScanRays]) -> RayBatch:
+        """The batch of `scans` (shapes checked, naming the scan)."""
+        origins, hits, misses = [], [], []
+        for i, scan in enumerate(scans):
+            origin = np.asarray(scan.origin, dtype=np.float64)
+            if origin.shape != (2,):
+                raise ValueError(f"scans[{i}].origin must have shape (2,), got {origin.shape}")
+            origins.append(origin)
+            hits.append(_shaped(f"scans[{i}].hits", scan.hits))
+            misses.append(_shaped(f"scans[{i}].misses", np.zeros((0, 2)) if scan.misses is None
+                                  else scan.misses))
+        return RayBatch(
+            np.array(origins, dtype=np.float64).reshape(-1, 2),
+            np.concatenate([np.zeros((0, 2)), *hits]),
+            np.cumsum([0] + [len(h) for h in hits]),
+            np.concatenate([np.zeros((0, 2)), *misses]),
+            np.cumsum([0] + [len(m) for m in misses]),
+        )
+
+    def first_bad(self, name: str, rows: NDArray[np.bool_]) -> str:
+        """Where the first flagged row of `name` ("origins", "hits" or "misses") is, as
+        `scans[s].<name> row r <value>`, for an error message."""
+        row = int(np.flatnonzero(rows)[0])
+        if name == "origins":
+            return f"scans[{row}].origin {getattr(self, name)[row]}"
+        starts = self.hit_starts if name == "hits" else self.miss_starts
+        scan = int(np.searchsorted(starts, row, side="right")) - 1
+        return f"scans[{scan}].{name} row {row - starts[scan]} {getattr(self, name)[row]}"
+
+
+def _shaped(name: str, value: ArrayLike) -> NDArray[np.float64]:
     p = np.asarray(value, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 2:
         raise ValueError(f"{name} must have shape (N, 2), got {p.shape}")
+    return p
+
+
+def _as_points(name: str, value: ArrayLike) -> NDArray[np.float64]:
+    p = _shaped(name, value)
     bad = ~np.isfinite(p).all(axis=1)
     if bad.any():
         raise ValueError(f"{name} has {int(bad.sum())} non-finite rows, first {p[bad][0]}")
@@ -278,6 +341,8 @@ def _insert_many(  # type: ignore[no-untyped-def]
     for s in range(origins.shape[0]):
         h = hits[hit_starts[s]:hit_starts[s + 1]]
         m = misses[miss_starts[s]:miss_starts[s + 1]]
+        if h.shape[0] == 0 and m.shape[0] == 0:
+            continue
         box[0], box[1] = origins[s, 0], origins[s, 1]
         box[2], box[3] = origins[s, 0], origins[s, 1]
         for ends in (h, m):
@@ -679,40 +744,41 @@ class OccupancyGrid:
         moved = self._observed[rows, cols] & (self._log_odds[rows, cols] > model[-1])
         return InsertResult(box, flipped + corner, hit_cells[moved])
 
-    def insert_scans(self, scans: Sequence[ScanRays]) -> CellBox | None:
-        """`insert_scan` of each scan in turn, to the same map bit for bit, in one compiled
-        pass: a redraw of many keyframes pays numpy's per-call costs once, not per scan.
-        Returns the box of every cell updated (None: none). Invalid input raises, naming the
-        scan, before the grid changes."""
-        checked = [
-            self._checked_rays(scan, (f"scans[{i}].origin", f"scans[{i}].hits",
-                                      f"scans[{i}].misses"))
-            for i, scan in enumerate(scans)
-        ]
-        checked = [c for c in checked if c[1].shape[0] or c[2].shape[0]]
-        if not checked:
+    def insert_scans(self, batch: RayBatch) -> CellBox | None:
+        """`insert_scan` of each scan of `batch` in turn, to the same map bit for bit, in one
+        compiled pass: a redraw of many keyframes pays numpy's per-call costs once, not per
+        scan. Returns the box of every cell updated (None: none). Invalid input raises, naming
+        the scan, before the grid changes."""
+        b = batch
+        for name in ("origins", "hits", "misses"):
+            bad = ~np.isfinite(getattr(b, name)).all(axis=1)
+            if bad.any():
+                raise ValueError(f"{b.first_bad(name, bad)} is not finite")
+        hit_counts, miss_counts = np.diff(b.hit_starts), np.diff(b.miss_starts)
+        ranges_m = np.hypot(*(b.hits - np.repeat(b.origins, hit_counts, axis=0)).T)
+        too_far = ranges_m > self.params.max_range_m
+        if too_far.any():
+            raise ValueError(
+                f"{b.first_bad('hits', too_far)}: range {ranges_m[too_far][0]:.3f} m exceeds "
+                f"max_range_m {self.params.max_range_m} m"
+            )
+        used = (hit_counts > 0) | (miss_counts > 0)
+        if not used.any():
             return None
-        origins = np.concatenate([origin for origin, _, _ in checked])
-        hits = np.concatenate([h for _, h, _ in checked])
-        hit_starts = np.cumsum([0] + [h.shape[0] for _, h, _ in checked])
-        miss_counts = [m.shape[0] for _, _, m in checked]
-        miss_starts = np.cumsum([0, *miss_counts])
-        misses = self._clipped_no_return(
-            np.repeat(origins, miss_counts, axis=0), np.concatenate([m for _, _, m in checked])
-        )
-        origin_cells = self.world_to_cells(origins)
-        hit_cells = self.world_to_cells(hits)
+        misses = self._clipped_no_return(np.repeat(b.origins, miss_counts, axis=0), b.misses)
+        origin_cells = self.world_to_cells(b.origins)
+        hit_cells = self.world_to_cells(b.hits)
         miss_ends = self.world_to_cells(misses)
-        box = CellBox.around(np.concatenate((origin_cells, hit_cells, miss_ends)))
+        box = CellBox.around(np.concatenate((origin_cells[used], hit_cells, miss_ends)))
         storage = self._reserve(box)
         corner = np.array([storage.row0, storage.col0])
         _insert_many(
             self._log_odds, self._observed, self._hit_xy, self._hit_n,
-            origin_cells - corner, hit_cells - corner, hit_starts, miss_ends - corner,
-            miss_starts, self._hit_units(hits, hit_cells), *self._sensor_model(),
+            origin_cells - corner, hit_cells - corner, b.hit_starts, miss_ends - corner,
+            b.miss_starts, self._hit_units(b.hits, hit_cells), *self._sensor_model(),
         )
         self._extent = box.union(self._extent)
-        self.revision += len(checked)
+        self.revision += int(np.count_nonzero(used))
         return box
 
     def _hit_units(

@@ -10,6 +10,7 @@ from scanflow.backend.loops import (
     LoopDetector,
     ScanNode,
     draw_keyframes,
+    keyframe_rays,
     loop_candidates,
 )
 from scanflow.config import BackendSettings
@@ -100,20 +101,32 @@ def test_submaps_are_cached_until_forgotten(drive) -> None:  # type: ignore[no-u
 
 def test_keyframes_are_drawn_as_the_front_end_inserts_them_bit_for_bit(drive) -> None:  # type: ignore[no-untyped-def]
     """A redraw (all keyframes in one pass) equals the front end's inserts one at a time:
-    sensor mounts, no-return beams and returns beyond the map's range included."""
+    sensor mounts, no-return beams, returns beyond the map's range and NaN rows (dropped)
+    included."""
     params = occupancy_params(default_settings())
     rng = np.random.default_rng(5)
     nodes = []
     for i, scan in enumerate(drive.scans[:40]):
         far = scan[:5] * (params.max_range_m + 1.0) / np.hypot(*scan[:5].T)[:, None]
-        misses = scan[5:9] * 3.0 if i % 3 else np.zeros((0, 2))
+        misses = np.vstack((scan[5:9] * 3.0, np.full((i % 2, 2), np.nan))) if i % 3 else None
         mount = Pose2D(0.1 * (i % 2), -0.05, 0.02 * i)
-        nodes.append(ScanNode(0.1 * i, np.vstack((scan, far)), misses, mount))
+        points = np.vstack((scan, far, np.full((i % 2, 2), np.nan)))
+        nodes.append(ScanNode(0.1 * i, points, np.zeros((0, 2)) if misses is None else misses,
+                              mount))
     poses = drive.drifted[:40] + rng.normal(0.0, 0.01, (40, 3))
     one_at_a_time = MatchingMap(OccupancyGrid(params))
     for node, pose in zip(nodes, poses, strict=True):
         insert_scan(one_at_a_time, node.points, Pose2D.from_array(pose), node.no_return,
                     node.mount)
+    rays = keyframe_rays(nodes, poses, params.max_range_m)
+    for k, (node, pose) in enumerate(zip(nodes, poses, strict=True)):
+        at = Pose2D.from_array(pose)
+        reach = np.hypot(node.points[:, 0] - node.mount.x, node.points[:, 1] - node.mount.y)
+        hits = rays.hits[rays.hit_starts[k]:rays.hit_starts[k + 1]]
+        assert hits.tobytes() == at.transform_points(node.points[reach <= params.max_range_m]).tobytes()
+        finite = np.isfinite(node.no_return).all(axis=1)
+        misses = rays.misses[rays.miss_starts[k]:rays.miss_starts[k + 1]]
+        assert misses.tobytes() == at.transform_points(node.no_return[finite]).tobytes()
     drawn = draw_keyframes(nodes, poses, params).grid
     want = one_at_a_time.grid
     assert drawn.extent == want.extent and drawn.revision == want.revision

@@ -8,7 +8,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scanflow.maps.grid import CellBox
-from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams, ScanRays, _update_cells
+from scanflow.maps.occupancy import (
+    OccupancyGrid,
+    OccupancyParams,
+    RayBatch,
+    ScanRays,
+    _update_cells,
+)
 from scanflow.maps.raycast import ray_length, trace_ray
 
 
@@ -271,7 +277,7 @@ def test_scans_inserted_together_give_the_map_of_one_at_a_time_bit_for_bit(scans
         hits = np.repeat(ring((x, y), radius, beams), 3, axis=0) if beams else np.zeros((0, 2))
         rays.append(ScanRays((x, y), hits, misses if n_misses else None))
         one.insert_scan(hits, (x, y), misses if n_misses else None)
-    box = batch.insert_scans(rays)
+    box = batch.insert_scans(RayBatch.of(rays))
     assert grid_state(batch) == grid_state(one)
     touched = [r for r in rays if len(r.hits) or r.misses is not None]
     assert (box is None) == (not touched)
@@ -282,16 +288,27 @@ def test_scans_inserted_together_raise_naming_the_scan_and_change_nothing():
     grid.insert_scan(ring((0.0, 0.0), 2.0), (0.0, 0.0))
     before = grid_state(grid)
     good = ScanRays((0.0, 0.0), ring((0.0, 0.0), 1.0))
-    with pytest.raises(ValueError, match=r"scans\[1\].hits has 1 non-finite"):
-        grid.insert_scans([good, ScanRays((0.0, 0.0), [[1.0, np.nan]])])
-    with pytest.raises(ValueError, match=r"scans\[2\].hits range .* exceeds max_range_m"):
-        grid.insert_scans([good, good, ScanRays((0.0, 0.0), [[1e6, 0.0]])])
-    with pytest.raises(ValueError, match=r"scans\[0\].origin"):
-        grid.insert_scans([ScanRays((np.inf, 0.0), [[1.0, 0.0]])])
-    with pytest.raises(ValueError, match=r"scans\[1\].misses must have shape"):
-        grid.insert_scans([good, ScanRays((0.0, 0.0), [[1.0, 0.0]], np.zeros((2, 3)))])
+    cases = [
+        ([good, ScanRays((0.0, 0.0), [[1.0, 2.0], [1.0, np.nan]])],
+         r"scans\[1\].hits row 1 \[ 1. nan\] is not finite"),
+        ([good, good, ScanRays((0.0, 0.0), [[1e6, 0.0]])],
+         r"scans\[2\].hits row 0 .*: range 1000000.000 m exceeds max_range_m"),
+        ([good, ScanRays((0.0, 0.0), np.zeros((0, 2)), [[1.0, 0.0], [np.inf, 0.0]])],
+         r"scans\[1\].misses row 1 \[inf  0.\] is not finite"),
+        ([ScanRays((np.inf, 0.0), [[1.0, 0.0]])], r"scans\[0\].origin \[inf  0.\] is not"),
+    ]
+    for scans, message in cases:
+        with pytest.raises(ValueError, match=message):
+            grid.insert_scans(RayBatch.of(scans))
+    with pytest.raises(ValueError, match=r"scans\[1\].misses must have shape \(N, 2\)"):
+        RayBatch.of([good, ScanRays((0.0, 0.0), [[1.0, 0.0]], np.zeros((2, 3)))])
+    with pytest.raises(ValueError, match=r"scans\[0\].origin must have shape \(2,\)"):
+        RayBatch.of([ScanRays((0.0, 0.0, 1.0), [[1.0, 0.0]])])
+    with pytest.raises(ValueError, match=r"hit_starts must rise from 0 to 2 in 2 steps"):
+        RayBatch(np.zeros((1, 2)), np.ones((2, 2)), [0, 1], np.zeros((0, 2)), [0, 0])
     assert grid_state(grid) == before
-    assert grid.insert_scans([]) is None
+    assert grid.insert_scans(RayBatch.of([])) is None
+    assert grid.insert_scans(RayBatch.of([ScanRays((5.0, 5.0), np.zeros((0, 2)))])) is None
     assert grid_state(grid) == before
 
 
