@@ -120,13 +120,16 @@ def test_max_iterations(room, caster, room_map_points) -> None:
 
 @pytest.mark.parametrize("method", ["gn", "lm"])
 def test_covariance_is_calibrated(method, room, caster, room_map_points) -> None:
-    """Normalised estimation error squared averages near 3 (generous band)."""
+    """Normalised estimation error squared averages near 3 (generous band). The target is the
+    room's walls, not a scan from its origin, so the free-space check (which reads a point
+    target as a scan) does not apply: it is off here."""
     rng = np.random.default_rng(11)
     nees = []
     for _ in range(30):
         true = Pose2D(rng.uniform(-2, 2), rng.uniform(-2, 1.5), rng.uniform(-3, 3))
         scan = caster(room, true, beams=180, noise_m=0.03, rng=rng)
-        r = match(scan, room_map_points, perturbed(rng, true, 0.05, 0.03), method=method)
+        r = match(scan, room_map_points, perturbed(rng, true, 0.05, 0.03), method=method,
+                  max_free_space_share=1.0)
         assert r.ok
         e = r.pose.relative_to(true).to_array()
         nees.append(e @ np.linalg.solve(r.covariance, e))
