@@ -4,9 +4,10 @@ A simulated 40 m x 40 m building (4 x 4 rooms of 10 m with 1.2 m doors) is mappe
 a robot driving a serpentine through every row of rooms with a 360-beam, 10 m lidar, one scan
 every 0.25 m; then it drives the same path again over the mapped area (steady state).
 
-With --data LOG, also the insert time of every keyframe at its corrected pose (their sum is
-what redrawing the whole map costs the back end), and the matching views that gn, csm and NDT
-read, on that map: the per-scan refresh of the level-0 likelihood field,
+With --data LOG, also the insert time of every keyframe at its corrected pose, one at a time
+as a front end inserts them, and what redrawing all of them costs the back end after a loop
+closure (`draw_keyframes`, one pass; median of --rebuilds), and the matching views that gn,
+csm and NDT read, on that map: the per-scan refresh of the level-0 likelihood field,
 of the 3-level pyramid, of the max-pool stack, of the NDT cells and of the overlapping NDT
 cells the ndt matcher reads (its three cell sizes) while the map is small (after --small-scans
 scans) and at the end, each next to the full rebuild it replaces. The refresh should not grow
@@ -30,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
+from scanflow.backend.loops import ScanNode, draw_keyframes
 from scanflow.io.carmen import load_keyframes
 from scanflow.maps.field import LikelihoodField
 from scanflow.maps.matching_map import MatchingMap
@@ -278,9 +280,13 @@ def view_refresh(
             **rebuild_views(world, rebuilds),
         }
         samples_ms = {key: [] for key in samples_ms}
-    # Every keyframe inserted once: what a loop closure's redraw of the whole map costs.
     out["insert_ms"] = summary_ms(insert_s)
     out["inserts_total_s"] = round(sum(insert_s), 3)
+    nodes = [ScanNode(0.0, f.scan.robot_points(), np.zeros((0, 2)), f.scan.mount) for f in frames]
+    poses = np.array([f.true_pose.to_array() for f in frames])
+    redraws = [timed(lambda: draw_keyframes(nodes, poses, world.grid.params))
+               for _ in range(rebuilds)]
+    out["redraw_s"] = round(float(np.median(redraws)), 3)
     return out
 
 
@@ -315,7 +321,7 @@ def print_views(v: dict[str, object]) -> None:
     ins = v["insert_ms"]
     print(f"matching views on {v['log']} ({v['scans']} scans at the corrected poses):")
     print(f"insert p50 {ins['p50']} mean {ins['mean']} p95 {ins['p95']} ms "  # type: ignore[index]
-          f"(all {v['inserts_total_s']} s)")
+          f"(all {v['inserts_total_s']} s); all redrawn in one pass {v['redraw_s']} s")
     for name in ("small", "large"):
         w = v[name]  # type: ignore[index]
         print(
