@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import math
 
+from scanflow.backend.loops import ScanNode, draw_keyframes
+from scanflow.frontend import occupancy_params
 from scanflow.geometry import Pose2D
 from scanflow.matching import MatchInputError, available_methods, match
 from scanflow.pipeline import Pipeline, PipelineOutput
@@ -29,10 +31,11 @@ MOTION = Pose2D(0.05, -0.03, math.radians(1.0))
 
 
 def warm_up(methods: bool = False) -> int:
-    """Track a short simulated run (deskew, matching, map updates), then relocalise off its last
-    pose (the front end's fallback search on the map, refined); with `methods`, match its last
-    scan with every registered method against itself moved and against the run's map. Returns
-    the number of scans tracked."""
+    """Track a short simulated run (deskew, matching, map updates), draw its last scan as the
+    back end draws keyframes (redraws, loop-closure submaps), then relocalise off its last pose
+    (the front end's fallback search on the map, refined); with `methods`, match its last scan
+    with every registered method against itself moved and against the run's map. Returns the
+    number of scans tracked."""
     pipeline = Pipeline()
     count = 0
     last: PipelineOutput | None = None
@@ -45,6 +48,9 @@ def warm_up(methods: bool = False) -> int:
         raise RuntimeError("the warm-up run produced no scan")
     frontend = pipeline.frontend
     points, pose = last.deskew.points, frontend.pose or Pose2D()
+    node = ScanNode(last.deskew.reference_stamp_s, points, last.deskew.no_return_points,
+                    last.deskew.mount)
+    draw_keyframes([node], pose.to_array()[None, :], occupancy_params(frontend.settings))
     if frontend.settings.fallback_method:
         frontend.relocalise(points, pose * KIDNAP)
     if methods:

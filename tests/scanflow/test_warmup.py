@@ -56,9 +56,10 @@ import importlib, json, pkgutil
 from numba.core.registry import CPUDispatcher
 import scanflow
 import numpy as np
-from scanflow.frontend import Frontend, FrontendStatus, default_settings, insert_scan
-from scanflow.frontend import occupancy_params
-from scanflow.geometry import Pose2D
+from scanflow.frontend import (Frontend, FrontendStatus, default_settings, insert_scan,
+                               occupancy_params)
+from scanflow.backend.loops import ScanNode, draw_keyframes
+from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.matching import MatchInputError, available_methods, match
@@ -116,6 +117,11 @@ for out in outputs[-30:]:
         insert_scan(served, ins.points, ins.pose, ins.no_return_points)
 # A scan with one return and one no-return beam: one-ray broadcasts (read-only) in the insert.
 insert_scan(served, np.array([[1.5, 0.5]]), tracker.pose, np.array([[20.0, -3.0]]))
+# The back end's redraw and a loop-closure submap of the map server's keyframes (from the wire).
+draw_keyframes([ScanNode(ins.stamp_s, ins.points, ins.no_return_points, IDENTITY),
+                ScanNode(ins.stamp_s, ins.points[:1], np.zeros((0, 2)), Pose2D(0.1, 0, 0))],
+               np.array([ins.pose.to_array(), tracker.pose.to_array()]),
+               occupancy_params(default_settings()))
 tracker.relocalise(scan.points, tracker.pose * Pose2D(0.5, 0.3, 0.35))
 source = scan.points
 target = wire(MapInsertMessage("gap", 0, 0.0, Pose2D(), Pose2D(-0.1, 0.05, 0.03)

@@ -736,7 +736,9 @@ class OccupancyGrid:
             miss_ends - corner,
             *model,
         )
-        rows, cols = stored_hits.T
+        # Fresh contiguous columns: numba compiles a strided view apart (a one-hit scan's is
+        # also contiguous, so a view would compile twice).
+        rows, cols = stored_hits[:, 0].copy(), stored_hits[:, 1].copy()
         _accumulate_hits(self._hit_xy, self._hit_n, rows, cols, self._hit_units(hits, hit_cells))
 
         self._extent = box.union(self._extent)

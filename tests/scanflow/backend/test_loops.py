@@ -123,7 +123,8 @@ def test_keyframes_are_drawn_as_the_front_end_inserts_them_bit_for_bit(drive) ->
         at = Pose2D.from_array(pose)
         reach = np.hypot(node.points[:, 0] - node.mount.x, node.points[:, 1] - node.mount.y)
         hits = rays.hits[rays.hit_starts[k]:rays.hit_starts[k + 1]]
-        assert hits.tobytes() == at.transform_points(node.points[reach <= params.max_range_m]).tobytes()
+        want = at.transform_points(node.points[reach <= params.max_range_m])
+        assert hits.tobytes() == want.tobytes()
         finite = np.isfinite(node.no_return).all(axis=1)
         misses = rays.misses[rays.miss_starts[k]:rays.miss_starts[k + 1]]
         assert misses.tobytes() == at.transform_points(node.no_return[finite]).tobytes()
