@@ -50,7 +50,6 @@ class LoopClosure:
     measurement: Pose2D
     covariance: NDArray[np.float64]
     score: float
-    rival_ratio: float  # best distinct rival's search score / the best's (0: none)
 
 
 def keyframe_rays(
@@ -168,8 +167,9 @@ class LoopDetector:
         coarse = match(
             points, submap, guess, method="csm", linear_m=s.linear_m,
             angular_rad=math.radians(s.angular_deg), resolution_m=self.params.resolution_m,
+            # A rival under ambiguity_ratio x the best changes nothing: the search prunes it.
             candidates=2, suppress_m=s.rival_distance_m,
-            suppress_rad=math.radians(s.rival_angle_deg),
+            suppress_rad=math.radians(s.rival_angle_deg), candidate_min_ratio=s.ambiguity_ratio,
         )
         if not coarse.ok:
             return f"search: {coarse.message}"
@@ -181,4 +181,4 @@ class LoopDetector:
         reason = rejection_reason(fine, guess, self._limits)
         if reason:
             return reason
-        return LoopClosure(j, k, fine.pose, fine.covariance, fine.score, rival)
+        return LoopClosure(j, k, fine.pose, fine.covariance, fine.score)

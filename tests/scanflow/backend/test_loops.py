@@ -19,6 +19,7 @@ from scanflow.frontend.tracker import insert_scan
 from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.occupancy import OccupancyGrid
+from scanflow.sim import get_world, static_scan
 
 SETTINGS = BackendSettings.model_construct(loop_closure=True)
 
@@ -134,3 +135,19 @@ def test_keyframes_are_drawn_as_the_front_end_inserts_them_bit_for_bit(drive) ->
     assert drawn.log_odds.tobytes() == want.log_odds.tobytes()
     assert drawn.observed.tobytes() == want.observed.tobytes()
     assert drawn.hit_sums.tobytes() == want.hit_sums.tobytes()
+
+
+def test_a_corridor_with_no_end_in_view_is_ambiguous() -> None:
+    """In a corridor longer than the sensor's reach every shift along it scores alike: the
+    search finds a distinct rival within ambiguity_ratio of the best, and no closure comes."""
+    walls = get_world("corridor").segments
+    angles = np.radians(np.arange(-180.0, 180.0, 1.0))
+    truth = np.array([(x, 1.0, 0.0) for x in np.arange(14.0, 26.0, 0.4)])
+    nodes = [
+        ScanNode(0.1 * i, static_scan(walls, Pose2D.from_array(p), angles, 6.0, 0.01), np.zeros(
+            (0, 2)), IDENTITY)
+        for i, p in enumerate(truth)
+    ]
+    detector = LoopDetector(SETTINGS, occupancy_params(default_settings()))
+    found = detector.verify(nodes, truth, 10, 20)
+    assert isinstance(found, str) and found.startswith("ambiguous: a distinct pose scores"), found
