@@ -672,23 +672,6 @@ class OccupancyGrid:
         scale = np.minimum(1.0, self.params.no_return_clear_m / np.maximum(length, 1e-12))
         return origin + delta * scale[:, None]
 
-    def _checked_rays(
-        self, scan: ScanRays, names: tuple[str, str, str]
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-        """(origin (1, 2), hits, misses) as float arrays; raises naming the field (`names`)
-        for a non-finite or misshapen array or a hit beyond max range."""
-        origin = _as_points(names[0], np.asarray(scan.origin, dtype=np.float64)[None, :])
-        hits = _as_points(names[1], scan.hits)
-        misses = np.empty((0, 2)) if scan.misses is None else _as_points(names[2], scan.misses)
-        ranges_m = np.hypot(*(hits - origin).T)
-        too_far = ranges_m > self.params.max_range_m
-        if too_far.any():
-            raise ValueError(
-                f"{names[1]} range {ranges_m[too_far][0]:.3f} m exceeds "
-                f"max_range_m {self.params.max_range_m} m"
-            )
-        return origin, hits, misses
-
     def _sensor_model(self) -> tuple[np.float32, ...]:
         """The kernels' float32 constants: miss and hit log-odds, clamps, occupied threshold."""
         p = self.params
@@ -710,10 +693,20 @@ class OccupancyGrid:
         clear free space up to `params.no_return_clear_m` only (that last cell included).
         Invalid input raises before the grid changes.
         """
-        origin, hits, misses = self._checked_rays(
-            ScanRays(sensor_origin, points_world, no_return_endpoints),
-            ("sensor_origin", "points_world", "no_return_endpoints"),
+        hits = _as_points("points_world", points_world)
+        origin = _as_points("sensor_origin", np.asarray(sensor_origin, dtype=np.float64)[None, :])
+        misses = (
+            np.empty((0, 2))
+            if no_return_endpoints is None
+            else _as_points("no_return_endpoints", no_return_endpoints)
         )
+        ranges_m = np.hypot(*(hits - origin).T)
+        too_far = ranges_m > self.params.max_range_m
+        if too_far.any():
+            raise ValueError(
+                f"points_world range {ranges_m[too_far][0]:.3f} m exceeds "
+                f"max_range_m {self.params.max_range_m} m"
+            )
         if hits.shape[0] == 0 and misses.shape[0] == 0:
             return InsertResult(None)
 
