@@ -347,6 +347,12 @@ class BackendSettings(BaseSettings):
     )
     confirm_m: float = Field(0.05, gt=0.0, description="two corrections agree within this")
     confirm_deg: float = Field(0.5, gt=0.0, description="and this")
+    cull_m: float = Field(
+        0.0, ge=0.0, description="an insert the front end tracked within this of a keyframe "
+        "already drawn is not made a keyframe but hangs from that one: a parked robot, or one "
+        "going over mapped ground, adds no keyframes; 0 = every insert is a keyframe"
+    )
+    cull_deg: float = Field(10.0, gt=0.0, description="and within this heading of it")
     keyframe_std_m: float = Field(
         0.02, gt=0.0, description="std of the front end's motion between keyframes, fixed part"
     )

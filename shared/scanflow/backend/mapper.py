@@ -15,18 +15,24 @@ correction of the estimates (within `confirm_m` / `confirm_deg`): a wrong closur
 with another. After `optimise_every` keyframes with a new closure the graph is optimised, and
 when that moves a keyframe more than `redraw_shift_*` against the front end's map, the map is
 redrawn from all keyframes at their optimised poses and the front end carries on in it
-(`Frontend.redraw`). A scan that is not a keyframe keeps its pose relative to the last keyframe,
-so it follows that keyframe's correction. When the front end is put at a pose from outside (an
-operator's, `relocated()`), the motion to the next keyframe is not measured: its edge is a weak
-link that the loop closures can move. A run can be carried on from its keyframes at the poses
-they are drawn at (`SavedRun`: what a restarted matcher gets back from the map server).
+(`Frontend.redraw`). A scan that is not a keyframe keeps its pose relative to the keyframe it
+hangs from (the last one), so it follows that keyframe's correction. With `cull_m` set, an
+insert the front end tracked within `cull_m` / `cull_deg` of a keyframe already drawn is not
+made a keyframe: it and the scans after it hang from that keyframe, and the next keyframe is
+linked to it. A parked robot, or one going over ground it mapped, then adds no keyframes, so
+the graph, the redraws and the kept scans grow with the ground covered, not with the time.
+When the front end is put at a pose from outside (an operator's, `relocated()`), the motion to
+the next keyframe is not measured: its edge is a weak link that the loop closures can move. A
+run can be carried on from its keyframes at the poses they are drawn at (`SavedRun`: what a
+restarted matcher gets back from the map server).
 
-Memory: the keyframes' points (16 bytes per return) and 40 bytes per scan.
+Memory: the keyframes' points (16 bytes per return), 40 bytes per scan and 8 per culled insert.
 """
 
 from __future__ import annotations
 
 import math
+from array import array
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,9 +45,9 @@ from scanflow.backend.loops import (
     draw_keyframes,
     loop_candidates,
 )
-from scanflow.backend.pose_graph import OptimiseReport, PoseGraph
+from scanflow.backend.pose_graph import OptimiseReport, PoseGraph, grown
 from scanflow.config import BackendSettings
-from scanflow.frontend.tracker import Frontend, FrontendOutput, occupancy_params
+from scanflow.frontend.tracker import Frontend, FrontendOutput, FrontendStatus, occupancy_params
 from scanflow.geometry import IDENTITY, Pose2D, compose_arrays, normalize_angles, relative_arrays
 from scanflow.maps.matching_map import MatchingMap
 
@@ -55,6 +61,9 @@ class MapperStep:
     optimised: OptimiseReport | None = None
     # Set when the map was redrawn: T_new_old, the front end's frame change.
     correction: Pose2D | None = None
+    # Set when the front end inserted the scan but the back end culled it as a keyframe: the
+    # keyframe it hangs from.
+    culled_to: int | None = None
 
     @property
     def redrawn(self) -> bool:
@@ -112,8 +121,13 @@ class Mapper:
         self.closures: list[LoopClosure] = []
         self.detector = LoopDetector(settings, self.params)
         self._map_poses: list[Pose2D] = []  # keyframes in the front end's current map frame
+        self._drawn = np.zeros((0, 3))  # the same as an (K, 3) array (rows in use: K)
+        self._anchor = -1  # the keyframe the robot hangs from now (the last, unless culled)
+        self._culled_at: Pose2D | None = None  # the last insert, when it was culled
+        self._since_m = 0.0  # the distance over culled inserts since the last keyframe
         self._travelled_m: list[float] = []
         self.keyframe_seqs: list[int] = []  # per keyframe: its scan's seq
+        self.culled_seqs = array("q")  # the seqs of inserts culled as keyframes (8 bytes each)
         self._scan_stamps: list[float] = []  # per scan: its stamp
         self._scan_node: list[int] = []  # per scan: the keyframe it hangs from
         self._scan_offset: list[NDArray[np.float64]] = []  # its pose relative to that keyframe
@@ -137,6 +151,13 @@ class Mapper:
         if not out.inserted:
             self._record_scan(out.stamp_s, out.pose)
             return MapperStep(None)
+        near = self._held(out)
+        if near is not None:
+            self._since_m += (self._last_insert().inverse() * out.pose).translation_norm()
+            self._anchor, self._culled_at = near, out.pose
+            self.culled_seqs.append(out.seq)
+            self._record_scan(out.stamp_s, out.pose)
+            return MapperStep(None, culled_to=near)
         node = self._add_node(out, points_m, no_return_m, mount)
         self._record_scan(out.stamp_s, out.pose)  # before an optimisation moves the map's frame
         closures = tuple(self._close_loops(node))
@@ -201,14 +222,42 @@ class Mapper:
             self._scan_offset = [compose_arrays(first, o)[0] for o in self._scan_offset]
             self._scan_node = [0] * len(self._scan_node)
         else:
-            motion = self._map_poses[-1].inverse() * pose
-            previous = self.graph.node_count - 1
-            index = self.graph.add_node(self.graph.pose(previous) * motion)
-            self.graph.add_edge(previous, index, motion, self._keyframe_information(motion))
+            # Linked to the keyframe it hangs from: the last one, or the one an insert was
+            # culled to (the front end tracked on it since).
+            anchor = self._anchor
+            motion = self._map_poses[anchor].inverse() * pose
+            step = motion if self._culled_at is None else self._culled_at.inverse() * pose
+            index = self.graph.add_node(self.graph.pose(anchor) * motion)
+            self.graph.add_edge(anchor, index, motion, self._keyframe_information(motion))
             self._relocated = False
-            self._travelled_m.append(self._travelled_m[-1] + motion.translation_norm())
+            self._travelled_m.append(
+                self._travelled_m[-1] + self._since_m + step.translation_norm()
+            )
+        self._drawn = grown(self._drawn, len(self._map_poses))
+        self._drawn[len(self._map_poses)] = (pose.x, pose.y, pose.theta)
         self._map_poses.append(pose)
+        self._anchor, self._culled_at, self._since_m = index, None, 0.0
         return index
+
+    def _last_insert(self) -> Pose2D:
+        """The pose of the front end's last insert, in its current map frame."""
+        return self._map_poses[-1] if self._culled_at is None else self._culled_at
+
+    def _held(self, out: FrontendOutput) -> int | None:
+        """The keyframe drawn nearest the inserted scan when it lies within cull_m / cull_deg
+        of it and the front end tracked the scan on its map; None: the scan is a keyframe."""
+        s = self.settings
+        if (
+            s.cull_m <= 0.0 or not self._map_poses or self._relocated
+            or out.status is not FrontendStatus.TRACKED
+        ):
+            return None
+        drawn = self._drawn[: len(self._map_poses)]
+        distance = np.hypot(drawn[:, 0] - out.pose.x, drawn[:, 1] - out.pose.y)
+        near = np.flatnonzero(distance <= s.cull_m)
+        turn = np.abs(normalize_angles(drawn[near, 2] - out.pose.theta))
+        near = near[turn <= math.radians(s.cull_deg)]
+        return int(near[np.argmin(distance[near])]) if near.size else None
 
     def _resume(self, saved: SavedRun) -> None:
         """Keyframes chained at their saved poses (the closures that placed them are in those
@@ -308,8 +357,9 @@ class Mapper:
         self._waiting = []  # their corrections were against the old estimates
         self.detector.forget_submaps()
         optimised = self.graph.poses
-        newest = Pose2D.from_array(optimised[-1])
-        correction = newest * self._map_poses[-1].inverse()  # T_graph_map, on the newest node
+        # T_graph_map on the keyframe the robot hangs from (the newest, unless culled to another)
+        anchor = self._anchor
+        correction = Pose2D.from_array(optimised[anchor]) * self._map_poses[anchor].inverse()
         moved = compose_arrays(
             np.array([[correction.x, correction.y, correction.theta]]),
             np.array([p.to_array() for p in self._map_poses]),
@@ -322,10 +372,13 @@ class Mapper:
             return report, None
         self.frontend.redraw(self.draw_map(), correction)
         self._map_poses = [Pose2D.from_array(p) for p in optimised]
+        self._drawn = optimised
+        if self._culled_at is not None:
+            self._culled_at = correction * self._culled_at
         return report, correction
 
     def _record_scan(self, stamp_s: float, pose: Pose2D) -> None:
-        node = len(self._map_poses) - 1
+        node = self._anchor
         self._scan_stamps.append(stamp_s)
         anchor = self._map_poses[node] if node >= 0 else IDENTITY
         self._scan_node.append(node)

@@ -114,8 +114,9 @@ def _normal_equations(
     return h, g
 
 
-def _grown(buffer: NDArray, count: int) -> NDArray:
-    """`buffer` with room for row `count` (capacity doubled when full)."""
+def grown(buffer: NDArray, count: int) -> NDArray:
+    """`buffer` with room for row `count` (capacity doubled when full): arrays that grow by
+    a row at a time, amortised."""
     if count < len(buffer):
         return buffer
     bigger = np.zeros((max(16, 2 * len(buffer)), *buffer.shape[1:]), dtype=buffer.dtype)
@@ -164,7 +165,7 @@ class PoseGraph:
         values = pose.to_array()
         if not np.all(np.isfinite(values)):
             raise ValueError(f"pose must be finite, got {pose!r}")
-        self._poses = _grown(self._poses, self._n)
+        self._poses = grown(self._poses, self._n)
         self._poses[self._n] = values
         self._n += 1
         return self._n - 1
@@ -189,8 +190,8 @@ class PoseGraph:
         info = 0.5 * (info + info.T)
         if float(np.linalg.eigvalsh(info)[0]) <= 0.0:
             raise ValueError(f"information must be positive definite, got {info.tolist()}")
-        self._ij, self._z = _grown(self._ij, self._m), _grown(self._z, self._m)
-        self._info, self._robust = _grown(self._info, self._m), _grown(self._robust, self._m)
+        self._ij, self._z = grown(self._ij, self._m), grown(self._z, self._m)
+        self._info, self._robust = grown(self._info, self._m), grown(self._robust, self._m)
         self._ij[self._m], self._z[self._m] = (i, j), z
         self._info[self._m], self._robust[self._m] = info, bool(robust)
         self._m += 1
