@@ -216,6 +216,7 @@ def map_inserts(draw: st.DrawFn) -> wire.MapInsertMessage:
         no_return_points=draw(f64_points(draw(small_n))),
         mount=draw(poses),
         previous_seq=draw(st.none() | st.integers(0, seq - 1)) if seq > 0 else None,
+        keyframe=draw(st.booleans()),
     )
 
 
@@ -350,7 +351,7 @@ def test_decoded_arrays_are_read_only() -> None:
 def test_every_payload_carries_type_and_version() -> None:
     data = wire.MapImageMessage("r", 1, "png", b"x").encode()
     assert msgpack.unpackb(data)["type"] == "map_image"
-    assert msgpack.unpackb(data)["v"] == wire.SCHEMA_VERSION == 5
+    assert msgpack.unpackb(data)["v"] == wire.SCHEMA_VERSION == 6
 
 
 def test_message_helpers_carry_match_results() -> None:
@@ -409,8 +410,8 @@ SCAN = wire.ScanMessage(LaserScan(np.array([1.0, np.nan, 3.0]), 0.0, 0.1, robot_
 
 def test_wrong_version_is_a_version_error() -> None:
     # 1: before no_return_points, 2: before the sensor mount, 3: before map redraws,
-    # 4: before the resume message
-    for version in (1, 2, 3, 4, 6):
+    # 4: before the resume message, 5: before the inserts' keyframe flag
+    for version in (1, 2, 3, 4, 5, 7):
         with pytest.raises(wire.VersionError, match=rf"\.v: schema version {version}"):
             wire.decode_any(_payload(SCAN, v=version))
 

@@ -14,7 +14,8 @@ up to MAX_BULK_BYTES (512 MiB). Zenoh splits a big payload into fragments on its
 Changing any message's fields bumps SCHEMA_VERSION (2: `DeskewedScanMessage.no_return_points`;
 3: the sensor `mount` on scans, deskewed scans and map inserts; 4: `MapRedrawMessage`,
 `KeyframesMessage` and `PoseEstimateMessage.correction`, loop closure in the services;
-5: `ResumeMessage`, a restarted matcher's one consistent answer from the map server):
+5: `ResumeMessage`, a restarted matcher's one consistent answer from the map server;
+6: `MapInsertMessage.keyframe`, false for an insert the back end culled as a keyframe):
 readers refuse other versions with a VersionError, so services of two versions fail loudly
 instead of dropping or missing a field.
 """

@@ -27,6 +27,7 @@ from scanflow.wire.base import (
 from scanflow.wire.errors import MessageError
 from scanflow.wire.schema import (
     BLOB,
+    FLAG,
     INT,
     NUMBER,
     PATH,
@@ -54,6 +55,8 @@ class MapInsertMessage(Message):
     seq of the tracker's insert before this one in the same run (None for its first, or when
     the tracker does not know it: a restarted matcher): a map server that holds another last
     insert missed some, and asks the matcher to send them again (`keys.map_key(r, "resend")`).
+    `keyframe` is false when the tracker's back end (loop closure, `cull_m`) did not make the
+    scan a keyframe: map redraws leave it out, so a map server need not keep it.
     """
 
     TYPE = "map_insert"
@@ -66,6 +69,7 @@ class MapInsertMessage(Message):
         "no_return_points": array("<f8"),
         "mount": POSE,
         "previous_seq": optional(INT),
+        "keyframe": FLAG,
     }
     robot_id: str
     seq: int
@@ -75,10 +79,12 @@ class MapInsertMessage(Message):
     no_return_points: NDArray[np.float64]
     mount: Pose2D = IDENTITY
     previous_seq: int | None = None
+    keyframe: bool = True
 
     def __post_init__(self) -> None:
         check_text("robot_id", self.robot_id)
         object.__setattr__(self, "seq", check_count("seq", self.seq))
+        object.__setattr__(self, "keyframe", bool(self.keyframe))
         if self.previous_seq is not None:
             previous = check_count("previous_seq", self.previous_seq)
             if previous >= self.seq:
