@@ -80,7 +80,7 @@ class RobotMap:
         """The front end's own insertion of the scan (hits and no-return beams) at its pose;
         remembers the touched cells."""
         self.last_insert_seq = scan.seq
-        if self.keyframes is not None:
+        if self.keyframes is not None and scan.keyframe:
             self.keyframes.add(scan)
         result = insert_scan(
             self.map, scan.points, scan.pose, scan.no_return_points, scan.mount

@@ -135,7 +135,10 @@ class MapServer:
     def _catch_up(self, robot: RobotMap, through: int) -> None:
         """Insert what the matcher inserted after this robot's last insert here, through seq
         `through`, asked for again; logged and counted (`inserts_lost`) when it cannot send
-        them all: the map then lacks those scans."""
+        them all: the map then lacks those scans. A matcher past its recent inserts sends the
+        back end's keyframes only (inserts it culled as keyframes are not kept): a chain of
+        keyframes that stops short of `through` is taken, since the next redraw needs those
+        keyframes and draws no others."""
         after = robot.last_insert_seq
         if through <= after:
             return
@@ -151,7 +154,8 @@ class MapServer:
             chained = [m.previous_seq for m in inserts] == [
                 None if after == FIRST else after, *(m.seq for m in inserts[:-1])
             ]
-            if not inserts or not chained or inserts[-1].seq != through:
+            short = inserts and inserts[-1].seq < through and all(m.keyframe for m in inserts)
+            if not inserts or not chained or (inserts[-1].seq != through and not short):
                 raise LookupError("; ".join(errors) or f"{len(inserts)} came, not the chain")
         except (SchemaError, LookupError) as exc:
             n = self.shell.counters.add("inserts_lost")

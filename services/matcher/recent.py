@@ -3,13 +3,16 @@
 A map server finds a missed insert by the chain of `MapInsertMessage.previous_seq` (a link to
 the router that dropped, a map server restarted from a snapshot a few seconds old) and asks
 for what it lacks (services.common.resend). Past the last few, a robot tracked with loop
-closure still has every insert: its back end keeps each keyframe (`keyframe_inserts`).
+closure still has its keyframes: its back end keeps each (`keyframe_inserts`), all but the
+inserts it culled as keyframes.
 """
 
 from __future__ import annotations
 
 import threading
+from bisect import bisect_left, bisect_right
 from collections import deque
+from collections.abc import Sequence
 
 from scanflow.backend import Mapper
 from scanflow.wire import MapInsertMessage
@@ -49,25 +52,31 @@ class RecentInserts:
 
 def keyframe_inserts(
     mapper: Mapper, robot_id: str, after: int, through: int
-) -> list[MapInsertMessage]:
+) -> tuple[list[MapInsertMessage], int]:
     """The inserts after seq `after` (-1: from the first) through seq `through`, rebuilt from
-    the back end's keyframes (every insert is one) at the poses they are drawn at now: the
-    pose each went in at, or where the last redraw put it. LookupError when it lacks them."""
-    seqs = mapper.keyframe_seqs
-    try:
-        start = 0 if after == FIRST else seqs.index(after) + 1
-        end = seqs.index(through)
-    except ValueError:
-        span = f"seqs {seqs[0]}..{seqs[-1]}" if seqs else "none"
-        raise LookupError(
-            f"the back end's keyframes ({len(seqs)}: {span}) do not hold seqs {after} and "
-            f"{through}"
-        ) from None
-    inserts = []
-    for k in range(start, end + 1):
+    the back end's keyframes at the poses they are drawn at now: the pose each went in at, or
+    where the last redraw put it. Inserts the back end culled as keyframes (`cull_m`) are not
+    kept: they are left out, the chain linking the keyframes around them, and how many is
+    returned beside. LookupError when `after` or `through` is neither a keyframe nor culled."""
+    seqs, culled = mapper.keyframe_seqs, mapper.culled_seqs
+    for name, seq in (("after", after), ("through", through)):
+        if (name, seq) != ("after", FIRST) and not (_holds(seqs, seq) or _holds(culled, seq)):
+            span = f"seqs {seqs[0]}..{seqs[-1]}" if seqs else "none"
+            raise LookupError(
+                f"the back end's keyframes ({len(seqs)}: {span}) and culled inserts "
+                f"({len(culled)}) do not hold seq {seq} ({name})"
+            )
+    inserts, previous = [], None if after == FIRST else after
+    for k in range(bisect_right(seqs, after), bisect_right(seqs, through)):
         node = mapper.nodes[k]
         inserts.append(MapInsertMessage(
             robot_id, seqs[k], node.stamp_s, mapper.drawn_pose(k), node.points, node.no_return,
-            node.mount, seqs[k - 1] if k > 0 else None,
+            node.mount, previous,
         ))
-    return inserts
+        previous = seqs[k]
+    return inserts, bisect_right(culled, through) - bisect_right(culled, after)
+
+
+def _holds(ordered: Sequence[int], seq: int) -> bool:
+    i = bisect_left(ordered, seq)
+    return i < len(ordered) and ordered[i] == seq

@@ -127,7 +127,8 @@ class MatcherService:
                 out, message.points, message.no_return_points, message.mount
             )
             redraw = None if step is None else self._redraw(robot_id, out.seq, mapper, step)
-        self._publish(robot_id, message, out, redraw)
+        keyframe = step is None or step.culled_to is None
+        self._publish(robot_id, message, out, keyframe, redraw)
 
     def _redraw(
         self, robot_id: str, seq: int, mapper: Mapper, step: MapperStep
@@ -145,17 +146,18 @@ class MatcherService:
         )
 
     def _publish(
-        self, robot_id: str, scan: DeskewedScanMessage, out: FrontendOutput,
+        self, robot_id: str, scan: DeskewedScanMessage, out: FrontendOutput, keyframe: bool,
         redraw: MapRedrawMessage | None,
     ) -> None:
-        """The insert (the scan at the pose it went in at), then the redraw that followed it,
-        then the estimate (in the redrawn map's frame, with the correction, after a redraw)."""
+        """The insert (the scan at the pose it went in at; `keyframe` false when the back end
+        culled it), then the redraw that followed it, then the estimate (in the redrawn map's
+        frame, with the correction, after a redraw)."""
         prefix = self.shell.prefix
         if out.inserted:
             recent = self.recent[robot_id]
             insert = MapInsertMessage(
                 robot_id, out.seq, out.stamp_s, out.pose, scan.points, scan.no_return_points,
-                scan.mount, recent.last_seq,
+                scan.mount, recent.last_seq, keyframe,
             )
             payload = insert.encode()
             recent.add(insert.seq, insert.previous_seq, payload)
@@ -278,10 +280,17 @@ class MatcherService:
                 if mapper is None:  # no back end: nothing older is kept
                     raise
                 try:
-                    inserts = keyframe_inserts(mapper, robot_id, after, through)
+                    inserts, culled = keyframe_inserts(mapper, robot_id, after, through)
                 except LookupError as exc:
                     raise LookupError(f"{not_recent}; {exc}") from None
             payloads = [insert.encode() for insert in inserts]
+            if culled:
+                self.shell.counters.add("inserts_culled_unsent", culled)
+                self.shell.log.warning(
+                    "robot %s: of the inserts %d..%d, %d were culled as keyframes and are not "
+                    "kept; the map server's map lacks them until the next redraw", robot_id,
+                    after + 1, through, culled,
+                )
         key = keys.map_key(robot_id, "resend", self.shell.prefix)
         for payload in payloads:
             query.reply(key, payload)

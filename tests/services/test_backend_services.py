@@ -35,10 +35,12 @@ LOOP_CLOSURE = {"SCANFLOW_BACKEND_LOOP_CLOSURE": "true"}
 ODOM_WAIT = {"SCANFLOW_DESKEW_ODOM_WAIT_S": "3"}  # as in test_pipeline_services
 
 
-def ring_in_process() -> tuple[Pipeline, list, list[tuple[int, Pose2D, np.ndarray, list]]]:
+def ring_in_process(
+    cull_m: float = 0.0,
+) -> tuple[Pipeline, list, list[tuple[int, Pose2D, np.ndarray, list]]]:
     """(pipeline, per-scan estimates, (seq, correction, corrected path, keyframe seqs) of
     every redraw)."""
-    pipeline = Pipeline(backend=BackendSettings(loop_closure=True))
+    pipeline = Pipeline(backend=BackendSettings(loop_closure=True, cull_m=cull_m))
     outputs, redraws = [], []
     for event in source_events(None, "robot", 80.0, 1, None, sim_world="loop",
                                sim_odom_scale_error=0.03):
@@ -57,7 +59,7 @@ def ring_in_process() -> tuple[Pipeline, list, list[tuple[int, Pose2D, np.ndarra
 def assert_served_as_in_process(bus, pipeline: Pipeline, expected: list, redraws: list) -> None:
     """The map server's map and path, once it has handled the last pose and the last insert,
     are the in-process pipeline's, bit for bit."""
-    last = (expected[-1].seq, pipeline.mapper.keyframe_seqs[-1])
+    last = (expected[-1].seq, [o.seq for o in expected if o.inserted][-1])
 
     def handled() -> tuple[float, float]:
         gauges = bus.stats("mapserver").gauges
@@ -74,17 +76,24 @@ def assert_served_as_in_process(bus, pipeline: Pipeline, expected: list, redraws
     np.testing.assert_array_equal(path.poses, np.vstack([at_redraw, *after]))
 
 
-def test_a_loop_closing_run_equals_the_in_process_pipeline(launcher, bus, start):
+@pytest.mark.parametrize("cull_m", [0.0, 0.3], ids=["every insert a keyframe", "culled"])
+def test_a_loop_closing_run_equals_the_in_process_pipeline(launcher, bus, start, cull_m):
+    """With culling (SCANFLOW_BACKEND_CULL_M) about half the inserts are no keyframes: they
+    go into the served map all the same, and the map server keeps only the keyframes."""
     start("deskew", **ODOM_WAIT, **LOOP_CLOSURE)
-    start("matcher", **LOOP_CLOSURE)
+    start("matcher", **LOOP_CLOSURE, SCANFLOW_BACKEND_CULL_M=str(cull_m))
     start("mapserver", **LOOP_CLOSURE)
     poses = bus.record(keys.pose())
     redraws = bus.record(keys.map_key("*", "insert"))
     proc = launcher.start("ingest", **RING)
     proc.wait(180)
     assert proc.returncode == 0, launcher.log_text("ingest")
-    pipeline, expected, expected_redraws = ring_in_process()
+    pipeline, expected, expected_redraws = ring_in_process(cull_m)
     assert len(expected_redraws) >= 1  # the run must exercise a redraw
+    inserts = [m for m in redraws if isinstance(m, MapInsertMessage)]
+    assert [m.seq for m in inserts] == [o.seq for o in expected if o.inserted]
+    assert [m.seq for m in inserts if m.keyframe] == pipeline.mapper.keyframe_seqs
+    assert (len(pipeline.mapper.culled_seqs) > 100) == (cull_m > 0)
     bus.wait_until(lambda: len(poses) >= len(expected), 60.0, "every pose")
 
     assert [p.seq for p in poses] == [o.seq for o in expected]

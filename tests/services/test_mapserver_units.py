@@ -375,3 +375,50 @@ def test_a_resend_query_that_fails_loses_the_gap_not_the_insert(tmp_path, caplog
         assert "the query failed: cannot open a Zenoh session" in caplog.text
     finally:
         server.shell.close(flush_s=0.0)
+
+
+def test_culled_inserts_go_into_the_map_but_not_into_the_kept_keyframes():
+    """An insert the back end culled as a keyframe changes the map as any other, but it is not
+    kept: the redraw that names the keyframes only fits."""
+    robot = RobotMap("r", lambda: OccupancyGrid(OccupancyParams()), keep_keyframes=True)
+    want = new_robot()
+    for message in (insert(0), replace(insert(1, Pose2D(0.1, 0.0, 0.0)), keyframe=False),
+                    insert(2, Pose2D(1.0, 0.0, 0.0))):
+        robot.insert(message)
+        want.insert(message)
+    np.testing.assert_array_equal(robot.map.grid.log_odds, want.map.grid.log_odds)
+    assert robot.keyframes is not None and robot.keyframes.seqs == [0, 2]
+    path = np.zeros((3, 3))
+    robot.redraw(redraw([0, 2], [Pose2D(), Pose2D(1.0, 0.0, 0.0)], path, 2), OccupancyParams())
+    assert robot.map.revision == want.map.revision + 1
+
+
+@pytest.mark.parametrize("keyframe", [True, False])
+def test_a_resend_of_keyframes_only_may_stop_short(tmp_path, caplog, keyframe: bool) -> None:
+    """Past its recent inserts a matcher sends its back end's keyframes, not the inserts it
+    culled: a chain of keyframes that stops short of the gap's end is taken (the next redraw
+    needs them); a short chain of other inserts is a loss, counted."""
+    server = MapServer(MapServerSettings(data_dir=str(tmp_path)),
+                       ZenohSettings(mode="peer", connect=[]))
+    asked = []
+
+    def matcher(selector: str, timeout_s: float):
+        asked.append(selector)
+        return [replace(insert(3), previous_seq=0, keyframe=keyframe).encode()], []
+
+    server.shell.get = matcher
+    try:
+        server.handle("insert", insert(0))
+        server.handle("insert", replace(insert(5), previous_seq=4))
+        robot = server.robots["r"]
+        assert len(asked) == 1 and asked[0].endswith("r/map/resend?after=0;through=4")
+        assert robot.last_insert_seq == 5
+        if keyframe:
+            assert server.shell.counters.get("inserts_resent") == 1
+            assert "inserts_lost" not in server.shell.counters.snapshot()
+            assert robot.map.revision == 3
+        else:
+            assert server.shell.counters.get("inserts_lost") == 1
+            assert robot.map.revision == 2
+    finally:
+        server.shell.close(flush_s=0.0)

@@ -9,7 +9,7 @@ import pytest
 from scanflow.backend import Mapper, SavedRun
 from scanflow.backend.loops import ScanNode
 from scanflow.config import BackendSettings, FrontendSettings, MatcherSettings, ZenohSettings
-from scanflow.frontend import Frontend
+from scanflow.frontend import Frontend, FrontendOutput, FrontendStatus
 from scanflow.geometry import Pose2D
 from scanflow.maps.export import npz_arrays, write_npz
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
@@ -129,18 +129,47 @@ def test_recent_inserts_send_a_chain_again_or_name_what_they_keep() -> None:
 
 
 def test_inserts_past_the_recent_ones_come_from_the_back_ends_keyframes() -> None:
-    """Every insert of a robot tracked with loop closure is a keyframe: rebuilt at the pose
-    it is drawn at, chained by seq; seqs it does not hold are named."""
+    """Without culling, every insert of a robot tracked with loop closure is a keyframe:
+    rebuilt at the pose it is drawn at, chained by seq; seqs it does not hold are named."""
     seqs, poses = [2, 5, 9], np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.1], [2.0, 0.5, 0.2]])
     nodes = [ScanNode(0.1 * s, np.full((3, 2), s, float), np.zeros((1, 2)), Pose2D(0.1, 0, 0))
              for s in seqs]
     saved = SavedRun(nodes, seqs, poses, np.array([0.2, 0.5, 0.9]), poses)
     mapper = Mapper(Frontend(FrontendSettings()), LOOP_CLOSURE, saved)
-    inserts = keyframe_inserts(mapper, "r", 2, 9)
-    assert [(m.seq, m.previous_seq) for m in inserts] == [(5, 2), (9, 5)]
+    inserts, culled = keyframe_inserts(mapper, "r", 2, 9)
+    assert [(m.seq, m.previous_seq) for m in inserts] == [(5, 2), (9, 5)] and culled == 0
     assert [m.pose for m in inserts] == [Pose2D.from_array(p) for p in poses[1:]]
+    assert all(m.keyframe for m in inserts)
     np.testing.assert_array_equal(inserts[1].points, nodes[2].points)
     assert inserts[0].mount == Pose2D(0.1, 0, 0) and inserts[0].stamp_s == 0.5
-    assert [m.previous_seq for m in keyframe_inserts(mapper, "r", -1, 2)] == [None]
-    with pytest.raises(LookupError, match=r"keyframes \(3: seqs 2\.\.9\) do not hold seqs 3"):
+    assert [m.previous_seq for m in keyframe_inserts(mapper, "r", -1, 2)[0]] == [None]
+    with pytest.raises(LookupError, match=r"keyframes \(3: seqs 2\.\.9\) .* seq 3 \(after\)"):
         keyframe_inserts(mapper, "r", 3, 9)
+    with pytest.raises(LookupError, match=r"seq 10 \(through\)"):
+        keyframe_inserts(mapper, "r", 2, 10)
+
+
+def test_inserts_culled_as_keyframes_are_left_out_and_counted() -> None:
+    """Parked at two places (culling on): seqs 0 and 3 are keyframes, 1, 2 and 4 hang from
+    them. A resend rebuilds the keyframes, chained from `after` across the culled ones, and
+    says how many culled inserts it lacks; it accepts a culled seq at either end."""
+    mapper = Mapper(Frontend(FrontendSettings()),
+                    LOOP_CLOSURE.model_copy(update={"cull_m": 0.3, "cull_deg": 10.0}))
+    points = np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+    for seq, x in enumerate((0.0, 0.0, 0.0, 1.0, 1.0)):
+        out = FrontendOutput(
+            seq=seq, stamp_s=0.1 * seq, pose=Pose2D(x, 0.0, 0.0), covariance=np.eye(3) * 1e-4,
+            status=FrontendStatus.TRACKED, method="gn", iterations=3, score=0.8, message="",
+            inserted=True, prediction_source="odometry",
+        )
+        mapper.add(out, points)
+    assert mapper.keyframe_seqs == [0, 3] and list(mapper.culled_seqs) == [1, 2, 4]
+    inserts, culled = keyframe_inserts(mapper, "r", 0, 4)
+    assert [(m.seq, m.previous_seq) for m in inserts] == [(3, 0)] and culled == 3
+    inserts, culled = keyframe_inserts(mapper, "r", 1, 3)
+    assert [(m.seq, m.previous_seq) for m in inserts] == [(3, 1)] and culled == 1
+    inserts, culled = keyframe_inserts(mapper, "r", -1, 2)
+    assert [(m.seq, m.previous_seq) for m in inserts] == [(0, None)] and culled == 2
+    assert keyframe_inserts(mapper, "r", 1, 2) == ([], 1)
+    with pytest.raises(LookupError, match=r"culled inserts \(3\) do not hold seq 5"):
+        keyframe_inserts(mapper, "r", 0, 5)
