@@ -135,6 +135,8 @@ class MatcherService:
     ) -> MapRedrawMessage | None:
         """Count what the back end did; the redraw to send, if it redrew the map."""
         self.shell.counters.add("backend.closures", len(step.closures))
+        if step.culled_to is not None:
+            self.shell.counters.add("backend.culled")
         if step.optimised is not None:
             self.shell.counters.add("backend.optimisations")
         if step.correction is None:

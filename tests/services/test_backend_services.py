@@ -115,6 +115,7 @@ def test_a_loop_closing_run_equals_the_in_process_pipeline(launcher, bus, start,
     matcher, mapserver = bus.stats("matcher"), bus.stats("mapserver")
     assert matcher.counters["backend.redraws"] == len(expected_redraws)
     assert matcher.counters["backend.closures"] == len(pipeline.mapper.closures)
+    assert matcher.counters.get("backend.culled", 0) == len(pipeline.mapper.culled_seqs)
     assert mapserver.counters["redrawn"] == len(expected_redraws)
     assert mapserver.gauges["robot.keyframes"] == len(pipeline.mapper.keyframe_seqs)
     assert "errors.insert" not in mapserver.counters
