@@ -1,7 +1,9 @@
 """Loop closure in the compose deployment: SCANFLOW_BACKEND_LOOP_CLOSURE from the shell turns it
 on for the matcher and the map server. A lap of the simulator's ring corridor with poor wheel
 odometry (one redraw) through the containers must equal the in-process pipeline with the back
-end: the corrected path and the map over HTTP, and the redraw counted by both services.
+end: the corrected path and the map over HTTP, and the redraw counted by both services. The
+matcher culls keyframes (SCANFLOW_BACKEND_CULL_M from the shell reaches it): about half the
+inserts hang from earlier keyframes, and the served map holds them all the same.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from scanflow.maps.export import save_map_server
 from .test_compose import SERVICES, metric, poll, services_test, wait_exited
 
 pytestmark = [pytest.mark.docker, pytest.mark.slow, pytest.mark.timeout(900)]
+CULL_M = 0.3
 
 
 @pytest.fixture(scope="module")
@@ -26,6 +29,7 @@ def ring(compose_projects, harness):
     project = compose_projects("sflc", env={
         "SCANFLOW_GATEWAY_PUBLISH": str(port),
         "SCANFLOW_BACKEND_LOOP_CLOSURE": "true",
+        "SCANFLOW_BACKEND_CULL_M": str(CULL_M),
         "SCANFLOW_INGEST_RATE": "0",
         "SCANFLOW_INGEST_SIM_DURATION_S": "80",
         "SCANFLOW_INGEST_SIM_SEED": "1",
@@ -42,7 +46,7 @@ def ring(compose_projects, harness):
 
 def test_a_ring_lap_with_loop_closure_equals_the_in_process_pipeline(ring):
     project, client = ring
-    pipeline, outputs, redraws = services_test("test_backend_services").ring_in_process()
+    pipeline, outputs, redraws = services_test("test_backend_services").ring_in_process(CULL_M)
     assert len(redraws) == 1
     seq, _, at_redraw, _ = redraws[0]
     want = np.vstack([at_redraw, *[o.pose.to_array() for o in outputs[seq + 1:]]])
@@ -62,6 +66,8 @@ def test_a_ring_lap_with_loop_closure_equals_the_in_process_pipeline(ring):
     text = client.get("/metrics").text
     assert metric(text, "scanflow_service_events_total", event="backend.redraws") == 1
     assert metric(text, "scanflow_service_events_total", event="redrawn") == 1
+    culled = metric(text, "scanflow_service_events_total", event="backend.culled")
+    assert culled == len(pipeline.mapper.culled_seqs) > 0
     for service in SERVICES:
         assert project.restarts(service) == 0, project.describe(service)
 
