@@ -132,7 +132,7 @@ def test_stream_sends_live_poses(client, peer, backend, path):
 
     thread = threading.Thread(target=publish_when_subscribed)
     thread.start()
-    r = client.get(path, params={"limit": 3}, timeout=10)
+    r = client.get(path, params={"limit": 3})
     thread.join()
     assert r.headers["content-type"].startswith("text/event-stream")
     events = [line for line in r.text.splitlines() if line.startswith("event:")]
