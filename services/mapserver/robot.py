@@ -35,7 +35,8 @@ class RobotMap:
     ) -> None:
         """`new_grid`: a robot's starting map (the matchers' prior map, or an empty grid with
         their resolution), also after a reset; a snapshot is resumed as it was saved.
-        `keep_keyframes`: keep every inserted scan, so that redraws can be followed."""
+        `keep_keyframes`: keep the scan of every insert flagged a keyframe, so that redraws
+        can be followed."""
         self.robot_id = robot_id
         self.new_grid = new_grid
         self.keep_keyframes = keep_keyframes

@@ -2,9 +2,10 @@
 library's map update; keeps the matcher's poses as each robot's trajectory; serves the maps on
 queryables, publishes rate-limited change notices and snapshots every robot atomically to the
 data directory (a restart resumes from there). With loop closure on (SCANFLOW_BACKEND_*, as the
-matchers) it keeps every inserted scan and repeats the matcher's map redraws. An insert or a
-redraw that shows inserts missing before it (a link that dropped, a restart from a snapshot)
-gets them from the matcher again first, so the map stays the matcher's.
+matchers) it keeps every keyframe's scan (each insert not flagged as culled) and repeats the
+matcher's map redraws. An insert or a redraw that shows inserts missing before it (a link that
+dropped, a restart from a snapshot) gets them from the matcher again first, so the map stays
+the matcher's.
 """
 
 from __future__ import annotations
