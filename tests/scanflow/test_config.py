@@ -155,11 +155,13 @@ def test_backend_settings_read_the_environment_and_name_bad_values(clean_env) ->
     clean_env.setenv("SCANFLOW_BACKEND_LOOP_CLOSURE", "true")
     clean_env.setenv("SCANFLOW_BACKEND_SEARCH_RADIUS_M", "8")
     clean_env.setenv("SCANFLOW_BACKEND_CONFIRM_KEYFRAMES", "0")
+    assert config.BackendSettings().cull_m == 0.0  # culling is opt-in
+    clean_env.setenv("SCANFLOW_BACKEND_CULL_M", "0.3")
     settings = config.BackendSettings()
     assert settings.loop_closure and settings.search_radius_m == 8.0
-    assert settings.confirm_keyframes == 0
+    assert settings.confirm_keyframes == 0 and settings.cull_m == 0.3
     for name, bad in (("AMBIGUITY_RATIO", "1.5"), ("LOOP_MIN_STD_M", "0"),
-                      ("OPTIMISE_EVERY", "0")):
+                      ("OPTIMISE_EVERY", "0"), ("CULL_M", "-0.1"), ("CULL_DEG", "0")):
         clean_env.setenv(f"SCANFLOW_BACKEND_{name}", bad)
         with pytest.raises(ValidationError, match=name.lower()):
             config.BackendSettings()
