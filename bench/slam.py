@@ -10,9 +10,11 @@ optimisation at the end of the log). Against the corrected poses: ATE (RMSE afte
 alignment), the largest aligned error, RPE per metre. Without them: the map's occupied cells
 (a wall drawn twice by drift takes more). For the back end: its closures, how many of them the
 corrected poses disagree with (relative pose beyond 0.3 m / 3 deg: a wrong closure is one the
-optimiser must out-vote), keyframes and map redraws; wall time of both passes.
+optimiser must out-vote), keyframes, inserts culled as keyframes and map redraws; wall time
+of both passes.
 Each pass's map is saved as PNG in bench/out. The back end's other settings come from
-`SCANFLOW_BACKEND_*` as in `scanflow run` (e.g. `SCANFLOW_BACKEND_CONFIRM_KEYFRAMES=0`).
+`SCANFLOW_BACKEND_*` as in `scanflow run` (e.g. `SCANFLOW_BACKEND_CONFIRM_KEYFRAMES=0`,
+`SCANFLOW_BACKEND_CULL_M=0.3`).
 Sim mode: the same two passes on the built-in simulator, whose poses are exact (the ring world
 `loop` by default, with wheel odometry of a given scale error and yaw noise), so the figures
 carry no reference noise.
@@ -135,6 +137,9 @@ def compare(
         if pipeline.mapper is not None:
             row.update(closure_agreement(pipeline, truth, keyframes))
             row["keyframes"] = len(keyframes)
+            # Inserts the back end did not make keyframes (SCANFLOW_BACKEND_CULL_M; 0: off).
+            row["culled"] = len(pipeline.mapper.culled_seqs)
+            row["cull_m"] = pipeline.mapper.settings.cull_m
             row["map_redraws"] = redraws
         report[label] = row
     return report

@@ -14,16 +14,27 @@ DATA = Path(os.environ.get("SCANFLOW_DATA_DIR", REPO / ".." / "shared" / "data")
 INTEL = DATA / "intel-corrected.log.gz"
 
 
-def test_sim_reports_both_passes_and_the_closures_help() -> None:
+def test_sim_reports_both_passes_and_the_closures_help(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("SCANFLOW_BACKEND_CULL_M", raising=False)
     report = run_sim("loop", 100.0, 0.03, 0.01)
     plain, closed = report["frontend"], report["loop_closure"]
     assert "closures" not in plain
     assert closed["closures"] > 0 and closed["disagreeing"] == 0
     assert closed["keyframes"] <= report["scans"]
+    assert closed["culled"] == 0 and closed["cull_m"] == 0.0  # culling is opt-in
     assert closed["ate_rmse_m"] < plain["ate_rmse_m"]
     # The drifted lap draws walls twice; the optimised one does not.
     assert closed["occupied_cells"] < plain["occupied_cells"]
     assert Path(closed["map_png"]).exists()
+
+
+def test_sim_counts_the_culled_inserts(monkeypatch: pytest.MonkeyPatch) -> None:
+    """SCANFLOW_BACKEND_CULL_M reaches the back end as in `scanflow run`: 0.3 m is past the
+    0.2 m motion filter, so some inserts hang from earlier keyframes."""
+    monkeypatch.setenv("SCANFLOW_BACKEND_CULL_M", "0.3")
+    closed = run_sim("loop", 30.0, 0.03, 0.01)["loop_closure"]
+    assert closed["cull_m"] == 0.3 and closed["culled"] > 0
+    assert closed["keyframes"] + closed["culled"] <= 300
 
 
 @pytest.mark.skipif(not INTEL.exists(), reason="the shared intel log is not beside the checkout")
