@@ -56,11 +56,14 @@ def keyframe_inserts(
     """The inserts after seq `after` (-1: from the first) through seq `through`, rebuilt from
     the back end's keyframes at the poses they are drawn at now: the pose each went in at, or
     where the last redraw put it. Inserts the back end culled as keyframes (`cull_m`) are not
-    kept: they are left out, the chain linking the keyframes around them, and how many is
-    returned beside. LookupError when `after` or `through` is neither a keyframe nor culled."""
+    kept: they are left out, the chain linking the keyframes around them, and how many it knows
+    of is returned beside. LookupError when `after` or `through` is neither a keyframe nor
+    culled; a resumed back end knows no culled seqs from before its restart, so an `after`
+    from then is taken as one."""
     seqs, culled = mapper.keyframe_seqs, mapper.culled_seqs
     for name, seq in (("after", after), ("through", through)):
-        if (name, seq) != ("after", FIRST) and not (_holds(seqs, seq) or _holds(culled, seq)):
+        held = _holds(seqs, seq) or _holds(culled, seq)
+        if not held and not (name == "after" and (seq == FIRST or _before_restart(mapper, seq))):
             span = f"seqs {seqs[0]}..{seqs[-1]}" if seqs else "none"
             raise LookupError(
                 f"the back end's keyframes ({len(seqs)}: {span}) and culled inserts "
@@ -75,6 +78,15 @@ def keyframe_inserts(
         ))
         previous = seqs[k]
     return inserts, bisect_right(culled, through) - bisect_right(culled, after)
+
+
+def _before_restart(mapper: Mapper, seq: int) -> bool:
+    """Whether `seq` may be an insert of the run a resumed back end carried on: older than
+    every insert since."""
+    if not mapper.resumed_keyframes:
+        return False
+    since = [*mapper.keyframe_seqs[mapper.resumed_keyframes:][:1], *mapper.culled_seqs[:1]]
+    return not since or seq < min(since)
 
 
 def _holds(ordered: Sequence[int], seq: int) -> bool:

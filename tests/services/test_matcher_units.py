@@ -10,7 +10,7 @@ from scanflow.backend import Mapper, SavedRun
 from scanflow.backend.loops import ScanNode
 from scanflow.config import BackendSettings, FrontendSettings, MatcherSettings, ZenohSettings
 from scanflow.frontend import Frontend, FrontendOutput, FrontendStatus
-from scanflow.geometry import Pose2D
+from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.maps.export import npz_arrays, write_npz
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
 from scanflow.wire import MapRedrawMessage, ResumeMessage, codec
@@ -143,26 +143,42 @@ def test_inserts_past_the_recent_ones_come_from_the_back_ends_keyframes() -> Non
     np.testing.assert_array_equal(inserts[1].points, nodes[2].points)
     assert inserts[0].mount == Pose2D(0.1, 0, 0) and inserts[0].stamp_s == 0.5
     assert [m.previous_seq for m in keyframe_inserts(mapper, "r", -1, 2)[0]] == [None]
-    with pytest.raises(LookupError, match=r"keyframes \(3: seqs 2\.\.9\) .* seq 3 \(after\)"):
-        keyframe_inserts(mapper, "r", 3, 9)
-    with pytest.raises(LookupError, match=r"seq 10 \(through\)"):
+    with pytest.raises(LookupError, match=r"keyframes \(3: seqs 2\.\.9\) .* seq 10 \(through\)"):
         keyframe_inserts(mapper, "r", 2, 10)
+
+
+def test_a_resumed_back_end_takes_an_unknown_seq_from_before_its_restart() -> None:
+    """A resumed back end knows no culled seqs from before the restart: a map server whose
+    last insert is one of them (seq 11, culled then) is sent the keyframes after it. Seqs
+    since the restart must be known (13: no insert)."""
+    seqs, poses = [2, 5, 9], np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.1], [2.0, 0.5, 0.2]])
+    nodes = [ScanNode(0.1 * s, np.full((3, 2), s, float), np.zeros((1, 2)), IDENTITY)
+             for s in seqs]
+    saved = SavedRun(nodes, seqs, poses, np.array([0.2, 0.5, 0.9]), poses)
+    mapper = Mapper(Frontend(FrontendSettings()), CULLING, saved)
+    assert mapper.resumed_keyframes == 3
+    assert keyframe_inserts(mapper, "r", 7, 9)[0][0].previous_seq == 7  # none since: any
+    for seq, pose in ((12, poses[2]), (14, [5.0, 0.0, 0.0])):
+        mapper.add(_tracked(seq, Pose2D.from_array(pose)), nodes[0].points)
+    assert mapper.keyframe_seqs == [2, 5, 9, 14] and list(mapper.culled_seqs) == [12]
+    inserts, culled = keyframe_inserts(mapper, "r", 11, 14)
+    assert [(m.seq, m.previous_seq) for m in inserts] == [(14, 11)] and culled == 1
+    with pytest.raises(LookupError, match=r"seq 13 \(after\)"):
+        keyframe_inserts(mapper, "r", 13, 14)
+    fresh = Mapper(Frontend(FrontendSettings()), CULLING)  # not resumed: every seq is known
+    fresh.add(_tracked(0, IDENTITY), nodes[0].points)
+    with pytest.raises(LookupError, match=r"seq -3 \(after\)"):
+        keyframe_inserts(fresh, "r", -3, 0)
 
 
 def test_inserts_culled_as_keyframes_are_left_out_and_counted() -> None:
     """Parked at two places (culling on): seqs 0 and 3 are keyframes, 1, 2 and 4 hang from
     them. A resend rebuilds the keyframes, chained from `after` across the culled ones, and
     says how many culled inserts it lacks; it accepts a culled seq at either end."""
-    mapper = Mapper(Frontend(FrontendSettings()),
-                    LOOP_CLOSURE.model_copy(update={"cull_m": 0.3, "cull_deg": 10.0}))
+    mapper = Mapper(Frontend(FrontendSettings()), CULLING)
     points = np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
     for seq, x in enumerate((0.0, 0.0, 0.0, 1.0, 1.0)):
-        out = FrontendOutput(
-            seq=seq, stamp_s=0.1 * seq, pose=Pose2D(x, 0.0, 0.0), covariance=np.eye(3) * 1e-4,
-            status=FrontendStatus.TRACKED, method="gn", iterations=3, score=0.8, message="",
-            inserted=True, prediction_source="odometry",
-        )
-        mapper.add(out, points)
+        mapper.add(_tracked(seq, Pose2D(x, 0.0, 0.0)), points)
     assert mapper.keyframe_seqs == [0, 3] and list(mapper.culled_seqs) == [1, 2, 4]
     inserts, culled = keyframe_inserts(mapper, "r", 0, 4)
     assert [(m.seq, m.previous_seq) for m in inserts] == [(3, 0)] and culled == 3
@@ -173,3 +189,15 @@ def test_inserts_culled_as_keyframes_are_left_out_and_counted() -> None:
     assert keyframe_inserts(mapper, "r", 1, 2) == ([], 1)
     with pytest.raises(LookupError, match=r"culled inserts \(3\) do not hold seq 5"):
         keyframe_inserts(mapper, "r", 0, 5)
+
+
+CULLING = LOOP_CLOSURE.model_copy(update={"cull_m": 0.3, "cull_deg": 10.0})
+
+
+def _tracked(seq: int, pose: Pose2D) -> FrontendOutput:
+    """An insert the front end tracked on its map (one the back end may cull)."""
+    return FrontendOutput(
+        seq=seq, stamp_s=0.1 * seq, pose=pose, covariance=np.eye(3) * 1e-4,
+        status=FrontendStatus.TRACKED, method="gn", iterations=3, score=0.8, message="",
+        inserted=True, prediction_source="odometry",
+    )

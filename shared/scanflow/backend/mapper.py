@@ -128,6 +128,7 @@ class Mapper:
         self._travelled_m: list[float] = []
         self.keyframe_seqs: list[int] = []  # per keyframe: its scan's seq
         self.culled_seqs = array("q")  # the seqs of inserts culled as keyframes (8 bytes each)
+        self.resumed_keyframes = 0  # how many keyframes came from a saved run (no culled seqs do)
         self._scan_stamps: list[float] = []  # per scan: its stamp
         self._scan_node: list[int] = []  # per scan: the keyframe it hangs from
         self._scan_offset: list[NDArray[np.float64]] = []  # its pose relative to that keyframe
@@ -263,6 +264,7 @@ class Mapper:
         """Keyframes chained at their saved poses (the closures that placed them are in those
         poses; the chain keeps them together), every earlier scan hung from the last keyframe
         at or before it."""
+        self.resumed_keyframes = len(saved.seqs)
         for node, seq, pose in zip(saved.nodes, saved.seqs, saved.poses, strict=True):
             self.nodes.append(node)
             self.keyframe_seqs.append(int(seq))
