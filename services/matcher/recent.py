@@ -83,9 +83,10 @@ def keyframe_inserts(
 def _before_restart(mapper: Mapper, seq: int) -> bool:
     """Whether `seq` may be an insert of the run a resumed back end carried on: older than
     every insert since."""
-    if not mapper.resumed_keyframes:
+    resumed, seqs, culled = mapper.resumed_keyframes, mapper.keyframe_seqs, mapper.culled_seqs
+    if not resumed:
         return False
-    since = [*mapper.keyframe_seqs[mapper.resumed_keyframes:][:1], *mapper.culled_seqs[:1]]
+    since = ([seqs[resumed]] if len(seqs) > resumed else []) + ([culled[0]] if culled else [])
     return not since or seq < min(since)
 
 
