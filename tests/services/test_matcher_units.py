@@ -147,10 +147,14 @@ def test_inserts_past_the_recent_ones_come_from_the_back_ends_keyframes() -> Non
         keyframe_inserts(mapper, "r", 2, 10)
 
 
-def test_a_resumed_back_end_takes_an_unknown_seq_from_before_its_restart() -> None:
+@pytest.mark.parametrize("culled_first", [True, False], ids=["culled first", "keyframe first"])
+def test_a_resumed_back_end_takes_an_unknown_seq_from_before_its_restart(
+    culled_first: bool,
+) -> None:
     """A resumed back end knows no culled seqs from before the restart: a map server whose
     last insert is one of them (seq 11, culled then) is sent the keyframes after it. Seqs
-    since the restart must be known (13: no insert)."""
+    since the restart (its first insert a culled one or a keyframe) must be known (13: no
+    insert)."""
     seqs, poses = [2, 5, 9], np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.1], [2.0, 0.5, 0.2]])
     nodes = [ScanNode(0.1 * s, np.full((3, 2), s, float), np.zeros((1, 2)), IDENTITY)
              for s in seqs]
@@ -158,11 +162,13 @@ def test_a_resumed_back_end_takes_an_unknown_seq_from_before_its_restart() -> No
     mapper = Mapper(Frontend(FrontendSettings()), CULLING, saved)
     assert mapper.resumed_keyframes == 3
     assert keyframe_inserts(mapper, "r", 7, 9)[0][0].previous_seq == 7  # none since: any
-    for seq, pose in ((12, poses[2]), (14, [5.0, 0.0, 0.0])):
+    far = [5.0, 0.0, 0.0]
+    for seq, pose in ((12, poses[2]), (14, far)) if culled_first else ((12, far), (14, far)):
         mapper.add(_tracked(seq, Pose2D.from_array(pose)), nodes[0].points)
-    assert mapper.keyframe_seqs == [2, 5, 9, 14] and list(mapper.culled_seqs) == [12]
+    new, culled_seq = (14, 12) if culled_first else (12, 14)
+    assert mapper.keyframe_seqs == [2, 5, 9, new] and list(mapper.culled_seqs) == [culled_seq]
     inserts, culled = keyframe_inserts(mapper, "r", 11, 14)
-    assert [(m.seq, m.previous_seq) for m in inserts] == [(14, 11)] and culled == 1
+    assert [(m.seq, m.previous_seq) for m in inserts] == [(new, 11)] and culled == 1
     with pytest.raises(LookupError, match=r"seq 13 \(after\)"):
         keyframe_inserts(mapper, "r", 13, 14)
     fresh = Mapper(Frontend(FrontendSettings()), CULLING)  # not resumed: every seq is known
