@@ -77,11 +77,15 @@ def test_up_names_a_missing_prior_map(tmp_path):
 
 
 def test_up_with_loop_closure_runs_the_back_end_in_the_services(tmp_path):
+    """Culling set from the shell (SCANFLOW_BACKEND_CULL_M) is reported; that it reaches the
+    matcher is tests/services/test_backend_services.py's."""
     out, data = tmp_path / "up.out", tmp_path / "data"
-    proc = run_until_ingest_is_done(up_command(data, "--loop-closure"), out, signal.SIGINT)
+    env = {**os.environ, "SCANFLOW_BACKEND_CULL_M": "0.3"}
+    proc = run_until_ingest_is_done(up_command(data, "--loop-closure"), out, signal.SIGINT, env)
     text = out.read_text()
     assert proc.returncode == 0, text
     assert "back end: loop closure on" in text
+    assert "keyframes culled within 0.3 m / 10.0 deg of one drawn" in text
     with np.load(data / "robot.snapshot.npz") as snap:  # the map server kept the keyframes
         assert len(snap["keyframes_seqs"]) > 0
 

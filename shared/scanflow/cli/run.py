@@ -127,6 +127,7 @@ def run_command(
     if mapper is not None:
         summary["loop_closure"] = {
             "keyframes": mapper.graph.node_count,
+            "culled": len(mapper.culled_seqs),  # inserts hung from a keyframe (cull_m)
             "closures": len(mapper.closures),
             "map_redraws": redraws + (final is not None and final.redrawn),
         }
@@ -149,7 +150,7 @@ def run_command(
     if mapper is not None:
         typer.echo(
             f"loop closure: {len(mapper.closures)} closures between {mapper.graph.node_count} "
-            "keyframes; map and trajectory optimised"
+            f"keyframes ({len(mapper.culled_seqs)} inserts culled); map and trajectory optimised"
         )
     for path in written:
         typer.echo(f"wrote {path}")

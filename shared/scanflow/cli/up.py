@@ -82,6 +82,9 @@ def up(
             typer.echo(f"map:      every robot starts on {prior_map.resolve()}")
         if backend.loop_closure:
             typer.echo("back end: loop closure on (the map is redrawn when a loop closes)")
+            if backend.cull_m > 0:
+                typer.echo(f"          keyframes culled within {backend.cull_m} m / "
+                           f"{backend.cull_deg} deg of one drawn")
         typer.echo(f"gateway:  http://127.0.0.1:{port}/")
         typer.echo(f"zenoh:    tcp/127.0.0.1:{zenoh_port} (SCANFLOW_ZENOH_CONNECT)")
         typer.echo(f"data dir: {data_dir.resolve()}")

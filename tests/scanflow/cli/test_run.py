@@ -66,6 +66,7 @@ def test_run_with_loop_closure_writes_the_optimised_map_and_trajectory(tmp_path:
     summary = json.loads(result.output)
     assert summary["loop_closure"]["closures"] > 0
     assert summary["loop_closure"]["keyframes"] == summary["inserted"]
+    assert summary["loop_closure"]["culled"] == 0
     stamps, poses = load_tum(tmp_path / "trajectory.tum")
     assert len(stamps) == summary["scans"] == 600
     assert summary["final_pose"] == [round(float(v), 4) for v in poses[-1]]
@@ -74,6 +75,20 @@ def test_run_with_loop_closure_writes_the_optimised_map_and_trajectory(tmp_path:
     assert "loop_closure" not in json.loads(plain.output)
     human = CliRunner().invoke(app, ["run", "--duration", "60", "--loop-closure"])
     assert human.exit_code == 0 and "loop closure: " in human.output
+
+
+def test_run_with_culling_reports_the_inserts_hung_from_keyframes() -> None:
+    """SCANFLOW_BACKEND_CULL_M reaches `scanflow run`: fewer keyframes than inserts, the rest
+    counted as culled, and the loops still close."""
+    _register()
+    result = CliRunner().invoke(
+        app, ["run", "--duration", "60", "--loop-closure", "--json"],
+        env={"SCANFLOW_BACKEND_CULL_M": "0.3"},
+    )
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.output)["loop_closure"]
+    assert summary["culled"] > 0 and summary["closures"] > 0
+    assert summary["keyframes"] + summary["culled"] == json.loads(result.output)["inserted"]
 
 
 def test_run_refuses_loop_closure_on_a_prior_map(tmp_path: Path) -> None:
