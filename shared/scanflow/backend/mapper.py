@@ -120,8 +120,8 @@ class Mapper:
         self.nodes: list[ScanNode] = []
         self.closures: list[LoopClosure] = []
         self.detector = LoopDetector(settings, self.params)
-        self._map_poses: list[Pose2D] = []  # keyframes in the front end's current map frame
-        self._drawn = np.zeros((0, 3))  # the same as an (K, 3) array (rows in use: K)
+        # Keyframes in the front end's current map frame, x y theta (rows in use: the graph's).
+        self._drawn = np.zeros((0, 3))
         self._anchor = -1  # the keyframe the robot hangs from now (the last, unless culled)
         self._culled_at: Pose2D | None = None  # the last insert, when it was culled
         self._since_m = 0.0  # the distance over culled inserts since the last keyframe
@@ -192,7 +192,11 @@ class Mapper:
 
     def drawn_pose(self, k: int) -> Pose2D:
         """Where keyframe `k` is drawn in the front end's current map."""
-        return self._map_poses[k]
+        return Pose2D.from_array(self._drawn_rows()[k])
+
+    def _drawn_rows(self) -> NDArray[np.float64]:
+        """Every keyframe's drawn pose, (K, 3)."""
+        return self._drawn[: self.graph.node_count]
 
     def stamps_s(self) -> NDArray[np.float64]:
         """Every scan's stamp, in the order of `trajectory()`."""
@@ -215,7 +219,7 @@ class Mapper:
     def _chain(self, pose: Pose2D) -> int:
         """The graph node of the newest keyframe, at `pose` in the front end's map, linked to
         the keyframe before by the motion between them."""
-        if not self._map_poses:
+        if self.graph.node_count == 0:
             index = self.graph.add_node(pose)
             self._travelled_m.append(0.0)
             # Scans before the first keyframe hang from it.
@@ -226,7 +230,7 @@ class Mapper:
             # Linked to the keyframe it hangs from: the last one, or the one an insert was
             # culled to (the front end tracked on it since).
             anchor = self._anchor
-            motion = self._map_poses[anchor].inverse() * pose
+            motion = self.drawn_pose(anchor).inverse() * pose
             step = motion if self._culled_at is None else self._culled_at.inverse() * pose
             index = self.graph.add_node(self.graph.pose(anchor) * motion)
             self.graph.add_edge(anchor, index, motion, self._keyframe_information(motion))
@@ -234,26 +238,25 @@ class Mapper:
             self._travelled_m.append(
                 self._travelled_m[-1] + self._since_m + step.translation_norm()
             )
-        self._drawn = grown(self._drawn, len(self._map_poses))
-        self._drawn[len(self._map_poses)] = (pose.x, pose.y, pose.theta)
-        self._map_poses.append(pose)
+        self._drawn = grown(self._drawn, index)
+        self._drawn[index] = (pose.x, pose.y, pose.theta)
         self._anchor, self._culled_at, self._since_m = index, None, 0.0
         return index
 
     def _last_insert(self) -> Pose2D:
         """The pose of the front end's last insert, in its current map frame."""
-        return self._map_poses[-1] if self._culled_at is None else self._culled_at
+        return self.drawn_pose(-1) if self._culled_at is None else self._culled_at
 
     def _held(self, out: FrontendOutput) -> int | None:
         """The keyframe drawn nearest the inserted scan when it lies within cull_m / cull_deg
         of it and the front end tracked the scan on its map; None: the scan is a keyframe."""
         s = self.settings
         if (
-            s.cull_m <= 0.0 or not self._map_poses or self._relocated
+            s.cull_m <= 0.0 or self.graph.node_count == 0 or self._relocated
             or out.status is not FrontendStatus.TRACKED
         ):
             return None
-        drawn = self._drawn[: len(self._map_poses)]
+        drawn = self._drawn_rows()
         distance = np.hypot(drawn[:, 0] - out.pose.x, drawn[:, 1] - out.pose.y)
         near = np.flatnonzero(distance <= s.cull_m)
         turn = np.abs(normalize_angles(drawn[near, 2] - out.pose.theta))
@@ -361,10 +364,9 @@ class Mapper:
         optimised = self.graph.poses
         # T_graph_map on the keyframe the robot hangs from (the newest, unless culled to another)
         anchor = self._anchor
-        correction = Pose2D.from_array(optimised[anchor]) * self._map_poses[anchor].inverse()
+        correction = Pose2D.from_array(optimised[anchor]) * self.drawn_pose(anchor).inverse()
         moved = compose_arrays(
-            np.array([[correction.x, correction.y, correction.theta]]),
-            np.array([p.to_array() for p in self._map_poses]),
+            np.array([[correction.x, correction.y, correction.theta]]), self._drawn_rows()
         )
         shift = moved - optimised
         shift_m = float(np.max(np.hypot(shift[:, 0], shift[:, 1])))
@@ -373,7 +375,6 @@ class Mapper:
         if shift_m < s.redraw_shift_m and shift_rad < math.radians(s.redraw_shift_deg):
             return report, None
         self.frontend.redraw(self.draw_map(), correction)
-        self._map_poses = [Pose2D.from_array(p) for p in optimised]
         self._drawn = optimised
         if self._culled_at is not None:
             self._culled_at = correction * self._culled_at
@@ -382,6 +383,6 @@ class Mapper:
     def _record_scan(self, stamp_s: float, pose: Pose2D) -> None:
         node = self._anchor
         self._scan_stamps.append(stamp_s)
-        anchor = self._map_poses[node] if node >= 0 else IDENTITY
+        anchor = self.drawn_pose(node) if node >= 0 else IDENTITY
         self._scan_node.append(node)
         self._scan_offset.append((anchor.inverse() * pose).to_array())
