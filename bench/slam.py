@@ -11,7 +11,10 @@ alignment), the largest aligned error, RPE per metre. Without them: the map's oc
 (a wall drawn twice by drift takes more). For the back end: its closures, how many of them the
 corrected poses disagree with (relative pose beyond 0.3 m / 3 deg: a wrong closure is one the
 optimiser must out-vote), keyframes, inserts culled as keyframes and map redraws; wall time
-of both passes.
+of both passes. `served_ate_rmse_m` is the ATE of the path as the services serve it over HTTP:
+the map server's path is corrected at each redraw only (the corrected path up to that scan,
+then the front end's estimates), and no service knows when a log ends, so it has no last
+optimisation.
 Each pass's map is saved as PNG in bench/out. The back end's other settings come from
 `SCANFLOW_BACKEND_*` as in `scanflow run` (e.g. `SCANFLOW_BACKEND_CONFIRM_KEYFRAMES=0`,
 `SCANFLOW_BACKEND_CULL_M=0.3`).
@@ -41,7 +44,14 @@ from scanflow.scan import LaserScan, Odometry
 from scanflow.sim import SimConfig, simulate
 from tqdm import tqdm
 
-from bench.frontend import OUT_DIR, SIM_MAP_FROM_WORLD, accuracy, align_se2, poses_array
+from bench.frontend import (
+    OUT_DIR,
+    SIM_MAP_FROM_WORLD,
+    accuracy,
+    align_se2,
+    ate_rmse_m,
+    poses_array,
+)
 
 WRONG_CLOSURE_M = 0.3
 WRONG_CLOSURE_DEG = 3.0
@@ -63,31 +73,48 @@ class Feed:
     odometry: list[list[Odometry]]
 
 
+@dataclass
+class PassResult:
+    """One pass: the pipeline, its final poses per scan (after the last optimisation), the
+    path as the map server serves it, wall time, the keyframes' scan indices and how often
+    the map was redrawn."""
+
+    pipeline: Pipeline
+    poses: NDArray[np.float64]
+    served: NDArray[np.float64]
+    wall_s: float
+    keyframes: list[int]
+    redraws: int
+
+
 def run_pass(
     feed: Feed, settings: FrontendSettings, backend: BackendSettings | None, name: str,
     initial_pose: Pose2D | None = None,
-) -> tuple[Pipeline, NDArray[np.float64], float, list[int], int]:
-    """One pass: the pipeline, its final poses per scan, wall time, the keyframes' scan
-    indices and how often the map was redrawn."""
+) -> PassResult:
+    """Replay the feed through one pipeline (see `PassResult`)."""
     pipeline = Pipeline(settings, backend=backend, initial_pose=initial_pose)
-    poses, keyframes, redraws = [], [], 0
+    poses, served, keyframes, redraws = [], [], [], 0
     t0 = time.perf_counter()
     for i, scan in enumerate(tqdm(feed.scans, desc=name, file=sys.stderr, leave=False)):
         for sample in feed.odometry[i]:
             pipeline.add_odometry(sample)
         out = pipeline.process(scan, feed.odom_poses[i])
         poses.append(out.estimate.pose)
+        served.append(out.estimate.pose.to_array())
         if out.backend is not None:
             redraws += out.backend.redrawn
             if out.backend.node is not None:
                 keyframes.append(i)
+            if out.backend.redrawn:  # the redraw carries the corrected path, this scan's last
+                assert pipeline.mapper is not None
+                served = list(pipeline.mapper.trajectory())
     final = pipeline.finish()
     redraws += final is not None and final.redrawn
     wall_s = time.perf_counter() - t0
     final_poses = (
         pipeline.mapper.trajectory() if pipeline.mapper is not None else poses_array(poses)
     )
-    return pipeline, final_poses, wall_s, keyframes, redraws
+    return PassResult(pipeline, final_poses, np.asarray(served), wall_s, keyframes, redraws)
 
 
 def closure_agreement(
@@ -119,9 +146,8 @@ def compare(
         ("frontend", None),
         ("loop_closure", BackendSettings(loop_closure=True)),  # SCANFLOW_BACKEND_* apply
     ):
-        pipeline, poses, wall_s, keyframes, redraws = run_pass(
-            feed, settings, backend, label, initial_pose
-        )
+        result = run_pass(feed, settings, backend, label, initial_pose)
+        pipeline, poses, wall_s = result.pipeline, result.poses, result.wall_s
         grid = (pipeline.frontend.map if pipeline.mapper is None
                 else pipeline.mapper.draw_map()).grid
         png = save_png(grid, OUT_DIR / f"slam_{name}_{label}.png")
@@ -135,12 +161,13 @@ def compare(
             "occupied_cells": int(np.count_nonzero(grid.occupied_mask())),
         }
         if pipeline.mapper is not None:
-            row.update(closure_agreement(pipeline, truth, keyframes))
-            row["keyframes"] = len(keyframes)
+            row.update(closure_agreement(pipeline, truth, result.keyframes))
+            row["served_ate_rmse_m"] = ate_rmse_m(result.served, truth)
+            row["keyframes"] = len(result.keyframes)
             # Inserts the back end did not make keyframes (SCANFLOW_BACKEND_CULL_M; 0: off).
             row["culled"] = len(pipeline.mapper.culled_seqs)
             row["cull_m"] = pipeline.mapper.settings.cull_m
-            row["map_redraws"] = redraws
+            row["map_redraws"] = result.redraws
         report[label] = row
     return report
 
