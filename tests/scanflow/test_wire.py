@@ -260,6 +260,15 @@ def resumes(draw: st.DrawFn) -> wire.ResumeMessage:
     )
 
 
+@st.composite
+def map_states(draw: st.DrawFn) -> wire.MapStateMessage:
+    n, seq = draw(small_n), draw(counts)
+    return wire.MapStateMessage(
+        draw(ids), seq, draw(st.integers(0, seq)), draw(st.binary()), draw(f64_arrays(n)),
+        draw(f64_arrays((n, 3))),
+    )
+
+
 STRATEGIES: dict[str, st.SearchStrategy[wire.Message]] = {
     "scan": scan_messages,
     "scan_deskewed": deskewed_messages(),
@@ -276,6 +285,7 @@ STRATEGIES: dict[str, st.SearchStrategy[wire.Message]] = {
     "map_redraw": map_redraws(),
     "keyframes": keyframes(),
     "resume": resumes(),
+    "map_state": map_states(),
     "service_stats": service_stats,
     "initial_pose": st.builds(wire.InitialPoseMessage, ids, poses),
 }
@@ -351,7 +361,7 @@ def test_decoded_arrays_are_read_only() -> None:
 def test_every_payload_carries_type_and_version() -> None:
     data = wire.MapImageMessage("r", 1, "png", b"x").encode()
     assert msgpack.unpackb(data)["type"] == "map_image"
-    assert msgpack.unpackb(data)["v"] == wire.SCHEMA_VERSION == 6
+    assert msgpack.unpackb(data)["v"] == wire.SCHEMA_VERSION == 7
 
 
 def test_message_helpers_carry_match_results() -> None:
@@ -410,8 +420,9 @@ SCAN = wire.ScanMessage(LaserScan(np.array([1.0, np.nan, 3.0]), 0.0, 0.1, robot_
 
 def test_wrong_version_is_a_version_error() -> None:
     # 1: before no_return_points, 2: before the sensor mount, 3: before map redraws,
-    # 4: before the resume message, 5: before the inserts' keyframe flag
-    for version in (1, 2, 3, 4, 5, 7):
+    # 4: before the resume message, 5: before the inserts' keyframe flag, 6: before the map
+    # state message
+    for version in (1, 2, 3, 4, 5, 6, 8):
         with pytest.raises(wire.VersionError, match=rf"\.v: schema version {version}"):
             wire.decode_any(_payload(SCAN, v=version))
 
@@ -777,6 +788,14 @@ def test_a_big_payload_whose_type_cannot_be_read_first_is_refused(head: bytes) -
             ),
             "poses contains non-finite",
         ),
+        (
+            lambda: wire.MapStateMessage("r", 3, 4, b"", np.zeros(0), np.zeros((0, 3))),
+            "insert_seq must be at most seq 3, got 4",
+        ),
+        (
+            lambda: wire.MapStateMessage("r", 3, 1, "npz", np.zeros(0), np.zeros((0, 3))),
+            "map_npz must be bytes, got str",
+        ),
         (lambda: wire.MapMetaMessage("r", 0.0, 0, 0, 1, 1, 0, 0.0), "resolution_m"),
         (lambda: wire.ServiceStatsMessage("s", "i", 0.0, gauges={"g": math.nan}), "gauges"),
         (lambda: wire.ServiceStatsMessage("s", "i", 0.0, gauges={"g": None}), "gauges"),
@@ -846,6 +865,7 @@ def _examples() -> list[wire.Message]:
         ),
         wire.ResumeMessage("r", 4, b"PK\x03\x04", np.arange(2.0), np.ones((2, 3)), kept),
         wire.ResumeMessage("r", 0, b"", np.zeros(0), np.zeros((0, 3))),
+        wire.MapStateMessage("r", 7, 5, b"PK\x03\x04", np.arange(2.0), np.ones((2, 3))),
         wire.ServiceStatsMessage("deskew", "a", 1.0, {"in": 3}, {"lag_s": 0.5}),
         wire.InitialPoseMessage("r", Pose2D(1.5, -2.0, 0.3)),
     ]

@@ -8,14 +8,17 @@ and shape. Anything wrong with a payload raises a `DecodeError` (subclasses `Ver
 `MessageError`. Decoded arrays are read-only views of the payload.
 
 A payload is at most MAX_PAYLOAD_BYTES (16 MiB: a scan, an estimate, an insert), except the
-`BULK` types, which grow with the run (a map, its region, a path, a redraw, a resume):
+`BULK` types, which grow with the run (a map, its region, a path, a redraw, a resume, a
+map state):
 up to MAX_BULK_BYTES (512 MiB). Zenoh splits a big payload into fragments on its own.
 
 Changing any message's fields bumps SCHEMA_VERSION (2: `DeskewedScanMessage.no_return_points`;
 3: the sensor `mount` on scans, deskewed scans and map inserts; 4: `MapRedrawMessage`,
 `KeyframesMessage` and `PoseEstimateMessage.correction`, loop closure in the services;
 5: `ResumeMessage`, a restarted matcher's one consistent answer from the map server;
-6: `MapInsertMessage.keyframe`, false for an insert the back end culled as a keyframe):
+6: `MapInsertMessage.keyframe`, false for an insert the back end culled as a keyframe;
+7: `MapStateMessage`, a matcher's whole map for a map server that missed more inserts than
+the matcher keeps):
 readers refuse other versions with a VersionError, so services of two versions fail loudly
 instead of dropping or missing a field.
 """
@@ -51,6 +54,7 @@ from scanflow.wire.maps import (
     MapMetaMessage,
     MapRedrawMessage,
     MapRegionMessage,
+    MapStateMessage,
     ResumeMessage,
 )
 from scanflow.wire.scans import DeskewedScanMessage, OdometryMessage, ScanMessage
@@ -73,6 +77,7 @@ __all__ = [
     "MapRedrawMessage",
     "MapRef",
     "MapRegionMessage",
+    "MapStateMessage",
     "MatchRequest",
     "MatchResponse",
     "Message",

@@ -121,6 +121,13 @@ def check_text(name: str, value: str, allow_empty: bool = False) -> str:
     return value
 
 
+def check_bytes(name: str, value: Any) -> bytes:
+    """A blob (bytes, bytearray or memoryview), as bytes."""
+    if not isinstance(value, bytes | bytearray | memoryview):
+        raise MessageError(f"{name} must be bytes, got {type(value).__name__}")
+    return bytes(value)
+
+
 def check_path(message: Any) -> None:
     """Check and set a message's `stamps_s` (N,) and `poses` (N, 3): a robot's path."""
     stamps = check_array("stamps_s", message.stamps_s, np.float64, (None,))

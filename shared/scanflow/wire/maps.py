@@ -17,6 +17,7 @@ from scanflow.maps.grid import GridSpec
 from scanflow.wire.base import (
     Message,
     check_array,
+    check_bytes,
     check_count,
     check_finite,
     check_path,
@@ -231,15 +232,50 @@ class ResumeMessage(Message):
     def __post_init__(self) -> None:
         check_text("robot_id", self.robot_id)
         object.__setattr__(self, "revision", check_count("revision", self.revision))
-        if not isinstance(self.map_npz, bytes | bytearray | memoryview):
-            raise MessageError(f"map_npz must be bytes, got {type(self.map_npz).__name__}")
-        object.__setattr__(self, "map_npz", bytes(self.map_npz))
+        object.__setattr__(self, "map_npz", check_bytes("map_npz", self.map_npz))
         check_path(self)
         kept = self.keyframes
         if kept is not None and kept.robot_id != self.robot_id:
             raise MessageError(
                 f"keyframes.robot_id must be {self.robot_id!r}, got {kept.robot_id!r}"
             )
+
+
+@dataclass(frozen=True, eq=False)
+class MapStateMessage(Message):
+    """A matcher's whole map of a robot, sent instead of inserts it no longer keeps (a map
+    server asked for more than its last few, and it has no back end's keyframes to rebuild
+    them from): the tracker's map (`map_npz`, the native .npz file) holding every insert up to
+    and including seq `insert_seq`, and its path (`poses` at `stamps_s`, the one of scan `seq`
+    last) since the tracker started. The map server takes it in place of the missing inserts
+    and skips the inserts and poses of the scans it holds that come after it.
+    """
+
+    TYPE = "map_state"
+    BULK = True
+    WIRE: ClassVar[Schema] = {
+        "robot_id": TEXT,
+        "seq": INT,
+        "insert_seq": INT,
+        "map_npz": BLOB,
+        **PATH,
+    }
+    robot_id: str
+    seq: int
+    insert_seq: int
+    map_npz: bytes
+    stamps_s: NDArray[np.float64]
+    poses: NDArray[np.float64]
+
+    def __post_init__(self) -> None:
+        check_text("robot_id", self.robot_id)
+        object.__setattr__(self, "seq", check_count("seq", self.seq))
+        insert_seq = check_count("insert_seq", self.insert_seq)
+        if insert_seq > self.seq:
+            raise MessageError(f"insert_seq must be at most seq {self.seq}, got {insert_seq}")
+        object.__setattr__(self, "insert_seq", insert_seq)
+        object.__setattr__(self, "map_npz", check_bytes("map_npz", self.map_npz))
+        check_path(self)
 
 
 @dataclass(frozen=True, eq=False)
@@ -364,9 +400,7 @@ class MapImageMessage(Message):
         object.__setattr__(self, "revision", check_count("revision", self.revision))
         if self.format not in MAP_IMAGE_FORMATS:
             raise MessageError(f"format must be one of {MAP_IMAGE_FORMATS}, got {self.format!r}")
-        if not isinstance(self.data, bytes | bytearray | memoryview):
-            raise MessageError(f"data must be bytes, got {type(self.data).__name__}")
-        object.__setattr__(self, "data", bytes(self.data))
+        object.__setattr__(self, "data", check_bytes("data", self.data))
 
 
 @dataclass(frozen=True, eq=False)
