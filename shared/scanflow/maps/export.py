@@ -227,6 +227,18 @@ def grid_from_npz(data: Mapping[str, NDArray], source: Path | str) -> OccupancyG
     )
 
 
+def grid_from_npz_bytes(data: bytes, source: str) -> OccupancyGrid:
+    """The map in the bytes of a native .npz (a map sent over the bus); ValueError naming
+    `source` when they are not one."""
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as arrays:
+            return grid_from_npz(arrays, source)
+    except Exception as exc:  # zipfile, zlib, npy and key errors of a truncated or foreign file
+        if str(exc).startswith(f"{source}:"):
+            raise
+        raise ValueError(f"{source}: not a readable .npz ({type(exc).__name__}: {exc})") from exc
+
+
 def load_npz(path: Path | str) -> OccupancyGrid:
     """Read a map written by `save_npz` (or any file of `npz_arrays` plus other arrays)."""
     with np.load(path, allow_pickle=False) as data:

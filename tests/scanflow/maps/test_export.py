@@ -13,7 +13,10 @@ from scanflow.maps.export import (
     FREE_PIXEL,
     OCCUPIED_PIXEL,
     UNKNOWN_PIXEL,
+    grid_from_npz_bytes,
     load_map,
+    npz_arrays,
+    npz_bytes,
     save_map,
     save_map_server,
     save_npz,
@@ -127,6 +130,21 @@ def test_npz_rejects_foreign_files(tmp_path: Path):
     np.savez(path, meta=np.array('{"format": "other", "version": 1}'))
     with pytest.raises(ValueError, match="not a scanflow-occupancy"):
         load_map(path)
+
+
+def test_npz_bytes_round_trip_and_unreadable_bytes_name_their_source(grid: OccupancyGrid):
+    """A map sent over the bus: exact, or a ValueError naming where the bytes came from."""
+    loaded = grid_from_npz_bytes(npz_bytes(npz_arrays(grid)), "the matcher's map")
+    np.testing.assert_array_equal(loaded.log_odds, grid.log_odds)
+    np.testing.assert_array_equal(loaded.hit_sums, grid.hit_sums)
+    assert loaded.extent == grid.extent and loaded.revision == grid.revision
+    foreign = npz_bytes({"meta": np.array('{"format": "other", "version": 1}')})
+    for data, reason in (
+        (b"", "EOFError"), (b"PK\x03\x04 cut short", "BadZipFile"), (b"junk", "pickled"),
+        (npz_bytes({"log_odds": np.zeros(2)}), "KeyError"), (foreign, "not a scanflow-occupancy"),
+    ):
+        with pytest.raises(ValueError, match=f"^the matcher's map: .*{reason}"):
+            grid_from_npz_bytes(data, "the matcher's map")
 
 
 def test_map_server_files_are_what_ros_expects(tmp_path: Path, grid: OccupancyGrid):
