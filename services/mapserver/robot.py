@@ -7,13 +7,20 @@ import math
 from collections.abc import Callable
 
 import numpy as np
+from numpy.typing import NDArray
 from scanflow.backend.loops import draw_keyframes
 from scanflow.frontend import insert_scan
 from scanflow.frontend.trajectory import TrajectoryStore
 from scanflow.maps.grid import CellBox
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
-from scanflow.wire import MapChangedMessage, MapInsertMessage, MapRedrawMessage, PoseEstimateMessage
+from scanflow.wire import (
+    MapChangedMessage,
+    MapInsertMessage,
+    MapRedrawMessage,
+    MapStateMessage,
+    PoseEstimateMessage,
+)
 
 from services.mapserver.keyframes import Keyframes
 from services.mapserver.snapshot import Snapshot
@@ -26,7 +33,9 @@ class RobotMap:
     pose, so only the order of the inserts matters, and one subscriber keeps that. A redraw
     comes on the inserts' subscriber, between the inserts the tracker made around it; it also
     carries the whole corrected path up to its scan: a pose of a scan it covers is not added
-    again, and poses of later scans that came before it are kept.
+    again, and poses of later scans that came before it are kept. A tracker's whole map (its
+    answer for inserts it no longer keeps) replaces the map and the path it covers in the same
+    way, and the inserts it holds that come after it are skipped (`holds`).
     """
 
     def __init__(
@@ -53,6 +62,7 @@ class RobotMap:
         self.last_insert_seq = -1 if snap is None else snap.last_insert_seq
         self.streams: set[str] = set()  # the kinds of message this run has had
         self.dirty: CellBox | None = None
+        self.held: tuple[int, int] | None = None  # inserts (after, through] in a taken state
         self.saved = self.state
 
     @property
@@ -70,6 +80,7 @@ class RobotMap:
         self.last_insert_seq = -1
         self.streams.clear()
         self.dirty = None
+        self.held = None
 
     def apply(self, pose: PoseEstimateMessage) -> None:
         """Record the pose in the trajectory (unless a redraw's path already holds it)."""
@@ -99,21 +110,45 @@ class RobotMap:
                 "keyframes (SCANFLOW_BACKEND_LOOP_CLOSURE is off here, on in the matcher)"
             )
         self.keyframes.check(redraw.keyframe_seqs)
-        grid = draw_keyframes(self.keyframes.nodes, redraw.keyframe_poses, params).grid
+        self._replace_map(draw_keyframes(self.keyframes.nodes, redraw.keyframe_poses, params).grid)
+        self.keyframes.moved(redraw.keyframe_poses)
+        self._replace_path(redraw.stamps_s, redraw.poses, redraw.seq)
+
+    def take_state(self, state: MapStateMessage, grid: OccupancyGrid, after: int) -> None:
+        """The tracker's whole map `grid` and path (`state`), sent for the inserts after seq
+        `after` that it no longer keeps: they replace this map and the path they cover, and
+        the inserts through `state.insert_seq` that come after it are held in it."""
+        self._replace_map(grid)
+        self._replace_path(state.stamps_s, state.poses, state.seq)
+        self.last_insert_seq = state.insert_seq
+        self.held = (after, state.insert_seq)
+
+    def holds(self, seq: int) -> bool:
+        """Whether the insert of `seq` is in the map already: a taken state holds it."""
+        return self.held is not None and self.held[0] < seq <= self.held[1]
+
+    def _replace_map(self, grid: OccupancyGrid) -> None:
+        """A new map (the next revision); the regions of the old and the new are dirty."""
         grid.revision = self.map.revision + 1
         for box in (self.map.grid.extent, grid.extent):
             if box is not None:
                 self.dirty = box.union(self.dirty)
         self.map = MatchingMap(grid)
-        self.keyframes.moved(redraw.keyframe_poses)
-        # Poses of later scans that came before the redraw are in the new frame already.
-        last_s = redraw.stamps_s[-1] if len(redraw.stamps_s) else -math.inf
-        later = self.trajectory.stamps_s > last_s
+
+    def _replace_path(
+        self, stamps_s: NDArray[np.float64], poses: NDArray[np.float64], seq: int
+    ) -> None:
+        """The path over the stamps it covers becomes `poses` (the tracker's, through scan
+        `seq`). Poses of later scans that came before it are in its frame already, and earlier
+        ones (before a restarted tracker's first) stay."""
+        own_s, own = self.trajectory.stamps_s, self.trajectory.poses
+        first_s, last_s = (stamps_s[0], stamps_s[-1]) if len(stamps_s) else (math.inf, math.inf)
+        earlier, later = own_s < first_s, own_s > last_s
         self.trajectory = TrajectoryStore.of(
-            np.concatenate((redraw.stamps_s, self.trajectory.stamps_s[later])),
-            np.concatenate((redraw.poses, self.trajectory.poses[later])),
+            np.concatenate((own_s[earlier], stamps_s, own_s[later])),
+            np.concatenate((own[earlier], poses, own[later])),
         )
-        self.redrawn_seq = redraw.seq
+        self.redrawn_seq = seq
 
     def take_change(self, stamp_s: float) -> MapChangedMessage | None:
         """The change notice for everything touched since the last one (None if nothing)."""

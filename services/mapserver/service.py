@@ -20,11 +20,13 @@ from scanflow import keys
 from scanflow.config import BackendSettings, FrontendSettings, MapServerSettings, ZenohSettings
 from scanflow.frontend import default_settings, occupancy_params
 from scanflow.frontend.prior import FrontendStart
+from scanflow.maps.export import grid_from_npz_bytes
 from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.warmup import warm_up
 from scanflow.wire import (
     MapInsertMessage,
     MapRedrawMessage,
+    MapStateMessage,
     Message,
     PoseEstimateMessage,
     SchemaError,
@@ -114,6 +116,9 @@ class MapServer:
             robot.redraw(message, self.params)
             self.shell.counters.add("redrawn")
             return
+        if isinstance(message, MapInsertMessage) and robot.holds(message.seq):
+            self.shell.counters.add("inserts_held")  # in the tracker's map taken before
+            return
         if isinstance(message, MapInsertMessage):  # sparse seqs: gaps are not misses
             restarted = message.seq <= robot.last_insert_seq
         else:
@@ -128,6 +133,9 @@ class MapServer:
         if isinstance(message, MapInsertMessage):
             if message.previous_seq is not None:
                 self._catch_up(robot, message.previous_seq)
+            if robot.holds(message.seq):  # the catch-up took the tracker's map, which has it
+                self.shell.counters.add("inserts_held")
+                return
             robot.insert(message)
             self.shell.counters.add("inserted")
         else:
@@ -139,7 +147,8 @@ class MapServer:
         them all: the map then lacks those scans. A matcher past its recent inserts sends the
         back end's keyframes only (inserts it culled as keyframes are not kept): a chain of
         keyframes that stops short of `through` is taken, since the next redraw needs those
-        keyframes and draws no others."""
+        keyframes and draws no others. A matcher without a back end sends its whole map and
+        path instead (MapStateMessage), which replace this robot's."""
         after = robot.last_insert_seq
         if through <= after:
             return
@@ -151,14 +160,20 @@ class MapServer:
         except (zenoh.ZError, RuntimeError) as exc:  # no side session, a refused query
             payloads, errors = [], [f"the query failed: {exc}"]
         try:
-            inserts = sorted((MapInsertMessage.decode(p) for p in payloads), key=lambda m: m.seq)
+            messages = [decode_any(p) for p in payloads]
+            if messages and isinstance(messages[0], MapStateMessage):
+                self._take_state(robot, messages[0], after, through)
+                return
+            if not all(isinstance(m, MapInsertMessage) for m in messages):
+                raise SchemaError(f"the answers are {sorted({m.TYPE for m in messages})}")
+            inserts = sorted(messages, key=lambda m: m.seq)  # type: ignore[attr-defined]
             chained = [m.previous_seq for m in inserts] == [
                 None if after == FIRST else after, *(m.seq for m in inserts[:-1])
             ]
             short = inserts and inserts[-1].seq < through and all(m.keyframe for m in inserts)
             if not inserts or not chained or (inserts[-1].seq != through and not short):
                 raise LookupError("; ".join(errors) or f"{len(inserts)} came, not the chain")
-        except (SchemaError, LookupError) as exc:
+        except (ValueError, LookupError) as exc:  # DecodeError, a broken map, a short chain
             n = self.shell.counters.add("inserts_lost")
             self.shell.log.warning(
                 "robot %s: inserts after seq %d through %d never came, and the matcher did not "
@@ -171,6 +186,25 @@ class MapServer:
         self.shell.counters.add("inserts_resent", len(inserts))
         self.shell.log.info("robot %s: inserts after seq %d through %d came again (%d)",
                             robot.robot_id, after, through, len(inserts))
+
+    def _take_state(
+        self, robot: RobotMap, state: MapStateMessage, after: int, through: int
+    ) -> None:
+        """The matcher's whole map and path in place of the inserts after seq `after` through
+        `through`; ValueError, changing nothing, when it is not that robot's or ends short."""
+        if state.robot_id != robot.robot_id or state.insert_seq < through:
+            raise ValueError(
+                f"a map of robot {state.robot_id!r} through insert {state.insert_seq} came, "
+                f"not one of {robot.robot_id!r} through {through}"
+            )
+        grid = grid_from_npz_bytes(state.map_npz, f"the matcher's map of {robot.robot_id}")
+        robot.take_state(state, grid, after)
+        self.shell.counters.add("map_states_taken")
+        self.shell.log.warning(
+            "robot %s: inserts after seq %d through %d are no longer kept by the matcher; took "
+            "its whole map (every insert through seq %d) and path (%d poses) instead",
+            robot.robot_id, after, through, state.insert_seq, len(state.poses),
+        )
 
     def new_grid(self) -> OccupancyGrid:
         """A new robot's map: the prior map the matchers start on, else an empty grid."""

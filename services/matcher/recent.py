@@ -4,7 +4,8 @@ A map server finds a missed insert by the chain of `MapInsertMessage.previous_se
 the router that dropped, a map server restarted from a snapshot a few seconds old) and asks
 for what it lacks (services.common.resend). Past the last few, a robot tracked with loop
 closure still has its keyframes: its back end keeps each (`keyframe_inserts`), all but the
-inserts it culled as keyframes.
+inserts it culled as keyframes. Without a back end the matcher sends its whole map instead
+(`map_state`): the map server takes it in place of the inserts it missed.
 """
 
 from __future__ import annotations
@@ -15,7 +16,9 @@ from collections import deque
 from collections.abc import Sequence
 
 from scanflow.backend import Mapper
-from scanflow.wire import MapInsertMessage
+from scanflow.frontend import Frontend
+from scanflow.maps.export import npz_arrays, npz_bytes
+from scanflow.wire import MapInsertMessage, MapStateMessage
 
 from services.common.resend import FIRST
 
@@ -27,6 +30,15 @@ class RecentInserts:
         self._kept: deque[tuple[int, int, bytes]] = deque(maxlen=capacity)  # seq, previous
         self._lock = threading.Lock()  # the worker adds while a resend query reads
         self.last_seq: int | None = None  # the run's last insert (None: none yet, or unknown)
+        self.scan_seq: int | None = None  # the tracker's last scan
+        self.map_seq: int | None = None  # the last scan in the tracker's map
+
+    def tracked(self, seq: int, inserted: bool) -> None:
+        """The tracker took scan `seq`, into its map if `inserted`. Called under the lock that
+        guards the tracker, so that `map_state` sees its map and these seqs at one instant."""
+        self.scan_seq = seq
+        if inserted:
+            self.map_seq = seq
 
     def add(self, seq: int, previous_seq: int | None, payload: bytes) -> None:
         """Keep the insert of `seq` (encoded as `payload`) that followed `previous_seq`."""
@@ -48,6 +60,18 @@ class RecentInserts:
                 f"(the last {len(kept)} inserts: {span})"
             )
         return [payload for _, _, payload in kept[start : end + 1]]
+
+
+def map_state(robot_id: str, frontend: Frontend, recent: RecentInserts) -> MapStateMessage:
+    """The tracker's whole map (every insert through `recent.map_seq`) and its path; call it
+    under the lock that guards the tracker. LookupError when it has inserted nothing."""
+    if recent.scan_seq is None or recent.map_seq is None:
+        raise LookupError(f"robot {robot_id}: this matcher has put no scan into its map")
+    path = frontend.trajectory
+    return MapStateMessage(
+        robot_id, recent.scan_seq, recent.map_seq, npz_bytes(npz_arrays(frontend.map.grid)),
+        path.stamps_s, path.poses,
+    )
 
 
 def keyframe_inserts(

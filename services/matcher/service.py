@@ -16,7 +16,8 @@ first scan. Match requests are answered on `<prefix>/match` (any scans) and
 `<prefix>/<robot>/match` (also against that robot's current map). Each insert names the one
 before it (`previous_seq`), and the last `resend_inserts` are kept to send again to a map
 server that missed some (`map/resend`); with loop closure, older ones are rebuilt from the
-back end's keyframes.
+back end's keyframes, and without it the matcher sends its whole map and path instead
+(MapStateMessage).
 
 With SCANFLOW_BACKEND_LOOP_CLOSURE a `Mapper` runs around each robot's front end (keyframes,
 loop closures, the pose graph). When it redraws the map, the matcher sends a MapRedrawMessage
@@ -30,7 +31,6 @@ found before are in their poses); without them it is tracked without loop closur
 from __future__ import annotations
 
 import copy
-import io
 import threading
 
 import numpy as np
@@ -41,12 +41,11 @@ from scanflow.config import BackendSettings, FrontendSettings, MatcherSettings, 
 from scanflow.frontend import Frontend, FrontendOutput
 from scanflow.frontend.prior import FrontendStart
 from scanflow.geometry import Pose2D
-from scanflow.maps.export import grid_from_npz
+from scanflow.maps.export import grid_from_npz_bytes
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.matching.global_search import GLOBAL_METHOD
 from scanflow.warmup import warm_up
 from scanflow.wire import (
-    DecodeError,
     DeskewedScanMessage,
     InitialPoseMessage,
     MapInsertMessage,
@@ -62,7 +61,7 @@ from services.common.keyframes import scan_nodes
 from services.common.process import init_process
 from services.common.resend import resend_range
 from services.common.shell import ServiceShell
-from services.matcher.recent import RecentInserts, keyframe_inserts
+from services.matcher.recent import RecentInserts, keyframe_inserts, map_state
 from services.matcher.requests import answer
 from services.matcher.shard import owns
 
@@ -127,6 +126,7 @@ class MatcherService:
                 out, message.points, message.no_return_points, message.mount
             )
             redraw = None if step is None else self._redraw(robot_id, out.seq, mapper, step)
+            self.recent[robot_id].tracked(out.seq, out.inserted)
         keyframe = step is None or step.culled_to is None
         self._publish(robot_id, message, out, keyframe, redraw)
 
@@ -244,17 +244,17 @@ class MatcherService:
         it answered (the path, the keyframes), if it knows the robot."""
         selector = keys.map_key(robot_id, "resume", self.shell.prefix)
         payloads, errors = self.shell.get(selector, self.settings.resume_timeout_s)
-        resumed = None
+        resumed = grid = None
         try:
             resumed = ResumeMessage.decode(payloads[0]) if payloads else None
-        except DecodeError as exc:  # another schema version, say: say so, start afresh
+            if resumed is not None and len(resumed.poses):
+                grid = grid_from_npz_bytes(resumed.map_npz, f"the map server's map of {robot_id}")
+        except ValueError as exc:  # another schema version, a broken map: say so, start afresh
             errors.append(f"its answer is unreadable: {exc}")
-        if resumed is None or len(resumed.poses) == 0:
+        if resumed is None or grid is None:
             self.shell.log.info("robot %s: no map to resume from, starting fresh%s", robot_id,
                                 f" ({'; '.join(errors)})" if errors else "")
             return None
-        with np.load(io.BytesIO(resumed.map_npz), allow_pickle=False) as data:
-            grid = grid_from_npz(data, f"the map server's map of {robot_id}")
         pose = Pose2D.from_array(resumed.poses[-1])
         self.shell.counters.add("resumed_robots")
         self.shell.log.info(
@@ -265,8 +265,8 @@ class MatcherService:
 
     def _on_resend(self, query: zenoh.Query) -> None:
         """Send an owned robot's inserts again (the map server missed them): the recent ones,
-        or with loop closure the back end's keyframes; other shards' robots are left to their
-        matcher."""
+        or with loop closure the back end's keyframes, or else the whole map and path (one
+        MapStateMessage); other shards' robots are left to their matcher."""
         robot_id = keys.robot_of(str(query.key_expr), self.shell.prefix)
         if not self.owns(robot_id):
             return
@@ -277,28 +277,49 @@ class MatcherService:
         try:
             payloads = recent.between(after, through)
         except LookupError as not_recent:
-            with self.lock:  # the worker adds keyframes and redraws
-                mapper = self.mappers.get(robot_id)
-                if mapper is None:  # no back end: nothing older is kept
-                    raise
+            payloads = self._older(robot_id, recent, after, through, not_recent)
+        else:
+            self._resent(robot_id, after, through, len(payloads))
+        key = keys.map_key(robot_id, "resend", self.shell.prefix)
+        for payload in payloads:
+            query.reply(key, payload)
+
+    def _resent(self, robot_id: str, after: int, through: int, count: int) -> None:
+        self.shell.counters.add("inserts_resent", count)
+        self.shell.log.info("robot %s: sent inserts %d..%d again (%d)", robot_id, after + 1,
+                            through, count)
+
+    def _older(
+        self, robot_id: str, recent: RecentInserts, after: int, through: int,
+        not_recent: LookupError,
+    ) -> list[bytes]:
+        """What stands in for inserts no longer kept: the back end's keyframes, or the map."""
+        with self.lock:  # the worker inserts, adds keyframes and redraws
+            mapper = self.mappers.get(robot_id)
+            if mapper is None:
+                state = map_state(robot_id, self.frontends[robot_id], recent)
+            else:
                 try:
                     inserts, culled = keyframe_inserts(mapper, robot_id, after, through)
                 except LookupError as exc:
                     raise LookupError(f"{not_recent}; {exc}") from None
-            payloads = [insert.encode() for insert in inserts]
-            if culled:
-                self.shell.counters.add("inserts_culled_unsent", culled)
-                self.shell.log.warning(
-                    "robot %s: of the inserts %d..%d, %d were culled as keyframes and are not "
-                    "kept; the map server's map lacks them until the next redraw", robot_id,
-                    after + 1, through, culled,
-                )
-        key = keys.map_key(robot_id, "resend", self.shell.prefix)
-        for payload in payloads:
-            query.reply(key, payload)
-        self.shell.counters.add("inserts_resent", len(payloads))
-        self.shell.log.info("robot %s: sent inserts %d..%d again (%d)", robot_id, after + 1,
-                            through, len(payloads))
+        if mapper is None:
+            self.shell.counters.add("map_states_sent")
+            self.shell.log.warning(
+                "robot %s: inserts %d..%d are no longer kept (%s); sent the whole map instead "
+                "(every insert through seq %d)", robot_id, after + 1, through, not_recent,
+                state.insert_seq,
+            )
+            return [state.encode()]
+        if culled:
+            self.shell.counters.add("inserts_culled_unsent", culled)
+            self.shell.log.warning(
+                "robot %s: of the inserts %d..%d, %d were culled as keyframes and are not "
+                "kept; the map server's map lacks them until the next redraw", robot_id,
+                after + 1, through, culled,
+            )
+        self._resent(robot_id, after, through, len(inserts))
+        return [insert.encode() for insert in inserts]
 
     def _on_initial_pose(self, query: zenoh.Query) -> None:
         """Put an owned robot at the operator's pose (kept for its first scan if not seen yet);

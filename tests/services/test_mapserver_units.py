@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from scanflow.config import MapServerSettings, ZenohSettings
 from scanflow.geometry import Pose2D
-from scanflow.maps.export import grid_from_npz, load_npz, save_npz
+from scanflow.maps.export import grid_from_npz, load_npz, npz_arrays, npz_bytes, save_npz
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
-from scanflow.wire import MapInsertMessage, MapRedrawMessage, PoseEstimateMessage
+from scanflow.wire import MapInsertMessage, MapRedrawMessage, MapStateMessage, PoseEstimateMessage
 
 from services.mapserver import replies
 from services.mapserver.robot import RobotMap
@@ -422,3 +422,114 @@ def test_a_resend_of_keyframes_only_may_stop_short(tmp_path, caplog, keyframe: b
             assert robot.map.revision == 2
     finally:
         server.shell.close(flush_s=0.0)
+
+
+def tracker_map(seqs: list[int]) -> OccupancyGrid:
+    """The map a tracker holds after inserting `insert(seq, at x = 0.1 seq)` for `seqs`."""
+    robot = new_robot()
+    for seq in seqs:
+        robot.insert(insert(seq, Pose2D(0.1 * seq, 0.0, 0.0)))
+    return robot.map.grid
+
+
+def state_server(tmp_path, answer: bytes) -> tuple[MapServer, list[str]]:
+    """A map server whose resend queries get `answer` (as a matcher past its recent inserts
+    and without a back end would give)."""
+    server = MapServer(MapServerSettings(data_dir=str(tmp_path)),
+                       ZenohSettings(mode="peer", connect=[]))
+    asked: list[str] = []
+
+    def matcher(selector: str, timeout_s: float):
+        asked.append(selector)
+        return [answer], []
+
+    server.shell.get = matcher
+    return server, asked
+
+
+def test_a_matchers_whole_map_stands_in_for_the_inserts_it_no_longer_keeps(tmp_path, caplog):
+    """The map server missed inserts 3..8, and the matcher keeps only its last few: it sends
+    its map (inserts 0..10) and path (scans 0..11) instead. The map and the path become the
+    matcher's; inserts and poses of the scans they hold, still on their way, are skipped;
+    later ones go on as before, and a replay from seq 0 still restarts the robot."""
+    path = np.column_stack((0.1 * np.arange(12), np.zeros(12), np.zeros(12)))
+    state = MapStateMessage(
+        "r", 11, 10, npz_bytes(npz_arrays(tracker_map([0, 2, 3, 5, 8, 9, 10]))),
+        0.1 * np.arange(12), path,
+    )
+    server, asked = state_server(tmp_path, state.encode())
+    try:
+        for seq in (0, 2):
+            server.handle("insert", replace(insert(seq, Pose2D(0.1 * seq, 0.0, 0.0)),
+                                            previous_seq=None if seq == 0 else 0))
+        for seq in (0, 1, 12):  # the pose subscriber runs ahead of the inserts' one
+            server.handle("pose", pose(seq, Pose2D(5.0, 5.0, 0.0)))
+        server.handle("insert", replace(insert(9, Pose2D(0.1 * 9, 0.0, 0.0)), previous_seq=8))
+        robot = server.robots["r"]
+        assert len(asked) == 1 and asked[0].endswith("r/map/resend?after=2;through=8")
+        assert server.shell.counters.get("map_states_taken") == 1
+        assert "inserts_lost" not in server.shell.counters.snapshot()
+        assert "took its whole map (every insert through seq 10)" in caplog.text
+        np.testing.assert_array_equal(robot.map.grid.log_odds,
+                                      tracker_map([0, 2, 3, 5, 8, 9, 10]).log_odds)
+        assert robot.last_insert_seq == 10 and robot.map.revision == 3
+        # The matcher's path, then the pose of scan 12 that came before it.
+        np.testing.assert_array_equal(robot.trajectory.poses[:12], path)
+        assert robot.trajectory.poses[12].tolist() == [5.0, 5.0, 0.0]
+        server.handle("insert", replace(insert(10, Pose2D(0.1 * 10, 0.0, 0.0)), previous_seq=9))
+        assert server.shell.counters.get("inserts_held") == 2  # 9 (that asked) and 10
+        server.handle("insert", replace(insert(12, Pose2D(0.1 * 12, 0.0, 0.0)), previous_seq=10))
+        np.testing.assert_array_equal(robot.map.grid.log_odds,
+                                      tracker_map([0, 2, 3, 5, 8, 9, 10, 12]).log_odds)
+        assert len(asked) == 1
+        server.handle("insert", insert(0))  # a replay
+        assert robot.last_insert_seq == 0 and robot.held is None
+    finally:
+        server.shell.close(flush_s=0.0)
+
+
+@pytest.mark.parametrize(
+    ("answer", "reason"),
+    [
+        (MapStateMessage("r", 6, 6, b"", np.zeros(0), np.zeros((0, 3))).encode(),
+         "not one of 'r' through 8"),
+        (MapStateMessage("q", 9, 9, b"", np.zeros(0), np.zeros((0, 3))).encode(),
+         "a map of robot 'q' through insert 9 came"),
+        (MapStateMessage("r", 9, 9, b"junk", np.zeros(0), np.zeros((0, 3))).encode(),
+         "the matcher's map of r: not a readable .npz"),
+        (b"\x93not a message", "not valid msgpack"),
+    ],
+    ids=["short", "another robot", "broken map", "junk"],
+)
+def test_a_map_state_that_does_not_fit_is_a_loss_named_not_taken(
+    tmp_path, caplog, answer: bytes, reason: str
+) -> None:
+    server, _ = state_server(tmp_path, answer)
+    try:
+        server.handle("insert", insert(0))
+        server.handle("insert", replace(insert(9), previous_seq=8))
+        robot = server.robots["r"]
+        assert server.shell.counters.get("inserts_lost") == 1
+        assert "map_states_taken" not in server.shell.counters.snapshot()
+        assert reason in caplog.text
+        assert robot.last_insert_seq == 9 and robot.map.revision == 2 and robot.held is None
+    finally:
+        server.shell.close(flush_s=0.0)
+
+
+def test_a_taken_path_keeps_the_poses_before_a_restarted_trackers_first() -> None:
+    """A matcher resumed mid-run holds the path since its restart only: the map server keeps
+    its own poses from before that."""
+    robot = new_robot()
+    for seq in range(5):
+        robot.apply(pose(seq, Pose2D(9.0, 0.0, 0.0)))
+    path = np.ones((3, 3))
+    state = MapStateMessage("r", 4, 3, b"", 0.1 * np.arange(2, 5), path)
+    robot.take_state(state, tracker_map([3]), after=1)
+    np.testing.assert_array_equal(robot.trajectory.stamps_s, 0.1 * np.arange(5))
+    np.testing.assert_array_equal(robot.trajectory.poses[:2], [[9.0, 0.0, 0.0]] * 2)
+    np.testing.assert_array_equal(robot.trajectory.poses[2:], path)
+    assert robot.holds(3) and robot.holds(2) and not robot.holds(1) and not robot.holds(4)
+    robot.apply(pose(4))  # the path holds scan 4 already
+    robot.apply(pose(5))
+    assert len(robot.trajectory) == 6 and robot.trajectory.stamps_s[-1] == 0.5

@@ -6,15 +6,27 @@ import logging
 
 import numpy as np
 import pytest
+from scanflow import keys
 from scanflow.backend import Mapper, SavedRun
 from scanflow.backend.loops import ScanNode
 from scanflow.config import BackendSettings, FrontendSettings, MatcherSettings, ZenohSettings
 from scanflow.frontend import Frontend, FrontendOutput, FrontendStatus
 from scanflow.geometry import IDENTITY, Pose2D
-from scanflow.maps.export import npz_arrays, write_npz
+from scanflow.maps.export import grid_from_npz_bytes, npz_arrays, write_npz
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
-from scanflow.wire import MapRedrawMessage, ResumeMessage, codec
+from scanflow.pipeline import DeskewStage
+from scanflow.sim import SimConfig, simulate
+from scanflow.wire import (
+    DeskewedScanMessage,
+    MapInsertMessage,
+    MapRedrawMessage,
+    MapStateMessage,
+    ResumeMessage,
+    codec,
+    decode_any,
+)
 
+from services.common.resend import FIRST, resend_selector
 from services.matcher.recent import RecentInserts, keyframe_inserts
 from services.matcher.service import MatcherService
 
@@ -90,6 +102,7 @@ def test_a_robot_resumes_from_the_map_servers_one_answer_or_says_why_not(
     answers = {
         "a": ResumeMessage("a", grid.revision, npz, np.array([1.0, 2.0]), path).encode(),
         "b": b"\x81\xa4type\xa6resume",  # another version's, say
+        "c": ResumeMessage("c", 1, b"PK\x03\x04 cut short", np.array([1.0, 2.0]), path).encode(),
     }
     service.shell.serve(
         "scanflow/*/map/resume",
@@ -108,6 +121,9 @@ def test_a_robot_resumes_from_the_map_servers_one_answer_or_says_why_not(
         assert "robot b: no map to resume from, starting fresh (its answer is unreadable" in (
             caplog.text
         )
+        assert service._seeded("c") is None  # a broken map: named, and the robot starts afresh
+        assert ("robot c: no map to resume from, starting fresh (its answer is unreadable: the "
+                "map server's map of c: not a readable .npz (BadZipFile") in caplog.text
     finally:
         service.shell.close(flush_s=0.0)
 
@@ -207,3 +223,60 @@ def _tracked(seq: int, pose: Pose2D) -> FrontendOutput:
         status=FrontendStatus.TRACKED, method="gn", iterations=3, score=0.8, message="",
         inserted=True, prediction_source="odometry",
     )
+
+
+def test_past_its_recent_inserts_a_matcher_without_a_back_end_sends_its_whole_map() -> None:
+    """Inserts older than the last `resend_inserts` are gone, and without loop closure there
+    are no keyframes to rebuild them from: the answer is the front end's whole map, the seq of
+    its last insert and its path, taken at one instant. The recent ones still come as
+    inserts."""
+    service = MatcherService(
+        MatcherSettings(resend_inserts=2), FrontendSettings(),
+        ZenohSettings(mode="peer", connect=[]),
+    )
+    try:
+        stage = DeskewStage()
+        for frame in simulate(SimConfig(duration_s=6.0, seed=2)):
+            for sample in frame.odometry:
+                stage.add_odometry(sample)
+            result = stage.process(frame.scan)
+            stamp = result.reference_stamp_s
+            beams = len(frame.scan.ranges_m)
+            service.handle("scan", DeskewedScanMessage(
+                "r", frame.scan.seq, stamp, result.points, result.source_used, False, beams,
+                beams - len(result.points), result.no_return_points,
+                stage.odometry_pose_at(stamp),
+            ))
+        recent = service.recent["r"]
+        inserted = recent.map_seq
+        assert recent.scan_seq == 59 and inserted is not None and inserted > 20
+        key = keys.map_key("r", "resend")
+        payloads, errors = service.shell.get(resend_selector(key, FIRST, inserted), 5.0)
+        assert errors == [] and len(payloads) == 1
+        state = decode_any(payloads[0])
+        assert isinstance(state, MapStateMessage) and state.robot_id == "r"
+        assert (state.seq, state.insert_seq) == (59, inserted)
+        frontend = service.frontends["r"]
+        grid = grid_from_npz_bytes(state.map_npz, "the state")
+        np.testing.assert_array_equal(grid.log_odds, frontend.map.grid.log_odds)
+        np.testing.assert_array_equal(grid.hit_sums, frontend.map.grid.hit_sums)
+        np.testing.assert_array_equal(state.poses, frontend.trajectory.poses)
+        assert len(state.stamps_s) == 60
+        assert service.shell.counters.get("map_states_sent") == 1
+        # The insert before the last: the one the kept chain starts from.
+        before = next(a for a in range(inserted - 1, FIRST, -1) if _chains(recent, a, inserted))
+        payloads, errors = service.shell.get(resend_selector(key, before, inserted), 5.0)
+        (again,) = [decode_any(p) for p in payloads]
+        assert isinstance(again, MapInsertMessage) and again.seq == inserted
+        assert service.shell.counters.get("inserts_resent") == 1
+        assert service.shell.counters.get("map_states_sent") == 1
+    finally:
+        service.shell.close(flush_s=0.0)
+
+
+def _chains(recent: RecentInserts, after: int, through: int) -> bool:
+    try:
+        recent.between(after, through)
+    except LookupError:
+        return False
+    return True

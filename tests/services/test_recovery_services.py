@@ -107,6 +107,45 @@ def test_map_server_crash_resumes_from_its_snapshot(pipeline, tmp_path):
     assert_same_grid(bus.map_grid(), grid)
 
 
+def test_a_map_server_down_past_the_matchers_recent_inserts_takes_its_whole_map(
+    launcher, bus, start, tmp_path
+):
+    """The matcher keeps its last 2 inserts only and tracks without loop closure, so the
+    inserts made while the map server was down cannot come again: the map server takes the
+    matcher's whole map and path instead. Both end as the in-process pipeline's, every scan's
+    pose included, though the map server missed some of them."""
+    for name in ("deskew", "matcher", "mapserver"):
+        start(name, SCANFLOW_MAPSERVER_SNAPSHOT_INTERVAL_S="0.5", SCANFLOW_DESKEW_ODOM_WAIT_S="3",
+              SCANFLOW_MATCHER_RESEND_INSERTS="2")
+    poses = bus.record(keys.pose())
+    ingest = launcher.start("ingest", **{**SIM, "SCANFLOW_INGEST_RATE": "1"})  # 8 s
+    bus.wait_until(lambda: len(poses) >= 15, 60.0, "15 poses before the crash")
+    data = tmp_path / "data"
+    bus.wait_until(lambda: (data / "robot.snapshot.npz").exists(), 10.0, "a snapshot")
+    launcher.kill("mapserver")
+    down_at = len(poses)
+    bus.wait_until(lambda: len(poses) >= down_at + 25, 30.0, "25 poses while it is down")
+    start("mapserver", SCANFLOW_MAPSERVER_SNAPSHOT_INTERVAL_S="0.5")
+    ingest.wait(120.0)
+    assert ingest.returncode == 0
+    outputs, grid = in_process(source_events(None, "robot", SCANS / 10, 3, None))
+    last_insert = max(o.seq for o in outputs if o.inserted)
+    bus.wait_until(
+        lambda: (bus.stats("mapserver").gauges["robot.last_insert_seq"],
+                 bus.stats("mapserver").gauges["seq.robot/pose.last"]) == (last_insert, SCANS - 1),
+        30.0, "the last insert and the last pose",
+    )
+    stats = bus.stats("mapserver")
+    assert stats.counters["map_states_taken"] == 1, stats.counters
+    assert stats.counters["seq.robot/pose.missed"] > 0  # it did miss poses...
+    assert "inserts_lost" not in stats.counters
+    assert bus.stats("matcher").counters["map_states_sent"] == 1
+    assert_same_grid(bus.map_grid(), grid)
+    (path,) = bus.get(keys.trajectory("robot"))  # ...and serves them all the same
+    np.testing.assert_array_equal(path.poses, [o.pose.to_array() for o in outputs])
+    assert "took its whole map" in launcher.log_text("mapserver")
+
+
 def test_junk_on_every_key_is_counted_and_match_requests_are_answered(pipeline):
     launcher, bus, start = pipeline
     start("ingest", SCANFLOW_INGEST_RATE="0.5", SCANFLOW_INGEST_SIM_DURATION_S="4")
