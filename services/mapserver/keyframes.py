@@ -13,7 +13,7 @@ from scanflow.backend.loops import ScanNode
 from scanflow.geometry import Pose2D
 from scanflow.wire import KeyframesMessage, MapInsertMessage
 
-from services.common.keyframes import scan_nodes
+from services.common.keyframes import keyframes_message, scan_nodes
 
 _PREFIX = "keyframes_"
 
@@ -58,25 +58,8 @@ class Keyframes:
 
     def message(self, robot_id: str, first: int = 0, end: int | None = None) -> KeyframesMessage:
         """Keyframes first..end-1 (default: all) as one message."""
-        nodes, poses = self.nodes[first:end], self.poses[first:end]
-
-        def rows(name: str) -> NDArray[np.float64]:
-            return np.concatenate([getattr(n, name) for n in nodes] or [np.zeros((0, 2))])
-
-        def counts(name: str) -> NDArray[np.int64]:
-            return np.array([len(getattr(n, name)) for n in nodes], dtype=np.int64)
-
-        return KeyframesMessage(
-            robot_id,
-            np.asarray(self.seqs[first:end], dtype=np.int64),
-            np.array([n.stamp_s for n in nodes], dtype=np.float64),
-            np.array([p.to_array() for p in poses]).reshape(-1, 3),
-            np.array([n.mount.to_array() for n in nodes]).reshape(-1, 3),
-            counts("points"),
-            rows("points"),
-            counts("no_return"),
-            rows("no_return"),
-        )
+        poses = [p.to_array() for p in self.poses[first:end]]
+        return keyframes_message(robot_id, self.seqs[first:end], self.nodes[first:end], poses)
 
     @classmethod
     def from_message(cls, message: KeyframesMessage) -> Keyframes:
