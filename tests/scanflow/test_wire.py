@@ -262,11 +262,21 @@ def resumes(draw: st.DrawFn) -> wire.ResumeMessage:
 
 @st.composite
 def map_states(draw: st.DrawFn) -> wire.MapStateMessage:
-    n, seq = draw(small_n), draw(counts)
+    robot_id, n, seq = draw(ids), draw(small_n), draw(counts)
+    kept = draw(st.none() | keyframes())
+    if kept is not None:
+        kept = dataclasses.replace(kept, robot_id=robot_id)
     return wire.MapStateMessage(
-        draw(ids), seq, draw(st.integers(0, seq)), draw(st.binary()), draw(f64_arrays(n)),
-        draw(f64_arrays((n, 3))),
+        robot_id, seq, draw(st.integers(0, seq)), draw(st.binary()), draw(f64_arrays(n)),
+        draw(f64_arrays((n, 3))), kept,
     )
+
+
+def _keyframes_of(robot_id: str) -> wire.KeyframesMessage:
+    """One keyframe of `robot_id` with no points."""
+    none = np.zeros((0, 2))
+    return wire.KeyframesMessage(robot_id, np.array([1]), np.zeros(1), np.zeros((1, 3)),
+                                 np.zeros((1, 3)), np.array([0]), none, np.array([0]), none)
 
 
 STRATEGIES: dict[str, st.SearchStrategy[wire.Message]] = {
@@ -796,6 +806,18 @@ def test_a_big_payload_whose_type_cannot_be_read_first_is_refused(head: bytes) -
             lambda: wire.MapStateMessage("r", 3, 1, "npz", np.zeros(0), np.zeros((0, 3))),
             "map_npz must be bytes, got str",
         ),
+        (
+            lambda: wire.MapStateMessage(
+                "r", 3, 1, b"", np.zeros(0), np.zeros((0, 3)), _keyframes_of("q")
+            ),
+            "keyframes.robot_id must be 'r', got 'q'",
+        ),
+        (
+            lambda: wire.ResumeMessage(
+                "r", 0, b"", np.zeros(0), np.zeros((0, 3)), _keyframes_of("q")
+            ),
+            "keyframes.robot_id must be 'r', got 'q'",
+        ),
         (lambda: wire.MapMetaMessage("r", 0.0, 0, 0, 1, 1, 0, 0.0), "resolution_m"),
         (lambda: wire.ServiceStatsMessage("s", "i", 0.0, gauges={"g": math.nan}), "gauges"),
         (lambda: wire.ServiceStatsMessage("s", "i", 0.0, gauges={"g": None}), "gauges"),
@@ -866,6 +888,7 @@ def _examples() -> list[wire.Message]:
         wire.ResumeMessage("r", 4, b"PK\x03\x04", np.arange(2.0), np.ones((2, 3)), kept),
         wire.ResumeMessage("r", 0, b"", np.zeros(0), np.zeros((0, 3))),
         wire.MapStateMessage("r", 7, 5, b"PK\x03\x04", np.arange(2.0), np.ones((2, 3))),
+        wire.MapStateMessage("r", 7, 5, b"PK\x03\x04", np.arange(2.0), np.ones((2, 3)), kept),
         wire.ServiceStatsMessage("deskew", "a", 1.0, {"in": 3}, {"lag_s": 0.5}),
         wire.InitialPoseMessage("r", Pose2D(1.5, -2.0, 0.3)),
     ]

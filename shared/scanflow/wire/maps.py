@@ -199,6 +199,23 @@ class KeyframesMessage(Message):
         return list(zip(hits, misses, strict=True))
 
 
+# A message's optional `keyframes` (a KeyframesMessage of the same robot), nested.
+KEPT_KEYFRAMES = optional(
+    FieldCodec(
+        KeyframesMessage.to_fields,
+        lambda fields, name: KeyframesMessage.from_fields(fields.nested(name)),
+    )
+)
+
+
+def _check_kept(message: ResumeMessage | MapStateMessage) -> None:
+    kept = message.keyframes
+    if kept is not None and kept.robot_id != message.robot_id:
+        raise MessageError(
+            f"keyframes.robot_id must be {message.robot_id!r}, got {kept.robot_id!r}"
+        )
+
+
 @dataclass(frozen=True, eq=False)
 class ResumeMessage(Message):
     """What a matcher that meets a robot mid-stream (it restarted) carries on from, taken by
@@ -215,12 +232,7 @@ class ResumeMessage(Message):
         "revision": INT,
         "map_npz": BLOB,
         **PATH,
-        "keyframes": optional(
-            FieldCodec(
-                KeyframesMessage.to_fields,
-                lambda fields, name: KeyframesMessage.from_fields(fields.nested(name)),
-            )
-        ),
+        "keyframes": KEPT_KEYFRAMES,
     }
     robot_id: str
     revision: int
@@ -234,21 +246,22 @@ class ResumeMessage(Message):
         object.__setattr__(self, "revision", check_count("revision", self.revision))
         object.__setattr__(self, "map_npz", check_bytes("map_npz", self.map_npz))
         check_path(self)
-        kept = self.keyframes
-        if kept is not None and kept.robot_id != self.robot_id:
-            raise MessageError(
-                f"keyframes.robot_id must be {self.robot_id!r}, got {kept.robot_id!r}"
-            )
+        _check_kept(self)
 
 
 @dataclass(frozen=True, eq=False)
 class MapStateMessage(Message):
     """A matcher's whole map of a robot, sent instead of inserts it no longer keeps (a map
-    server asked for more than its last few, and it has no back end's keyframes to rebuild
-    them from): the tracker's map (`map_npz`, the native .npz file) holding every insert up to
-    and including seq `insert_seq`, and its path (`poses` at `stamps_s`, the one of scan `seq`
-    last) since the tracker started. The map server takes it in place of the missing inserts
-    and skips the inserts and poses of the scans it holds that come after it.
+    server asked for more than its last few, and the back end's keyframes cannot stand in for
+    them: there is no back end, or it culled some of them as keyframes).
+
+    `map_npz` is the tracker's map (the native .npz file), holding every insert up to and
+    including seq `insert_seq`. The path (`poses` at `stamps_s`, the one of scan `seq` last)
+    is as the map server would have it: the tracker's since it started, corrected at its last
+    redraw. With loop closure the message carries the back end's `keyframes` too, at the poses
+    they are drawn at, so that the map server follows the next redraw. The map server takes
+    it in place of the missing inserts, and skips the inserts, redraws and poses of the scans
+    it holds that come after it.
     """
 
     TYPE = "map_state"
@@ -259,6 +272,7 @@ class MapStateMessage(Message):
         "insert_seq": INT,
         "map_npz": BLOB,
         **PATH,
+        "keyframes": KEPT_KEYFRAMES,
     }
     robot_id: str
     seq: int
@@ -266,6 +280,7 @@ class MapStateMessage(Message):
     map_npz: bytes
     stamps_s: NDArray[np.float64]
     poses: NDArray[np.float64]
+    keyframes: KeyframesMessage | None = None
 
     def __post_init__(self) -> None:
         check_text("robot_id", self.robot_id)
@@ -276,6 +291,7 @@ class MapStateMessage(Message):
         object.__setattr__(self, "insert_seq", insert_seq)
         object.__setattr__(self, "map_npz", check_bytes("map_npz", self.map_npz))
         check_path(self)
+        _check_kept(self)
 
 
 @dataclass(frozen=True, eq=False)
