@@ -194,6 +194,10 @@ class Mapper:
         """Where keyframe `k` is drawn in the front end's current map."""
         return Pose2D.from_array(self._drawn_rows()[k])
 
+    def drawn_poses(self) -> NDArray[np.float64]:
+        """Every keyframe's pose in the front end's current map, (K, 3) (a copy)."""
+        return self._drawn_rows().copy()
+
     def _drawn_rows(self) -> NDArray[np.float64]:
         """Every keyframe's drawn pose, (K, 3)."""
         return self._drawn[: self.graph.node_count]

@@ -363,8 +363,15 @@ def test_a_redraw_while_culled_moves_the_front_end_with_the_keyframe_it_hangs_fr
     back = mapper.drawn_pose(5) * Pose2D(0.02, 0.01, 0.01)
     step = mapper.add(output(len(drive.drifted), back.to_array()), drive.scans[5])
     assert step.culled_to == 5 and mapper.closures
+    drawn = mapper.drawn_poses()
+    assert [Pose2D.from_array(row) for row in drawn] == [
+        mapper.drawn_pose(k) for k in range(mapper.graph.node_count)
+    ]
     correction = mapper.finish().correction
     assert correction is not None
+    # A copy of where the map had them; after the redraw, the graph's poses.
+    np.testing.assert_array_equal(mapper.drawn_poses(), mapper.graph.poses)
+    assert not np.array_equal(drawn, mapper.drawn_poses())
     gap = (correction * back).relative_to(Pose2D.from_array(mapper.trajectory()[-1]))
     assert gap.translation_norm() < 1e-9 and abs(gap.theta) < 1e-9
     # On from there (in the redrawn frame): the odometer counts every insert's step, the
