@@ -115,17 +115,23 @@ class RobotMap:
         self._replace_path(redraw.stamps_s, redraw.poses, redraw.seq)
 
     def take_state(self, state: MapStateMessage, grid: OccupancyGrid, after: int) -> None:
-        """The tracker's whole map `grid` and path (`state`), sent for the inserts after seq
-        `after` that it no longer keeps: they replace this map and the path they cover, and
-        the inserts through `state.insert_seq` that come after it are held in it."""
+        """The tracker's whole map `grid`, path and keyframes (`state`), sent for the inserts
+        after seq `after` that it no longer keeps: they replace this map, the path they cover
+        and the kept keyframes, and the inserts and redraws through `state.insert_seq` that
+        come after it are held in them."""
         self._replace_map(grid)
         self._replace_path(state.stamps_s, state.poses, state.seq)
+        if self.keyframes is not None and state.keyframes is not None:
+            self.keyframes = Keyframes.from_message(state.keyframes)
         self.last_insert_seq = state.insert_seq
         self.held = (after, state.insert_seq)
 
-    def holds(self, seq: int) -> bool:
-        """Whether the insert of `seq` is in the map already: a taken state holds it."""
-        return self.held is not None and self.held[0] < seq <= self.held[1]
+    def holds(self, message: MapInsertMessage | MapRedrawMessage | PoseEstimateMessage) -> bool:
+        """Whether an insert or a redraw is in the map already: a taken state holds it."""
+        return (
+            not isinstance(message, PoseEstimateMessage) and self.held is not None
+            and self.held[0] < message.seq <= self.held[1]
+        )
 
     def _replace_map(self, grid: OccupancyGrid) -> None:
         """A new map (the next revision); the regions of the old and the new are dirty."""

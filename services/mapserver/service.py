@@ -110,14 +110,15 @@ class MapServer:
             robot = self.robots[robot_id] = RobotMap(
                 robot_id, self.new_grid, keep_keyframes=self.keep_keyframes
             )
+        if self._held(robot, message):  # in the tracker's map taken before
+            return
         if isinstance(message, MapRedrawMessage):  # follows the insert of its own scan
             if len(message.keyframe_seqs):
                 self._catch_up(robot, int(message.keyframe_seqs[-1]))
+            if self._held(robot, message):  # the catch-up took the tracker's map, redrawn
+                return
             robot.redraw(message, self.params)
             self.shell.counters.add("redrawn")
-            return
-        if isinstance(message, MapInsertMessage) and robot.holds(message.seq):
-            self.shell.counters.add("inserts_held")  # in the tracker's map taken before
             return
         if isinstance(message, MapInsertMessage):  # sparse seqs: gaps are not misses
             restarted = message.seq <= robot.last_insert_seq
@@ -133,22 +134,27 @@ class MapServer:
         if isinstance(message, MapInsertMessage):
             if message.previous_seq is not None:
                 self._catch_up(robot, message.previous_seq)
-            if robot.holds(message.seq):  # the catch-up took the tracker's map, which has it
-                self.shell.counters.add("inserts_held")
+            if self._held(robot, message):  # the catch-up took the tracker's map: it has it
                 return
             robot.insert(message)
             self.shell.counters.add("inserted")
         else:
             robot.apply(message)
 
+    def _held(self, robot: RobotMap, message: Update) -> bool:
+        """Whether the robot's map holds the insert or redraw already (counted)."""
+        if not robot.holds(message):
+            return False
+        held = "redraws_held" if isinstance(message, MapRedrawMessage) else "inserts_held"
+        self.shell.counters.add(held)
+        return True
+
     def _catch_up(self, robot: RobotMap, through: int) -> None:
         """Insert what the matcher inserted after this robot's last insert here, through seq
         `through`, asked for again; logged and counted (`inserts_lost`) when it cannot send
         them all: the map then lacks those scans. A matcher past its recent inserts sends the
-        back end's keyframes only (inserts it culled as keyframes are not kept): a chain of
-        keyframes that stops short of `through` is taken, since the next redraw needs those
-        keyframes and draws no others. A matcher without a back end sends its whole map and
-        path instead (MapStateMessage), which replace this robot's."""
+        back end's keyframes when they are all of them, else its whole map and path
+        (MapStateMessage), which replace this robot's."""
         after = robot.last_insert_seq
         if through <= after:
             return
@@ -170,8 +176,7 @@ class MapServer:
             chained = [m.previous_seq for m in inserts] == [
                 None if after == FIRST else after, *(m.seq for m in inserts[:-1])
             ]
-            short = inserts and inserts[-1].seq < through and all(m.keyframe for m in inserts)
-            if not inserts or not chained or (inserts[-1].seq != through and not short):
+            if not inserts or not chained or inserts[-1].seq != through:
                 raise LookupError("; ".join(errors) or f"{len(inserts)} came, not the chain")
         except (ValueError, LookupError) as exc:  # DecodeError, a broken map, a short chain
             n = self.shell.counters.add("inserts_lost")

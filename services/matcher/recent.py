@@ -4,8 +4,9 @@ A map server finds a missed insert by the chain of `MapInsertMessage.previous_se
 the router that dropped, a map server restarted from a snapshot a few seconds old) and asks
 for what it lacks (services.common.resend). Past the last few, a robot tracked with loop
 closure still has its keyframes: its back end keeps each (`keyframe_inserts`), all but the
-inserts it culled as keyframes. Without a back end the matcher sends its whole map instead
-(`map_state`): the map server takes it in place of the inserts it missed.
+inserts it culled as keyframes. Without a back end, or when it culled some of them, the
+matcher sends its whole map instead (`map_state`): the map server takes it in place of the
+inserts it missed.
 """
 
 from __future__ import annotations
@@ -15,11 +16,13 @@ from bisect import bisect_left, bisect_right
 from collections import deque
 from collections.abc import Sequence
 
+import numpy as np
 from scanflow.backend import Mapper
 from scanflow.frontend import Frontend
 from scanflow.maps.export import npz_arrays, npz_bytes
-from scanflow.wire import MapInsertMessage, MapStateMessage
+from scanflow.wire import MapInsertMessage, MapRedrawMessage, MapStateMessage
 
+from services.common.keyframes import keyframes_message
 from services.common.resend import FIRST
 
 
@@ -32,13 +35,17 @@ class RecentInserts:
         self.last_seq: int | None = None  # the run's last insert (None: none yet, or unknown)
         self.scan_seq: int | None = None  # the tracker's last scan
         self.map_seq: int | None = None  # the last scan in the tracker's map
+        self.redrawn: MapRedrawMessage | None = None  # the last redraw: its corrected path
 
-    def tracked(self, seq: int, inserted: bool) -> None:
-        """The tracker took scan `seq`, into its map if `inserted`. Called under the lock that
-        guards the tracker, so that `map_state` sees its map and these seqs at one instant."""
+    def tracked(self, seq: int, inserted: bool, redraw: MapRedrawMessage | None = None) -> None:
+        """The tracker took scan `seq`, into its map if `inserted`, and redrew its map after
+        it if `redraw`. Called under the lock that guards the tracker, so that `map_state`
+        sees its map and these at one instant."""
         self.scan_seq = seq
         if inserted:
             self.map_seq = seq
+        if redraw is not None:
+            self.redrawn = redraw
 
     def add(self, seq: int, previous_seq: int | None, payload: bytes) -> None:
         """Keep the insert of `seq` (encoded as `payload`) that followed `previous_seq`."""
@@ -62,15 +69,27 @@ class RecentInserts:
         return [payload for _, _, payload in kept[start : end + 1]]
 
 
-def map_state(robot_id: str, frontend: Frontend, recent: RecentInserts) -> MapStateMessage:
-    """The tracker's whole map (every insert through `recent.map_seq`) and its path; call it
-    under the lock that guards the tracker. LookupError when it has inserted nothing."""
+def map_state(
+    robot_id: str, frontend: Frontend, recent: RecentInserts, mapper: Mapper | None = None
+) -> MapStateMessage:
+    """The tracker's whole map (every insert through `recent.map_seq`), its path as the map
+    server has it (the last redraw's, then the front end's estimates) and, with a back end,
+    its keyframes where they are drawn; call it under the lock that guards the tracker.
+    LookupError when it has inserted nothing."""
     if recent.scan_seq is None or recent.map_seq is None:
         raise LookupError(f"robot {robot_id}: this matcher has put no scan into its map")
-    path = frontend.trajectory
+    stamps, poses = frontend.trajectory.stamps_s, frontend.trajectory.poses
+    redraw = recent.redrawn
+    if redraw is not None and len(redraw.stamps_s):
+        later = stamps > redraw.stamps_s[-1]
+        stamps = np.concatenate((redraw.stamps_s, stamps[later]))
+        poses = np.concatenate((redraw.poses, poses[later]))
+    kept = None if mapper is None else keyframes_message(
+        robot_id, mapper.keyframe_seqs, mapper.nodes, mapper.drawn_poses()
+    )
     return MapStateMessage(
         robot_id, recent.scan_seq, recent.map_seq, npz_bytes(npz_arrays(frontend.map.grid)),
-        path.stamps_s, path.poses,
+        stamps, poses, kept,
     )
 
 

@@ -16,8 +16,8 @@ first scan. Match requests are answered on `<prefix>/match` (any scans) and
 `<prefix>/<robot>/match` (also against that robot's current map). Each insert names the one
 before it (`previous_seq`), and the last `resend_inserts` are kept to send again to a map
 server that missed some (`map/resend`); with loop closure, older ones are rebuilt from the
-back end's keyframes, and without it the matcher sends its whole map and path instead
-(MapStateMessage).
+back end's keyframes; without it, or when the back end culled some of them as keyframes, the
+matcher sends its whole map and path instead (MapStateMessage).
 
 With SCANFLOW_BACKEND_LOOP_CLOSURE a `Mapper` runs around each robot's front end (keyframes,
 loop closures, the pose graph). When it redraws the map, the matcher sends a MapRedrawMessage
@@ -126,7 +126,7 @@ class MatcherService:
                 out, message.points, message.no_return_points, message.mount
             )
             redraw = None if step is None else self._redraw(robot_id, out.seq, mapper, step)
-            self.recent[robot_id].tracked(out.seq, out.inserted)
+            self.recent[robot_id].tracked(out.seq, out.inserted, redraw)
         keyframe = step is None or step.culled_to is None
         self._publish(robot_id, message, out, keyframe, redraw)
 
@@ -293,33 +293,29 @@ class MatcherService:
         self, robot_id: str, recent: RecentInserts, after: int, through: int,
         not_recent: LookupError,
     ) -> list[bytes]:
-        """What stands in for inserts no longer kept: the back end's keyframes, or the map."""
+        """What stands in for inserts no longer kept: the back end's keyframes when they are
+        all of them, else the whole map."""
+        culled = 0
         with self.lock:  # the worker inserts, adds keyframes and redraws
             mapper = self.mappers.get(robot_id)
-            if mapper is None:
-                state = map_state(robot_id, self.frontends[robot_id], recent)
-            else:
+            if mapper is not None:
                 try:
                     inserts, culled = keyframe_inserts(mapper, robot_id, after, through)
                 except LookupError as exc:
                     raise LookupError(f"{not_recent}; {exc}") from None
-        if mapper is None:
-            self.shell.counters.add("map_states_sent")
-            self.shell.log.warning(
-                "robot %s: inserts %d..%d are no longer kept (%s); sent the whole map instead "
-                "(every insert through seq %d)", robot_id, after + 1, through, not_recent,
-                state.insert_seq,
-            )
-            return [state.encode()]
-        if culled:
-            self.shell.counters.add("inserts_culled_unsent", culled)
-            self.shell.log.warning(
-                "robot %s: of the inserts %d..%d, %d were culled as keyframes and are not "
-                "kept; the map server's map lacks them until the next redraw", robot_id,
-                after + 1, through, culled,
-            )
-        self._resent(robot_id, after, through, len(inserts))
-        return [insert.encode() for insert in inserts]
+            if mapper is None or culled:
+                state = map_state(robot_id, self.frontends[robot_id], recent, mapper)
+        if mapper is not None and not culled:
+            self._resent(robot_id, after, through, len(inserts))
+            return [insert.encode() for insert in inserts]
+        self.shell.counters.add("map_states_sent")
+        self.shell.log.warning(
+            "robot %s: inserts %d..%d are no longer kept (%s); sent the whole map instead "
+            "(every insert through seq %d)", robot_id, after + 1, through,
+            f"{culled} of them were culled as keyframes" if culled else not_recent,
+            state.insert_seq,
+        )
+        return [state.encode()]
 
     def _on_initial_pose(self, query: zenoh.Query) -> None:
         """Put an owned robot at the operator's pose (kept for its first scan if not seen yet);

@@ -128,12 +128,16 @@ def test_a_loop_closing_run_equals_the_in_process_pipeline(launcher, bus, start,
     assert bus.stats("matcher").counters["initial_poses"] == 1
 
 
-@pytest.mark.parametrize("recent", ["256", "0"], ids=["recent inserts", "keyframes only"])
+@pytest.mark.parametrize(
+    ("recent", "cull_m"), [("256", 0.0), ("0", 0.0), ("2", 0.3)],
+    ids=["recent inserts", "keyframes only", "culled: the whole map"],
+)
 def test_a_map_server_killed_before_the_redraw_catches_up_and_follows_it(
-    launcher, bus, start, tmp_path, recent
+    launcher, bus, start, tmp_path, recent, cull_m
 ):
     """The map server killed mid-lap and restarted from its snapshot: the matcher sends the
     inserts it missed again (from its last inserts, or, keeping none, from the back end's
+    keyframes; or, when the back end culled some of them, its whole map, path and
     keyframes), so it holds every keyframe when the redraw comes, and its map and path end
     as the in-process pipeline's. Its snapshot keeps the keyframes' scans 8 to a file."""
     snapshots = {
@@ -141,7 +145,8 @@ def test_a_map_server_killed_before_the_redraw_catches_up_and_follows_it(
         "SCANFLOW_MAPSERVER_KEYFRAMES_PER_FILE": "8",
     }
     start("deskew", **ODOM_WAIT, **LOOP_CLOSURE)
-    start("matcher", **LOOP_CLOSURE, SCANFLOW_MATCHER_RESEND_INSERTS=recent)
+    start("matcher", **LOOP_CLOSURE, SCANFLOW_MATCHER_RESEND_INSERTS=recent,
+          SCANFLOW_BACKEND_CULL_M=str(cull_m))
     start("mapserver", **LOOP_CLOSURE, **snapshots)
     poses = bus.record(keys.pose())
     ingest = launcher.start("ingest", **RING, SCANFLOW_INGEST_RATE="4")  # 20 s
@@ -153,12 +158,13 @@ def test_a_map_server_killed_before_the_redraw_catches_up_and_follows_it(
     start("mapserver", **LOOP_CLOSURE, **snapshots)
     ingest.wait(180.0)
     assert ingest.returncode == 0, launcher.log_text("ingest")
-    pipeline, expected, expected_redraws = ring_in_process()
+    pipeline, expected, expected_redraws = ring_in_process(cull_m)
     assert expected_redraws[0][0] > 300  # the redraw comes after the restart
     bus.wait_until(lambda: poses and poses[-1].seq == 799, 60.0, "the last pose")
     assert_served_as_in_process(bus, pipeline, expected, expected_redraws)
     mapserver = bus.stats("mapserver")
-    assert mapserver.counters["inserts_resent"] > 0, mapserver.counters
+    caught_up = "map_states_taken" if cull_m else "inserts_resent"
+    assert mapserver.counters[caught_up] > 0, mapserver.counters
     assert mapserver.counters["redrawn"] == len(expected_redraws)
     assert "inserts_lost" not in mapserver.counters and "errors.insert" not in mapserver.counters
 

@@ -7,13 +7,14 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from scanflow.config import MapServerSettings, ZenohSettings
+from scanflow.config import BackendSettings, MapServerSettings, ZenohSettings
 from scanflow.geometry import Pose2D
 from scanflow.maps.export import grid_from_npz, load_npz, npz_arrays, npz_bytes, save_npz
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
 from scanflow.wire import MapInsertMessage, MapRedrawMessage, MapStateMessage, PoseEstimateMessage
 
 from services.mapserver import replies
+from services.mapserver.keyframes import Keyframes
 from services.mapserver.robot import RobotMap
 from services.mapserver.service import MapServer
 from services.mapserver.snapshot import load_snapshots, save_snapshot
@@ -393,18 +394,16 @@ def test_culled_inserts_go_into_the_map_but_not_into_the_kept_keyframes():
     assert robot.map.revision == want.map.revision + 1
 
 
-@pytest.mark.parametrize("keyframe", [True, False])
-def test_a_resend_of_keyframes_only_may_stop_short(tmp_path, caplog, keyframe: bool) -> None:
-    """Past its recent inserts a matcher sends its back end's keyframes, not the inserts it
-    culled: a chain of keyframes that stops short of the gap's end is taken (the next redraw
-    needs them); a short chain of other inserts is a loss, counted."""
+def test_a_resend_that_stops_short_is_a_loss_counted(tmp_path, caplog) -> None:
+    """A chain of inserts that stops short of the gap's end is not taken: a matcher whose
+    back end culled some of the missing inserts sends its whole map instead."""
     server = MapServer(MapServerSettings(data_dir=str(tmp_path)),
                        ZenohSettings(mode="peer", connect=[]))
     asked = []
 
     def matcher(selector: str, timeout_s: float):
         asked.append(selector)
-        return [replace(insert(3), previous_seq=0, keyframe=keyframe).encode()], []
+        return [replace(insert(3), previous_seq=0).encode()], []
 
     server.shell.get = matcher
     try:
@@ -412,14 +411,9 @@ def test_a_resend_of_keyframes_only_may_stop_short(tmp_path, caplog, keyframe: b
         server.handle("insert", replace(insert(5), previous_seq=4))
         robot = server.robots["r"]
         assert len(asked) == 1 and asked[0].endswith("r/map/resend?after=0;through=4")
-        assert robot.last_insert_seq == 5
-        if keyframe:
-            assert server.shell.counters.get("inserts_resent") == 1
-            assert "inserts_lost" not in server.shell.counters.snapshot()
-            assert robot.map.revision == 3
-        else:
-            assert server.shell.counters.get("inserts_lost") == 1
-            assert robot.map.revision == 2
+        assert robot.last_insert_seq == 5 and robot.map.revision == 2
+        assert server.shell.counters.get("inserts_lost") == 1
+        assert "1 came, not the chain" in caplog.text
     finally:
         server.shell.close(flush_s=0.0)
 
@@ -529,7 +523,42 @@ def test_a_taken_path_keeps_the_poses_before_a_restarted_trackers_first() -> Non
     np.testing.assert_array_equal(robot.trajectory.stamps_s, 0.1 * np.arange(5))
     np.testing.assert_array_equal(robot.trajectory.poses[:2], [[9.0, 0.0, 0.0]] * 2)
     np.testing.assert_array_equal(robot.trajectory.poses[2:], path)
-    assert robot.holds(3) and robot.holds(2) and not robot.holds(1) and not robot.holds(4)
+    assert [robot.holds(insert(seq)) for seq in range(1, 5)] == [False, True, True, False]
+    assert not robot.holds(pose(3))  # poses: the path's seq says
     robot.apply(pose(4))  # the path holds scan 4 already
     robot.apply(pose(5))
     assert len(robot.trajectory) == 6 and robot.trajectory.stamps_s[-1] == 0.5
+
+
+def test_a_whole_map_with_keyframes_replaces_the_kept_ones_and_holds_redraws_before_it(
+    tmp_path,
+) -> None:
+    """With loop closure the matcher's whole map carries its keyframes: they replace the kept
+    ones, a redraw it holds that comes after it is skipped, and the next redraw, naming
+    those keyframes and one inserted since, is followed."""
+    kept = Keyframes()
+    for seq in (0, 3, 7):
+        kept.add(insert(seq, Pose2D(0.1 * seq, 0.0, 0.0)))
+    state = MapStateMessage(
+        "r", 9, 9, npz_bytes(npz_arrays(tracker_map([0, 3, 5, 7, 9]))), 0.1 * np.arange(10),
+        np.zeros((10, 3)), kept.message("r"),
+    )
+    server = MapServer(MapServerSettings(data_dir=str(tmp_path)),
+                       ZenohSettings(mode="peer", connect=[]),
+                       backend_settings=BackendSettings(loop_closure=True))
+    server.shell.get = lambda selector, timeout_s: ([state.encode()], [])
+    try:
+        server.handle("insert", insert(0))
+        server.handle("insert", replace(insert(9, Pose2D(0.1 * 9, 0.0, 0.0)), previous_seq=8))
+        robot = server.robots["r"]
+        assert robot.keyframes is not None and robot.keyframes.seqs == [0, 3, 7]
+        assert robot.last_insert_seq == 9
+        server.handle("insert", redraw([0, 3, 7], [Pose2D()] * 3, np.zeros((8, 3)), 7))
+        assert server.shell.counters.get("redraws_held") == 1
+        server.handle("insert", replace(insert(10, Pose2D(1.0, 0.0, 0.0)), previous_seq=9))
+        assert robot.keyframes.seqs == [0, 3, 7, 10]
+        server.handle("insert", redraw([0, 3, 7, 10], [Pose2D()] * 4, np.zeros((11, 3)), 10))
+        assert server.shell.counters.get("redrawn") == 1
+        assert "errors.insert" not in server.shell.counters.snapshot()
+    finally:
+        server.shell.close(flush_s=0.0)

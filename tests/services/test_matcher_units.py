@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import logging
 
 import numpy as np
@@ -27,7 +28,7 @@ from scanflow.wire import (
 )
 
 from services.common.resend import FIRST, resend_selector
-from services.matcher.recent import RecentInserts, keyframe_inserts
+from services.matcher.recent import RecentInserts, keyframe_inserts, map_state
 from services.matcher.service import MatcherService
 
 LOOP_CLOSURE = BackendSettings.model_construct(loop_closure=True)
@@ -225,6 +226,21 @@ def _tracked(seq: int, pose: Pose2D) -> FrontendOutput:
     )
 
 
+def feed(service: MatcherService, duration_s: float) -> None:
+    """The simulator's scans of robot "r", deskewed as the deskew service does, handled."""
+    stage = DeskewStage()
+    for frame in simulate(SimConfig(duration_s=duration_s, seed=2)):
+        for sample in frame.odometry:
+            stage.add_odometry(sample)
+        result = stage.process(frame.scan)
+        stamp = result.reference_stamp_s
+        beams = len(frame.scan.ranges_m)
+        service.handle("scan", DeskewedScanMessage(
+            "r", frame.scan.seq, stamp, result.points, result.source_used, False, beams,
+            beams - len(result.points), result.no_return_points, stage.odometry_pose_at(stamp),
+        ))
+
+
 def test_past_its_recent_inserts_a_matcher_without_a_back_end_sends_its_whole_map() -> None:
     """Inserts older than the last `resend_inserts` are gone, and without loop closure there
     are no keyframes to rebuild them from: the answer is the front end's whole map, the seq of
@@ -235,18 +251,7 @@ def test_past_its_recent_inserts_a_matcher_without_a_back_end_sends_its_whole_ma
         ZenohSettings(mode="peer", connect=[]),
     )
     try:
-        stage = DeskewStage()
-        for frame in simulate(SimConfig(duration_s=6.0, seed=2)):
-            for sample in frame.odometry:
-                stage.add_odometry(sample)
-            result = stage.process(frame.scan)
-            stamp = result.reference_stamp_s
-            beams = len(frame.scan.ranges_m)
-            service.handle("scan", DeskewedScanMessage(
-                "r", frame.scan.seq, stamp, result.points, result.source_used, False, beams,
-                beams - len(result.points), result.no_return_points,
-                stage.odometry_pose_at(stamp),
-            ))
+        feed(service, 6.0)
         recent = service.recent["r"]
         inserted = recent.map_seq
         assert recent.scan_seq == 59 and inserted is not None and inserted > 20
@@ -280,3 +285,61 @@ def _chains(recent: RecentInserts, after: int, through: int) -> bool:
     except LookupError:
         return False
     return True
+
+
+def test_a_gap_with_culled_inserts_gets_the_whole_map_and_the_keyframes() -> None:
+    """With loop closure past its recent inserts the matcher rebuilds a gap from the back
+    end's keyframes when they are all of it; when the back end culled some of the missing
+    inserts it sends its whole map instead, with the keyframes where they are drawn (the map
+    server needs them for the next redraw)."""
+    culling = BackendSettings.model_construct(loop_closure=True, cull_m=0.3)
+    service = MatcherService(
+        MatcherSettings(resend_inserts=2), FrontendSettings(),
+        ZenohSettings(mode="peer", connect=[]), culling,
+    )
+    try:
+        feed(service, 6.0)
+        mapper, recent = service.mappers["r"], service.recent["r"]
+        seqs, culled = list(mapper.keyframe_seqs), list(mapper.culled_seqs)
+        assert len(seqs) > 3 and culled
+        key = keys.map_key("r", "resend")
+        # Two keyframes with no culled insert between them: the chain.
+        a, b = next((a, b) for a, b in itertools.pairwise(seqs)
+                    if not any(a < c < b for c in culled) and b < seqs[-1])
+        payloads, _ = service.shell.get(resend_selector(key, a, b), 5.0)
+        (again,) = [decode_any(p) for p in payloads]
+        assert isinstance(again, MapInsertMessage) and (again.seq, again.previous_seq) == (b, a)
+        # From the start, culled inserts included: the whole map.
+        payloads, _ = service.shell.get(resend_selector(key, FIRST, recent.map_seq), 5.0)
+        (state,) = [decode_any(p) for p in payloads]
+        assert isinstance(state, MapStateMessage) and state.keyframes is not None
+        assert state.keyframes.seqs.tolist() == seqs
+        np.testing.assert_array_equal(state.keyframes.poses, mapper.drawn_poses())
+        np.testing.assert_array_equal(state.keyframes.hits, np.concatenate(
+            [n.points for n in mapper.nodes]))
+        assert state.insert_seq == recent.map_seq and state.seq == 59
+        assert service.shell.counters.get("map_states_sent") == 1
+        assert service.shell.counters.get("inserts_resent") == 1
+    finally:
+        service.shell.close(flush_s=0.0)
+
+
+def test_the_whole_maps_path_is_the_last_redraws_then_the_front_ends() -> None:
+    """The path as the map server has it: corrected at the last redraw (its path through the
+    redraw's scan), then the estimates the front end made since."""
+    frontend = Frontend(FrontendSettings())
+    for k in range(5):
+        frontend.trajectory.append(float(k), Pose2D(float(k), 0.0, 0.0))
+    recent = RecentInserts(2)
+    redrawn = np.array([[0.0, 1.0, 0.0], [1.0, 1.0, 0.0], [2.0, 1.0, 0.0]])
+    redraw = MapRedrawMessage("r", 2, Pose2D(), np.zeros(0, np.int64), np.zeros((0, 3)),
+                              np.arange(3.0), redrawn)
+    recent.tracked(2, True, redraw)
+    recent.tracked(4, False)
+    state = map_state("r", frontend, recent)
+    np.testing.assert_array_equal(state.stamps_s, np.arange(5.0))
+    np.testing.assert_array_equal(state.poses[:3], redrawn)
+    np.testing.assert_array_equal(state.poses[3:], [[3.0, 0.0, 0.0], [4.0, 0.0, 0.0]])
+    assert (state.seq, state.insert_seq, state.keyframes) == (4, 2, None)
+    with pytest.raises(LookupError, match="has put no scan into its map"):
+        map_state("r", frontend, RecentInserts(2))
