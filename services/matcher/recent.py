@@ -35,7 +35,8 @@ class RecentInserts:
         self.last_seq: int | None = None  # the run's last insert (None: none yet, or unknown)
         self.scan_seq: int | None = None  # the tracker's last scan
         self.map_seq: int | None = None  # the last scan in the tracker's map
-        self.redrawn: MapRedrawMessage | None = None  # the last redraw: its corrected path
+        # The last redraw, for its corrected path (kept until the next: 32 bytes per scan).
+        self.redrawn: MapRedrawMessage | None = None
 
     def tracked(self, seq: int, inserted: bool, redraw: MapRedrawMessage | None = None) -> None:
         """The tracker took scan `seq`, into its map if `inserted`, and redrew its map after
