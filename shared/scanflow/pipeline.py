@@ -110,12 +110,13 @@ class Pipeline:
         backend: BackendSettings | None = None,
     ) -> None:
         """`grid`: a prior map to track against (and extend), else a new empty one;
-        `backend` with loop_closure on: keyframes, loop closures and a pose graph as well."""
+        `backend` with loop_closure on: keyframes, loop closures and a pose graph as well
+        (drawn on the prior map, and closing loops on it too)."""
         self.deskew_stage = DeskewStage(reference, enabled=deskew_enabled)
         self.frontend = Frontend(settings, initial_pose, grid)
         self.mapper = (
-            Mapper(self.frontend, backend) if backend is not None and backend.loop_closure
-            else None
+            Mapper(self.frontend, backend, prior=grid)
+            if backend is not None and backend.loop_closure else None
         )
 
     def add_odometry(self, sample: Odometry) -> None:

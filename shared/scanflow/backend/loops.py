@@ -14,6 +14,7 @@ edge of the pose graph, which can still out-vote a wrong one.
 
 from __future__ import annotations
 
+import copy
 import math
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -89,12 +90,14 @@ def keyframe_rays(
 
 
 def draw_keyframes(
-    nodes: list[ScanNode], poses: NDArray[np.float64], params: OccupancyParams
+    nodes: list[ScanNode], poses: NDArray[np.float64], params: OccupancyParams,
+    base: OccupancyGrid | None = None,
 ) -> MatchingMap:
-    """A new map of `nodes` inserted at `poses` (rows x, y, theta), free space included: a
-    candidate's submap, and the back end's whole map. The same map, bit for bit, as the front
-    end's inserts of the same scans one at a time."""
-    grid = OccupancyGrid(params)
+    """A new map of `nodes` inserted at `poses` (rows x, y, theta), free space included, on a
+    copy of `base` (a prior map) or on nothing: a candidate's submap, and the back end's whole
+    map. The same map, bit for bit, as the front end's inserts of the same scans one at a
+    time."""
+    grid = OccupancyGrid(params) if base is None else copy.deepcopy(base)
     grid.insert_scans(keyframe_rays(nodes, poses, params.max_range_m))
     return MatchingMap(grid)
 

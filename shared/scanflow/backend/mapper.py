@@ -21,6 +21,10 @@ insert the front end tracked within `cull_m` / `cull_deg` of a keyframe already 
 made a keyframe: it and the scans after it hang from that keyframe, and the next keyframe is
 linked to it. A parked robot, or one going over ground it mapped, then adds no keyframes, so
 the graph, the redraws and the kept scans grow with the ground covered, not with the time.
+On a prior map (`prior`: the front end localises on it and extends it) the keyframes are drawn
+on the prior map, which stays as it was, and the graph stays in its frame (keyframe 0 is held
+where the front end put it): the keyframes made while tracking on the prior map tie the graph
+to it, and the closures with them pull back what drifted where the robot left it.
 When the front end is put at a pose from outside (an operator's, `relocated()`), the motion to
 the next keyframe is not measured: its edge is a weak link that the loop closures can move. A
 run can be carried on from its keyframes at the poses they are drawn at (`SavedRun`: what a
@@ -31,6 +35,7 @@ Memory: the keyframes' points (16 bytes per return), 40 bytes per scan and 8 per
 
 from __future__ import annotations
 
+import copy
 import math
 from array import array
 from dataclasses import dataclass
@@ -50,6 +55,7 @@ from scanflow.config import BackendSettings
 from scanflow.frontend.tracker import Frontend, FrontendOutput, FrontendStatus, occupancy_params
 from scanflow.geometry import IDENTITY, Pose2D, compose_arrays, normalize_angles, relative_arrays
 from scanflow.maps.matching_map import MatchingMap
+from scanflow.maps.occupancy import OccupancyGrid
 
 
 @dataclass(frozen=True, eq=False)
@@ -103,19 +109,23 @@ class Mapper:
     """Keyframes, loop closures and the pose graph of one robot (see the module docstring)."""
 
     def __init__(
-        self, frontend: Frontend, settings: BackendSettings, saved: SavedRun | None = None
+        self, frontend: Frontend, settings: BackendSettings, saved: SavedRun | None = None,
+        prior: OccupancyGrid | None = None,
     ) -> None:
-        """`frontend` must start from an empty map: the back end redraws the map from its own
-        keyframes, which a prior map is not made of. Or from the map of `saved`'s keyframes,
-        to carry on a run (a restarted matcher)."""
-        if saved is None and not frontend.map.is_empty:
+        """`frontend` starts from an empty map, or from `prior` (a prior map it localises
+        on and extends), or from the map of `saved`'s keyframes (on `prior`, if any), to carry
+        on a run (a restarted matcher). With a prior map the back end draws its keyframes on
+        it: the front end, tracking on the prior map, ties the keyframes to it, and the loop
+        closures between keyframes correct the drift where it left the prior map."""
+        if saved is None and prior is None and not frontend.map.is_empty:
             raise ValueError(
-                "loop closure builds its map from scratch, but the front end already has a map "
-                "(a prior map?): run without one, or without loop closure"
+                "the front end already has a map (a prior map?): give it to the back end too "
+                "(`prior`), which draws its keyframes on it"
             )
         self.frontend = frontend
         self.settings = settings
         self.params = occupancy_params(frontend.settings)
+        self.prior = None if prior is None else copy.deepcopy(prior)  # redraws start from it
         self.graph = PoseGraph()
         self.nodes: list[ScanNode] = []
         self.closures: list[LoopClosure] = []
@@ -207,8 +217,8 @@ class Mapper:
         return np.asarray(self._scan_stamps, dtype=np.float64)
 
     def draw_map(self) -> MatchingMap:
-        """A new map of every keyframe at its optimised pose."""
-        return draw_keyframes(self.nodes, self.graph.poses, self.params)
+        """A new map of every keyframe at its optimised pose (on the prior map, if any)."""
+        return draw_keyframes(self.nodes, self.graph.poses, self.params, self.prior)
 
     def _add_node(
         self, out: FrontendOutput, points_m: ArrayLike, no_return_m: ArrayLike | None,

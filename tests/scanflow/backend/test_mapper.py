@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import itertools
 import math
 from dataclasses import replace
@@ -11,8 +12,16 @@ import pytest
 from scanflow.backend import LoopClosure, Mapper, SavedRun
 from scanflow.backend.loops import draw_keyframes
 from scanflow.config import BackendSettings
-from scanflow.frontend import Frontend, FrontendStatus, default_settings
-from scanflow.geometry import IDENTITY, Pose2D, normalize_angles
+from scanflow.frontend import (
+    Frontend,
+    FrontendStatus,
+    default_settings,
+    insert_scan,
+    occupancy_params,
+)
+from scanflow.geometry import IDENTITY, Pose2D, compose_arrays, normalize_angles, relative_arrays
+from scanflow.maps.matching_map import MatchingMap
+from scanflow.maps.occupancy import OccupancyGrid
 
 from .conftest import Drive, output, ring_poses
 
@@ -190,12 +199,71 @@ def test_keyframes_keep_their_mount(drive: Drive, mount: Pose2D) -> None:
     assert mapper.nodes[0].no_return.shape == (0, 2)
 
 
-def test_a_prior_map_is_refused(drive: Drive) -> None:
-    """The back end redraws the map from its keyframes: a prior map would be lost."""
+def test_a_front_ends_map_must_be_given_as_the_prior(drive: Drive) -> None:
+    """The back end redraws the map from its keyframes: on a map it was not told of, that
+    map would be lost."""
     frontend = Frontend(default_settings())
     frontend.process(drive.scans[0], 0.0)
-    with pytest.raises(ValueError, match="prior map"):
+    with pytest.raises(ValueError, match="give it to the back end too"):
         Mapper(frontend, SETTINGS)
+
+
+def _prior(drive: Drive, count: int) -> OccupancyGrid:
+    """The map of the drive's first `count` scans at their true poses."""
+    world = MatchingMap(OccupancyGrid(occupancy_params(default_settings())))
+    for pose, points in zip(drive.truth[:count], drive.scans[:count], strict=True):
+        insert_scan(world, points, Pose2D.from_array(pose))
+    return world.grid
+
+
+def test_on_a_prior_map_the_loop_closes_in_its_frame_and_redraws_keep_it(drive: Drive) -> None:
+    """The first third of the ring is a prior map, and the front end tracks on it there (the
+    true poses); past it the estimates drift, and they come back round into it. The
+    closures with the keyframes made on the prior map pull the drifted ones back in the prior
+    map's own frame (keyframe 0 holds where the front end localised it), and every redraw
+    draws the keyframes on the prior map, which stays as it was."""
+    third = len(drive.truth) // 3
+    prior = _prior(drive, third)
+    before = prior.log_odds.copy()
+    frontend = Frontend(default_settings(), grid=copy.deepcopy(prior))
+    mapper = Mapper(frontend, SETTINGS, prior=prior)
+    # Drifting from the prior map's end on: the true motion with a heading drift.
+    start = drive.drifted[third - 1 : third]
+    drifted = np.vstack((drive.truth[:third], compose_arrays(
+        drive.truth[third - 1 : third],
+        relative_arrays(np.repeat(start, len(drive.truth) - third, axis=0), drive.drifted[third:]),
+    )))
+    frame, redraws = IDENTITY, 0
+    for seq, (pose, points) in enumerate(zip(drifted, drive.scans, strict=True)):
+        step = mapper.add(output(seq, (frame * Pose2D.from_array(pose)).to_array()), points)
+        if step.correction is not None:
+            frame, redraws = step.correction * frame, redraws + 1
+    mapper.finish()
+    assert mapper.closures and redraws >= 1
+    was = _position_errors(drifted, drive.truth)
+    now = _position_errors(mapper.trajectory(), drive.truth)  # no alignment: the prior's frame
+    assert was.max() > 0.4 and now.max() < 0.5 * was.max() and now.mean() < 0.5 * was.mean()
+    np.testing.assert_array_equal(mapper.prior.log_odds, before)  # the prior map untouched
+    drawn = mapper.draw_map().grid
+    want = draw_keyframes(mapper.nodes, mapper.graph.poses, mapper.params, prior).grid
+    np.testing.assert_array_equal(drawn.log_odds, want.log_odds)
+    alone = draw_keyframes(mapper.nodes, mapper.graph.poses, mapper.params).grid
+    assert not np.array_equal(drawn.log_odds, alone.log_odds)
+
+
+def test_keyframes_drawn_on_a_prior_map_are_the_front_ends_map(drive: Drive) -> None:
+    """Before any redraw, the keyframes drawn on the prior map are the front end's map of the
+    prior map and its inserts, bit for bit (a redraw changes nothing it need not)."""
+    prior = _prior(drive, 10)
+    frontend = Frontend(default_settings(), grid=copy.deepcopy(prior))
+    mapper = Mapper(frontend, SETTINGS, prior=prior)
+    for seq in range(10, 16):
+        mapper.add(output(seq, drive.truth[seq]), drive.scans[seq])
+        insert_scan(frontend.map, drive.scans[seq], Pose2D.from_array(drive.truth[seq]))
+    drawn = mapper.draw_map().grid
+    assert drawn.extent == frontend.map.grid.extent
+    np.testing.assert_array_equal(drawn.log_odds, frontend.map.grid.log_odds)
+    np.testing.assert_array_equal(drawn.hit_sums, frontend.map.grid.hit_sums)
 
 
 def test_an_operators_pose_is_a_weak_link_that_the_closures_move(drive: Drive) -> None:
