@@ -376,14 +376,3 @@ class BackendSettings(BaseSettings):
         100.0, gt=0.0, description="std of the link across an operator's pose (unmeasured)"
     )
     relocated_std_deg: float = Field(90.0, gt=0.0, description="and its heading std")
-
-    def refusal(self, prior_map: str) -> str:
-        """Why these settings cannot run beside the front end's `prior_map` ('' when they
-        can): loop closure redraws the map from its own keyframes, which would drop the prior
-        map, so the pair is refused at start rather than half honoured."""
-        if not (self.loop_closure and prior_map):
-            return ""
-        return (
-            f"SCANFLOW_BACKEND_LOOP_CLOSURE=true with the prior map {prior_map!r}: loop closure "
-            "builds its map from scratch; run without the prior map, or without loop closure"
-        )

@@ -166,11 +166,3 @@ def test_backend_settings_read_the_environment_and_name_bad_values(clean_env) ->
         with pytest.raises(ValidationError, match=name.lower()):
             config.BackendSettings()
         clean_env.delenv(f"SCANFLOW_BACKEND_{name}")
-
-
-def test_loop_closure_with_a_prior_map_is_refused_naming_both(clean_env) -> None:
-    assert config.BackendSettings().refusal("maps/office.yaml") == ""
-    clean_env.setenv("SCANFLOW_BACKEND_LOOP_CLOSURE", "1")
-    assert config.BackendSettings().refusal("") == ""
-    why = config.BackendSettings().refusal("maps/office.yaml")
-    assert "SCANFLOW_BACKEND_LOOP_CLOSURE" in why and "maps/office.yaml" in why

@@ -81,12 +81,7 @@ def run_command(
     backend = BackendSettings()
     if loop_closure:
         backend = backend.model_copy(update={"loop_closure": True})
-    try:
-        pipeline = Pipeline(
-            settings, initial_pose=start.pose, grid=start.grid(), backend=backend
-        )
-    except ValueError as exc:  # loop closure on a prior map
-        raise typer.BadParameter(str(exc), param_hint="--loop-closure") from exc
+    pipeline = Pipeline(settings, initial_pose=start.pose, grid=start.grid(), backend=backend)
     outputs = _log_outputs(pipeline, log) if log is not None else _sim_outputs(
         pipeline, duration, seed
     )

@@ -38,10 +38,6 @@ def up(
     backend = BackendSettings()
     if loop_closure:
         backend = backend.model_copy(update={"loop_closure": True})
-    refusal = backend.refusal(str(prior_map or ""))
-    if refusal:
-        typer.echo(f"Error: {refusal}", err=True)
-        raise typer.Exit(2)
     settings = {
         "SCANFLOW_INGEST_RATE": str(rate),
         "SCANFLOW_MAPSERVER_DATA_DIR": str(data_dir.resolve()),

@@ -91,13 +91,25 @@ def test_run_with_culling_reports_the_inserts_hung_from_keyframes() -> None:
     assert summary["keyframes"] + summary["culled"] == json.loads(result.output)["inserted"]
 
 
-def test_run_refuses_loop_closure_on_a_prior_map(tmp_path: Path) -> None:
+def test_run_closes_loops_on_a_prior_map_and_keeps_it(tmp_path: Path) -> None:
+    """The same run again on its own earlier map, with loop closure: it extends the map with
+    its keyframes, drawn on the prior map, which the written map still holds."""
     _register()
     first = CliRunner().invoke(
-        app, ["run", "--duration", "2", "--json", "--map-out", str(tmp_path)]
+        app, ["run", "--duration", "3", "--json", "--map-out", str(tmp_path / "first")]
     )
     assert first.exit_code == 0, first.output
-    both = CliRunner().invoke(
-        app, ["run", "--duration", "2", "--loop-closure", "--prior-map", str(tmp_path / "map.npz")]
-    )
-    assert both.exit_code == 2 and "prior map" in both.output
+    prior = tmp_path / "first" / "map.npz"
+    both = CliRunner().invoke(app, [
+        "run", "--duration", "3", "--json", "--loop-closure", "--prior-map", str(prior),
+        "--map-out", str(tmp_path / "again"),
+    ])
+    assert both.exit_code == 0, both.output
+    summary = json.loads(both.output)
+    assert summary["prior_map"] == str(prior) and summary["statuses"].get("localised") == 1
+    assert summary["loop_closure"]["keyframes"] == summary["inserted"] > 0
+    before, after = load_map(prior), load_map(tmp_path / "again" / "map.npz")
+    assert after.extent.union(before.extent) == after.extent  # drawn on the prior map
+    mapped = json.loads(first.output)
+    gap = [a - b for a, b in zip(summary["final_pose"], mapped["final_pose"], strict=True)]
+    assert abs(gap[0]) < 0.1 and abs(gap[1]) < 0.1 and abs(gap[2]) < 0.02
