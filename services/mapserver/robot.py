@@ -101,16 +101,18 @@ class RobotMap:
             self.dirty = result.touched.union(self.dirty)
 
     def redraw(self, redraw: MapRedrawMessage, params: OccupancyParams) -> None:
-        """The tracker's redraw: the map of every keyframe at its optimised pose (a new
-        revision), and the corrected path. Raises, changing nothing, when this server does
-        not hold exactly the keyframes the redraw names."""
+        """The tracker's redraw: the map of every keyframe at its optimised pose on the map
+        the robot started on (the prior map, or nothing; a new revision), and the corrected
+        path. Raises, changing nothing, when this server does not hold exactly the keyframes
+        the redraw names."""
         if self.keyframes is None:
             raise ValueError(
                 f"robot {self.robot_id}: a map redraw came, but this map server keeps no "
                 "keyframes (SCANFLOW_BACKEND_LOOP_CLOSURE is off here, on in the matcher)"
             )
         self.keyframes.check(redraw.keyframe_seqs)
-        self._replace_map(draw_keyframes(self.keyframes.nodes, redraw.keyframe_poses, params).grid)
+        drawn = draw_keyframes(self.keyframes.nodes, redraw.keyframe_poses, params, self.new_grid())
+        self._replace_map(drawn.grid)
         self.keyframes.moved(redraw.keyframe_poses)
         self._replace_path(redraw.stamps_s, redraw.poses, redraw.seq)
 

@@ -76,14 +76,11 @@ class MatcherService:
         zenoh_settings: ZenohSettings,
         backend_settings: BackendSettings | None = None,
     ) -> None:
-        """`backend_settings` with loop_closure on: a back end per robot (refused beside a
-        prior map, which its redraws would drop)."""
+        """`backend_settings` with loop_closure on: a back end per robot (drawing its
+        keyframes on the prior map, if any)."""
         self.settings = settings
         self.frontend_settings = frontend_settings
         self.backend = backend_settings if backend_settings is not None else BackendSettings()
-        refusal = self.backend.refusal(frontend_settings.prior_map)
-        if refusal:
-            raise ValueError(refusal)
         self.start = FrontendStart(frontend_settings)  # a bad prior map stops the start here
         self.shell = ServiceShell("matcher", settings, zenoh_settings)
         self.frontends: dict[str, Frontend] = {}
@@ -197,7 +194,7 @@ class MatcherService:
         if seeded is None:
             new = Frontend(self.frontend_settings, self.start.pose, self.start.grid())
             if self.backend.loop_closure:
-                mapper = Mapper(new, self.backend)
+                mapper = Mapper(new, self.backend, prior=self.start.grid())
         else:
             new, resumed = seeded
             if self.backend.loop_closure:
@@ -237,7 +234,7 @@ class MatcherService:
         self.shell.counters.add("backend.resumed")
         self.shell.log.info("robot %s: loop closure resumed on %d keyframes", robot_id,
                             len(kept.seqs))
-        return Mapper(frontend, self.backend, saved)
+        return Mapper(frontend, self.backend, saved, self.start.grid())
 
     def _seeded(self, robot_id: str) -> tuple[Frontend, ResumeMessage] | None:
         """A front end continuing the map server's map and last pose of `robot_id`, and all
@@ -379,7 +376,7 @@ def main() -> None:
     SCANFLOW_ZENOH_*)."""
     settings = MatcherSettings()
     init_process(settings)
-    try:  # a bad prior map, or loop closure beside one: stop at start, naming it
+    try:  # a bad prior map: stop at start, naming it
         service = MatcherService(settings, FrontendSettings(), ZenohSettings(), BackendSettings())
     except ValueError as exc:
         raise SystemExit(f"matcher: {exc}") from exc

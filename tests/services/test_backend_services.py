@@ -12,8 +12,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scanflow import keys
-from scanflow.config import BackendSettings
+from scanflow.config import BackendSettings, FrontendSettings
+from scanflow.frontend.prior import FrontendStart
 from scanflow.geometry import Pose2D
+from scanflow.maps.export import save_npz
 from scanflow.pipeline import Pipeline
 from scanflow.scan import LaserScan
 from scanflow.wire import (
@@ -36,11 +38,11 @@ ODOM_WAIT = {"SCANFLOW_DESKEW_ODOM_WAIT_S": "3"}  # as in test_pipeline_services
 
 
 def ring_in_process(
-    cull_m: float = 0.0,
+    cull_m: float = 0.0, pipeline: Pipeline | None = None,
 ) -> tuple[Pipeline, list, list[tuple[int, Pose2D, np.ndarray, list]]]:
     """(pipeline, per-scan estimates, (seq, correction, corrected path, keyframe seqs) of
-    every redraw)."""
-    pipeline = Pipeline(backend=BackendSettings(loop_closure=True, cull_m=cull_m))
+    every redraw), by default of a new pipeline with loop closure."""
+    pipeline = pipeline or Pipeline(backend=BackendSettings(loop_closure=True, cull_m=cull_m))
     outputs, redraws = [], []
     for event in source_events(None, "robot", 80.0, 1, None, sim_world="loop",
                                sim_odom_scale_error=0.03):
@@ -126,6 +128,43 @@ def test_a_loop_closing_run_equals_the_in_process_pipeline(launcher, bus, start,
     (echo,) = bus.get(keys.initial_pose("robot"), payload=request)
     assert echo.pose == Pose2D(1.0, 0.0, 0.0)
     assert bus.stats("matcher").counters["initial_poses"] == 1
+
+
+def test_a_loop_closing_run_on_a_prior_map_equals_the_in_process_pipeline(
+    launcher, bus, start, tmp_path
+):
+    """The ring's first 30 s, mapped in process, is the prior map of the matcher and the map
+    server; the 80 s lap from the same start closes its loop on it. Poses, the redraw (drawn
+    on the prior map) and the served map and path equal the in-process pipeline's on that
+    prior map."""
+    mapping = Pipeline()
+    for event in source_events(None, "robot", 30.0, 1, None, sim_world="loop",
+                               sim_odom_scale_error=0.03):
+        if isinstance(event, LaserScan):
+            mapping.process(event)
+        else:
+            mapping.add_odometry(event)
+    prior = save_npz(mapping.frontend.map.grid, tmp_path / "prior.npz")
+    on_prior = {"SCANFLOW_FRONTEND_PRIOR_MAP": str(prior),
+                "SCANFLOW_FRONTEND_INITIAL_POSE": "0,0,0"}
+    start("deskew", **ODOM_WAIT, **LOOP_CLOSURE)
+    start("matcher", **LOOP_CLOSURE, **on_prior)
+    start("mapserver", **LOOP_CLOSURE, **on_prior)
+    poses = bus.record(keys.pose())
+    proc = launcher.start("ingest", **RING)
+    proc.wait(180)
+    assert proc.returncode == 0, launcher.log_text("ingest")
+    settings = FrontendSettings(prior_map=str(prior), initial_pose=[0.0, 0.0, 0.0])
+    begin = FrontendStart(settings)
+    pipeline, expected, expected_redraws = ring_in_process(pipeline=Pipeline(
+        settings, initial_pose=begin.pose, grid=begin.grid(),
+        backend=BackendSettings(loop_closure=True),
+    ))
+    assert len(expected_redraws) >= 1 and pipeline.mapper.prior is not None
+    bus.wait_until(lambda: len(poses) >= len(expected), 60.0, "every pose")
+    assert [(p.seq, p.pose) for p in poses] == [(o.seq, o.pose) for o in expected]
+    assert_served_as_in_process(bus, pipeline, expected, expected_redraws)
+    assert bus.stats("mapserver").counters["redrawn"] == len(expected_redraws)
 
 
 @pytest.mark.parametrize(

@@ -88,18 +88,3 @@ def test_up_with_loop_closure_runs_the_back_end_in_the_services(tmp_path):
     assert "keyframes culled within 0.3 m / 10.0 deg of one drawn" in text
     with np.load(data / "robot.snapshot.npz") as snap:  # the map server kept the keyframes
         assert len(snap["keyframes_seqs"]) > 0
-
-
-def test_up_refuses_loop_closure_on_a_prior_map(tmp_path):
-    cmd = up_command(tmp_path / "data", "--loop-closure", "--prior-map", str(tmp_path / "m.npz"))
-    done = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
-    assert done.returncode == 2 and "loop closure builds its map from scratch" in done.stderr
-
-
-def test_a_matcher_refuses_loop_closure_on_a_prior_map_at_start_naming_both(tmp_path):
-    env = {**os.environ, "SCANFLOW_BACKEND_LOOP_CLOSURE": "true",
-           "SCANFLOW_FRONTEND_PRIOR_MAP": str(tmp_path / "m.npz")}
-    cmd = [sys.executable, "-m", "scanflow", "serve", "matcher"]
-    done = subprocess.run(cmd, capture_output=True, text=True, timeout=60, env=env)
-    assert done.returncode == 1, done.stderr
-    assert "SCANFLOW_BACKEND_LOOP_CLOSURE" in done.stderr and "m.npz" in done.stderr
