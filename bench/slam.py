@@ -20,12 +20,16 @@ Each pass's map is saved as PNG in bench/out. The back end's other settings come
 `SCANFLOW_BACKEND_CULL_M=0.3`).
 Sim mode: the same two passes on the built-in simulator, whose poses are exact (the ring world
 `loop` by default, with wheel odometry of a given scale error and yaw noise), so the figures
-carry no reference noise.
+carry no reference noise. With `--prior-s S` both passes run on a prior map, the front end's map
+of an earlier run over the tour's first S seconds from the same start: localising on it and
+extending it (the front end alone), against loop closure on it. `abs_mean_m` / `abs_max_m` are
+then the errors without alignment, where the prior map puts the robot.
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import sys
 import time
@@ -39,6 +43,7 @@ from scanflow.frontend import default_settings
 from scanflow.geometry import Pose2D
 from scanflow.io.carmen import load_keyframes
 from scanflow.maps.export import save_png
+from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.pipeline import Pipeline
 from scanflow.scan import LaserScan, Odometry
 from scanflow.sim import SimConfig, simulate
@@ -89,10 +94,11 @@ class PassResult:
 
 def run_pass(
     feed: Feed, settings: FrontendSettings, backend: BackendSettings | None, name: str,
-    initial_pose: Pose2D | None = None,
+    initial_pose: Pose2D | None = None, prior: OccupancyGrid | None = None,
 ) -> PassResult:
-    """Replay the feed through one pipeline (see `PassResult`)."""
-    pipeline = Pipeline(settings, backend=backend, initial_pose=initial_pose)
+    """Replay the feed through one pipeline (on a copy of `prior`, if any; see `PassResult`)."""
+    grid = None if prior is None else copy.deepcopy(prior)
+    pipeline = Pipeline(settings, backend=backend, initial_pose=initial_pose, grid=grid)
     poses, served, keyframes, redraws = [], [], [], 0
     t0 = time.perf_counter()
     for i, scan in enumerate(tqdm(feed.scans, desc=name, file=sys.stderr, leave=False)):
@@ -136,9 +142,11 @@ def closure_agreement(
 
 
 def compare(
-    name: str, feed: Feed, truth: NDArray[np.float64], initial_pose: Pose2D | None = None
+    name: str, feed: Feed, truth: NDArray[np.float64], initial_pose: Pose2D | None = None,
+    prior: OccupancyGrid | None = None,
 ) -> dict[str, object]:
-    """The front end alone and with the back end on the same scans, against `truth`."""
+    """The front end alone and with the back end on the same scans, against `truth` (both on
+    `prior`, if any: then the errors without alignment too, in the prior map's frame)."""
     settings = default_settings()
     OUT_DIR.mkdir(exist_ok=True)
     report: dict[str, object] = {"scans": len(feed.scans)}
@@ -146,7 +154,7 @@ def compare(
         ("frontend", None),
         ("loop_closure", BackendSettings(loop_closure=True)),  # SCANFLOW_BACKEND_* apply
     ):
-        result = run_pass(feed, settings, backend, label, initial_pose)
+        result = run_pass(feed, settings, backend, label, initial_pose, prior)
         pipeline, poses, wall_s = result.pipeline, result.poses, result.wall_s
         grid = (pipeline.frontend.map if pipeline.mapper is None
                 else pipeline.mapper.draw_map()).grid
@@ -160,6 +168,9 @@ def compare(
             # Walls drawn twice (drift) take more cells: fewer is a crisper map of the same place.
             "occupied_cells": int(np.count_nonzero(grid.occupied_mask())),
         }
+        if prior is not None:  # on a map, no alignment: where the map puts the robot
+            off = np.hypot(*(poses[:, :2] - truth[:, :2]).T)
+            row.update(abs_mean_m=float(off.mean()), abs_max_m=float(off.max()))
         if pipeline.mapper is not None:
             row.update(closure_agreement(pipeline, truth, result.keyframes))
             row["served_ate_rmse_m"] = ate_rmse_m(result.served, truth)
@@ -182,16 +193,32 @@ def run_log(path: Path, limit: int | None) -> dict:
     return report
 
 
-def run_sim(world: str, duration_s: float, scale_error: float, yaw_noise: float) -> dict:
+def sim_feed(
+    world: str, duration_s: float, scale_error: float, yaw_noise: float
+) -> tuple[Feed, NDArray[np.float64]]:
+    """The simulator's scans and odometry (seed 1), and the true poses in the map frame."""
     config = SimConfig(world=world, duration_s=duration_s, seed=1,
                        odom_scale_error=scale_error, odom_yaw_noise=yaw_noise)
     frames = list(simulate(config))
     feed = Feed([f.scan for f in frames], [None] * len(frames), [f.odometry for f in frames])
-    truth = poses_array([SIM_MAP_FROM_WORLD * f.true_pose for f in frames])
+    return feed, poses_array([SIM_MAP_FROM_WORLD * f.true_pose for f in frames])
+
+
+def run_sim(
+    world: str, duration_s: float, scale_error: float, yaw_noise: float, prior_s: float = 0.0
+) -> dict:
+    """Both passes on the simulator; with `prior_s`, both on a prior map: the front end's map
+    of an earlier run over the first `prior_s` seconds of the same tour from the same start."""
+    feed, truth = sim_feed(world, duration_s, scale_error, yaw_noise)
+    start = Pose2D.from_array(truth[0])
+    prior = None
+    if prior_s > 0.0:
+        first, _ = sim_feed(world, prior_s, scale_error, yaw_noise)
+        prior = run_pass(first, default_settings(), None, "prior", start).pipeline.frontend.map.grid
     return {
         "world": world, "duration_s": duration_s, "odom_scale_error": scale_error,
-        "odom_yaw_noise": yaw_noise,
-        **compare(f"sim_{world}", feed, truth, Pose2D.from_array(truth[0])),
+        "odom_yaw_noise": yaw_noise, "prior_s": prior_s,
+        **compare(f"sim_{world}", feed, truth, start, prior),
     }
 
 
@@ -204,10 +231,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--duration", type=float, default=240.0, help="sim seconds")
     parser.add_argument("--odom-scale-error", type=float, default=0.03)
     parser.add_argument("--odom-yaw-noise", type=float, default=0.01)
+    parser.add_argument("--prior-s", type=float, default=0.0,
+                        help="sim: both passes on the map of an earlier run's first S seconds")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
     if args.sim:
-        report = run_sim(args.world, args.duration, args.odom_scale_error, args.odom_yaw_noise)
+        report = run_sim(args.world, args.duration, args.odom_scale_error, args.odom_yaw_noise,
+                         args.prior_s)
     elif args.data is not None:
         report = run_log(args.data, args.limit)
     else:
