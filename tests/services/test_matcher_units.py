@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from scanflow import keys
 from scanflow.backend import Mapper, SavedRun
-from scanflow.backend.loops import ScanNode
+from scanflow.backend.loops import ScanNode, draw_keyframes
 from scanflow.config import BackendSettings, FrontendSettings, MatcherSettings, ZenohSettings
 from scanflow.frontend import Frontend, FrontendOutput, FrontendStatus
 from scanflow.geometry import IDENTITY, Pose2D
-from scanflow.maps.export import grid_from_npz_bytes, npz_arrays, write_npz
+from scanflow.maps.export import grid_from_npz_bytes, npz_arrays, save_npz, write_npz
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
 from scanflow.pipeline import DeskewStage
 from scanflow.sim import SimConfig, simulate
@@ -27,6 +27,7 @@ from scanflow.wire import (
     decode_any,
 )
 
+from services.common.keyframes import keyframes_message
 from services.common.resend import FIRST, resend_selector
 from services.matcher.recent import RecentInserts, keyframe_inserts, map_state
 from services.matcher.service import MatcherService
@@ -343,3 +344,28 @@ def test_the_whole_maps_path_is_the_last_redraws_then_the_front_ends() -> None:
     assert (state.seq, state.insert_seq, state.keyframes) == (4, 2, None)
     with pytest.raises(LookupError, match="has put no scan into its map"):
         map_state("r", frontend, RecentInserts(2))
+
+
+def test_a_robot_resumed_on_a_prior_map_keeps_drawing_on_it(tmp_path) -> None:
+    """A restarted matcher on a prior map rebuilds the back end from the map server's
+    keyframes on that prior map: its redraws keep the prior map's walls."""
+    grid = OccupancyGrid(OccupancyParams())
+    grid.insert_scan(np.array([[2.0, 0.0], [2.0, 0.5]]), np.zeros(2))
+    prior = save_npz(grid, tmp_path / "prior.npz")
+    service = MatcherService(
+        MatcherSettings(), FrontendSettings(prior_map=str(prior)),
+        ZenohSettings(mode="peer", connect=[]), LOOP_CLOSURE,
+    )
+    try:
+        node = ScanNode(0.1, np.array([[1.0, 1.0], [1.0, 1.5]]), np.zeros((0, 2)), IDENTITY)
+        kept = keyframes_message("r", [3], [node], np.zeros((1, 3)))
+        resumed = ResumeMessage("r", 1, b"", np.array([0.1]), np.zeros((1, 3)), kept)
+        frontend = Frontend(FrontendSettings(), grid=service.start.grid())
+        mapper = service._resumed_back_end("r", frontend, resumed)
+        assert mapper is not None and mapper.prior is not None
+        np.testing.assert_array_equal(mapper.prior.log_odds, grid.log_odds)
+        drawn = mapper.draw_map().grid
+        assert drawn.occupied_mask().sum() > draw_keyframes(
+            mapper.nodes, mapper.graph.poses, mapper.params).grid.occupied_mask().sum()
+    finally:
+        service.shell.close(flush_s=0.0)
