@@ -101,9 +101,25 @@ def keyframe_inserts(
     the back end's keyframes at the poses they are drawn at now: the pose each went in at, or
     where the last redraw put it. Inserts the back end culled as keyframes (`cull_m`) are not
     kept: they are left out, the chain linking the keyframes around them, and how many it knows
-    of is returned beside. LookupError when `after` or `through` is neither a keyframe nor
-    culled; a resumed back end knows no culled seqs from before its restart, so an `after`
-    from then is taken as one."""
+    of is returned beside (`culled_between`)."""
+    culled = culled_between(mapper, after, through)
+    seqs = mapper.keyframe_seqs
+    inserts, previous = [], None if after == FIRST else after
+    for k in range(bisect_right(seqs, after), bisect_right(seqs, through)):
+        node = mapper.nodes[k]
+        inserts.append(MapInsertMessage(
+            robot_id, seqs[k], node.stamp_s, mapper.drawn_pose(k), node.points, node.no_return,
+            node.mount, previous,
+        ))
+        previous = seqs[k]
+    return inserts, culled
+
+
+def culled_between(mapper: Mapper, after: int, through: int) -> int:
+    """How many of the inserts after seq `after` through seq `through` the back end culled as
+    keyframes. LookupError when `after` or `through` is neither a keyframe nor culled; a
+    resumed back end knows no culled seqs from before its restart, so an `after` from then is
+    taken as one."""
     seqs, culled = mapper.keyframe_seqs, mapper.culled_seqs
     for name, seq in (("after", after), ("through", through)):
         held = _holds(seqs, seq) or _holds(culled, seq)
@@ -113,15 +129,7 @@ def keyframe_inserts(
                 f"the back end's keyframes ({len(seqs)}: {span}) and culled inserts "
                 f"({len(culled)}) do not hold seq {seq} ({name})"
             )
-    inserts, previous = [], None if after == FIRST else after
-    for k in range(bisect_right(seqs, after), bisect_right(seqs, through)):
-        node = mapper.nodes[k]
-        inserts.append(MapInsertMessage(
-            robot_id, seqs[k], node.stamp_s, mapper.drawn_pose(k), node.points, node.no_return,
-            node.mount, previous,
-        ))
-        previous = seqs[k]
-    return inserts, bisect_right(culled, through) - bisect_right(culled, after)
+    return bisect_right(culled, through) - bisect_right(culled, after)
 
 
 def _before_restart(mapper: Mapper, seq: int) -> bool:

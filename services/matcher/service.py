@@ -61,7 +61,12 @@ from services.common.keyframes import scan_nodes
 from services.common.process import init_process
 from services.common.resend import resend_range
 from services.common.shell import ServiceShell
-from services.matcher.recent import RecentInserts, keyframe_inserts, map_state
+from services.matcher.recent import (
+    RecentInserts,
+    culled_between,
+    keyframe_inserts,
+    map_state,
+)
 from services.matcher.requests import answer
 from services.matcher.shard import owns
 
@@ -292,15 +297,15 @@ class MatcherService:
     ) -> list[bytes]:
         """What stands in for inserts no longer kept: the back end's keyframes when they are
         all of them, else the whole map."""
-        culled = 0
         with self.lock:  # the worker inserts, adds keyframes and redraws
             mapper = self.mappers.get(robot_id)
-            if mapper is not None:
-                try:
-                    inserts, culled = keyframe_inserts(mapper, robot_id, after, through)
-                except LookupError as exc:
-                    raise LookupError(f"{not_recent}; {exc}") from None
-            if mapper is None or culled:
+            try:
+                culled = 0 if mapper is None else culled_between(mapper, after, through)
+            except LookupError as exc:
+                raise LookupError(f"{not_recent}; {exc}") from None
+            if mapper is not None and not culled:
+                inserts, _ = keyframe_inserts(mapper, robot_id, after, through)
+            else:
                 state = map_state(robot_id, self.frontends[robot_id], recent, mapper)
         if mapper is not None and not culled:
             self._resent(robot_id, after, through, len(inserts))

@@ -208,7 +208,11 @@ KEPT_KEYFRAMES = optional(
 )
 
 
-def _check_kept(message: ResumeMessage | MapStateMessage) -> None:
+def _check_map_path_kept(message: ResumeMessage | MapStateMessage) -> None:
+    """Check and set a robot's whole state: `map_npz`, the path and the optional keyframes
+    (of the same robot)."""
+    object.__setattr__(message, "map_npz", check_bytes("map_npz", message.map_npz))
+    check_path(message)
     kept = message.keyframes
     if kept is not None and kept.robot_id != message.robot_id:
         raise MessageError(
@@ -244,9 +248,7 @@ class ResumeMessage(Message):
     def __post_init__(self) -> None:
         check_text("robot_id", self.robot_id)
         object.__setattr__(self, "revision", check_count("revision", self.revision))
-        object.__setattr__(self, "map_npz", check_bytes("map_npz", self.map_npz))
-        check_path(self)
-        _check_kept(self)
+        _check_map_path_kept(self)
 
 
 @dataclass(frozen=True, eq=False)
@@ -289,9 +291,7 @@ class MapStateMessage(Message):
         if insert_seq > self.seq:
             raise MessageError(f"insert_seq must be at most seq {self.seq}, got {insert_seq}")
         object.__setattr__(self, "insert_seq", insert_seq)
-        object.__setattr__(self, "map_npz", check_bytes("map_npz", self.map_npz))
-        check_path(self)
-        _check_kept(self)
+        _check_map_path_kept(self)
 
 
 @dataclass(frozen=True, eq=False)
