@@ -21,14 +21,20 @@ of the pyramid scales it by 2**k with its cells. Fields are cut off at `cutoff_s
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from scanflow.maps.field import LikelihoodField
+from scanflow.maps.grid import CellBox, disjoint_cover, tile_boxes
 from scanflow.maps.maxpool import MaxPoolStack, MaxPoolStore
 from scanflow.maps.ndt_cells import GridNDTCells, GridOverlappingCells, NDTCells, OverlappingCells
 from scanflow.maps.occupancy import InsertResult, OccupancyGrid
 from scanflow.maps.pyramid import TILE_CELLS, FieldLayer
+
+# Side of the tiles `hit_means_near` reads around a scan's points (0.4 m at 5 cm cells).
+NEAR_TILE_CELLS = 8
 
 
 class MatchingMap:
@@ -149,6 +155,24 @@ class MatchingMap:
             points.flags.writeable = False
             self._occupied_points = points
         return self._occupied_points
+
+    def hit_means_near(self, points_world: ArrayLike, radius_m: float) -> NDArray[np.float64]:
+        """(K, 2) world mean hit points of the occupied cells within `radius_m` of the points
+        (and some a little farther: whole tiles of NEAR_TILE_CELLS around them): a point-to-line
+        matcher's target around a scan, read in proportion to the scan, not to the map."""
+        if not radius_m >= 0.0:
+            raise ValueError(f"radius_m must be >= 0, got {radius_m}")
+        points = np.asarray(points_world, dtype=np.float64).reshape(-1, 2)
+        if len(points) == 0 or self.grid.is_empty:
+            return np.zeros((0, 2))
+        reach = math.ceil(radius_m / self.resolution_m)
+        boxes = tile_boxes(self.grid.world_to_cells(points), NEAR_TILE_CELLS)
+        boxes = disjoint_cover(boxes + np.array([-reach, -reach, reach, reach]))
+        # Counted from lattice cell (0, 0), whose centre is the anchor plus half a cell.
+        rc = self.grid.occupied_hit_means_in(boxes, 1, CellBox(0, 0, 0, 0))
+        x = self.grid.anchor_x_m + (rc[:, 1] + 0.5) * self.resolution_m
+        y = self.grid.anchor_y_m + (rc[:, 0] + 0.5) * self.resolution_m
+        return np.column_stack((x, y))
 
     def maxpool_stack(self, depth: int, level: int = 0) -> MaxPoolStack:
         """Branch-and-bound max-pooled scores of the level's likelihood field, 2**depth deep:

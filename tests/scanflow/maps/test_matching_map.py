@@ -609,3 +609,44 @@ def test_csm_on_a_map_uses_its_stack_and_finds_what_a_rebuilt_stack_finds(monkey
         assert fast.score == full.score == rebuilt.score
         assert math.hypot(fast.pose.x - truth.x, fast.pose.y - truth.y) < 0.05
     assert len(used) == 8  # csm and csm_exhaustive on the map, after each scan
+
+
+def _all_hit_means_world(grid: OccupancyGrid) -> np.ndarray:
+    """Every occupied cell's mean hit point, in world coordinates (the whole map at once)."""
+    box = grid.extent
+    rc = grid.occupied_hit_means(box)
+    spec = grid.spec_of(box)
+    return np.column_stack((spec.origin_x_m + (rc[:, 1] + 0.5) * spec.resolution_m,
+                            spec.origin_y_m + (rc[:, 0] + 0.5) * spec.resolution_m))
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.floats(-2.0, 2.0), st.floats(-1.5, 1.5), st.floats(0.0, 0.5), st.integers(1, 40))
+def test_hit_means_near_holds_every_mean_within_the_radius(x, y, radius_m, count):
+    """The local target of a fine step: all of the map's mean hits within the radius of some
+    query point, each one once, and nothing beyond the tiles around the points."""
+    mm = MatchingMap(OccupancyGrid(anchor_x_m=0.013, anchor_y_m=-0.021))
+    rng = np.random.default_rng(count)
+    for center in ((0.0, 0.0), (0.7, -0.4)):
+        mm.update(room_scan(center, rng=rng), center)
+    everything = _all_hit_means_world(mm.grid)
+    queries = np.array([x, y]) + rng.normal(0.0, 1.0, (count, 2))
+    near = mm.hit_means_near(queries, radius_m)
+    assert len(np.unique(near, axis=0)) == len(near)
+    # Exactly the map's means, a subset of them.
+    assert np.all(cKDTree(everything).query(near)[0] < 1e-9)
+    wanted = everything[cKDTree(queries).query(everything)[0] <= radius_m]
+    if len(wanted):
+        assert np.all(cKDTree(near).query(wanted)[0] < 1e-9)
+    slack_m = radius_m + math.sqrt(2) * 9 * mm.resolution_m
+    if len(near):
+        assert np.all(cKDTree(queries).query(near)[0] <= slack_m)
+
+
+def test_hit_means_near_of_nothing_is_empty():
+    mm = MatchingMap(OccupancyGrid())
+    assert mm.hit_means_near(np.zeros((3, 2)), 0.2).shape == (0, 2)
+    mm.update(room_scan((0.0, 0.0)), (0.0, 0.0))
+    assert mm.hit_means_near(np.zeros((0, 2)), 0.2).shape == (0, 2)
+    with pytest.raises(ValueError, match="radius_m"):
+        mm.hit_means_near(np.zeros((1, 2)), -1.0)
