@@ -7,6 +7,7 @@ from scanflow.matching import (  # noqa: F401  (importing registers the methods)
     csm,
     global_search,
     gn,
+    gn_plicp,
     hybrid,
     icp,
     lm,
