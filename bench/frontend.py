@@ -1,7 +1,8 @@
 """The scan-to-map front end on a real log, or on the simulator at fast motion.
 
 `python -m bench.frontend --data PATH [--limit N] [--method M] [--replays 2] [--json]`
-`python -m bench.frontend --sim [--duration S] [--mount X,Y,YAW_DEG] [--json]`
+`python -m bench.frontend --sim [--duration S] [--world W] [--perfect-odometry]
+[--mount X,Y,YAW_DEG] [--json]`
 
 Log mode: the keyframes of a CARMEN log (`load_keyframes`) through the in-process pipeline
 (deskew stage + front end) with the wheel odometry of each record. Against the corrected poses:
@@ -14,7 +15,9 @@ match and map insertion. Peak RSS of the process (includes the loaded log). `--r
 the log again on the finished map (a new Frontend on the same grid, from the first pose) and
 reports the map's bytes after each pass: equal bytes = no growth with scan count once mapped.
 
-Sim mode: the built-in simulator at 1.5 m/s and 180 deg/s, ATE with and without deskewing.
+Sim mode: the built-in simulator at 1.5 m/s and 180 deg/s, ATE with and without deskewing,
+and the largest and last errors without alignment (where the map puts the robot).
+`--perfect-odometry` makes the wheel odometry exact: what error is left is the matching's.
 With `--mount`, the simulator's lidar sits there on the robot (metres, degrees) and a third run,
 "mount_ignored", declares it at the robot's origin: what a pipeline without sensor extrinsics
 gives (the lidar's poses taken as the robot's, odometry applied to the lidar).
@@ -177,15 +180,23 @@ def run_log(path: Path, settings: FrontendSettings, limit: int | None, replays: 
 
 
 def run_sim(
-    settings: FrontendSettings, duration_s: float, seed: int, mount: Pose2D = IDENTITY
+    settings: FrontendSettings,
+    duration_s: float,
+    seed: int,
+    mount: Pose2D = IDENTITY,
+    world: str = "rooms",
+    perfect_odometry: bool = False,
 ) -> dict:
     """ATE of the robot's poses on the simulator at 1.5 m/s and 180 deg/s, with and without
-    deskewing (and with the lidar's mount ignored, when it has one)."""
-    config = SimConfig(duration_s=duration_s, seed=seed, max_speed_mps=1.5,
-                       max_yaw_rate_dps=180.0, mount=mount)
+    deskewing (and with the lidar's mount ignored, when it has one). With perfect odometry,
+    whatever error remains is the matching's own."""
+    noise = {"odom_scale_error": 0.0, "odom_yaw_noise": 0.0} if perfect_odometry else {}
+    config = SimConfig(world=world, duration_s=duration_s, seed=seed, max_speed_mps=1.5,
+                       max_yaw_rate_dps=180.0, mount=mount, **noise)
     frames = list(simulate(config))
     truth = poses_array([SIM_MAP_FROM_WORLD * f.true_pose for f in frames])
     report: dict = {"scans": len(frames), "speed_mps": 1.5, "yaw_rate_dps": 180.0,
+                    "world": world, "perfect_odometry": perfect_odometry,
                     "method": settings.method, "mount": mount.to_array().tolist()}
     runs = {"deskewed": (True, mount), "raw": (False, mount)}
     if mount != IDENTITY:
@@ -206,6 +217,8 @@ def run_sim(
             **accuracy(estimate, truth),
             "max_position_error_m": float(np.max(np.hypot(*(estimate - truth)[:, :2].T))),
             "max_heading_error_deg": float(np.degrees(np.max(np.abs(heading)))),
+            "final_position_error_m": float(np.hypot(*(estimate - truth)[-1, :2])),
+            "final_heading_error_deg": float(np.degrees(heading[-1])),
             "statuses": statuses,
         }
     return report
@@ -231,13 +244,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--mount", type=parse_mount, default=IDENTITY,
                         help="sim: the lidar's place on the robot, X_M,Y_M,YAW_DEG")
+    parser.add_argument("--world", default="rooms", help="sim world: rooms, corridor, loop")
+    parser.add_argument("--perfect-odometry", action="store_true",
+                        help="sim: exact wheel odometry (the error left is the matching's)")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
     settings = default_settings()
     if args.method:
         settings = settings.model_copy(update={"method": args.method})
     if args.sim:
-        report = run_sim(settings, args.duration, args.seed, args.mount)
+        report = run_sim(settings, args.duration, args.seed, args.mount, args.world,
+                         args.perfect_odometry)
     elif args.data is not None:
         report = run_log(args.data, settings, args.limit, max(1, args.replays))
     else:

@@ -25,3 +25,19 @@ def test_parse_mount_takes_metres_and_degrees_and_names_bad_input() -> None:
     assert parse_mount("0.4,-0.1,90") == Pose2D(0.4, -0.1, math.pi / 2)
     with pytest.raises(argparse.ArgumentTypeError, match="X_M,Y_M,YAW_DEG"):
         parse_mount("0.4,-0.1")
+
+
+def test_with_perfect_odometry_the_error_left_is_the_matching_s() -> None:
+    """The ring with exact wheel odometry: gn drifts where its map ends, gn+plicp does not
+    (BENCHMARKS.md "Front end")."""
+    settings = default_settings()
+    runs = {
+        method: run_sim(settings.model_copy(update={"method": method}), 8.0, 0,
+                        world="loop", perfect_odometry=True)
+        for method in ("gn", "gn+plicp")
+    }
+    assert all(r["world"] == "loop" and r["perfect_odometry"] for r in runs.values())
+    gn, fine = (runs[m]["deskewed"] for m in ("gn", "gn+plicp"))
+    assert fine["max_position_error_m"] < 0.5 * gn["max_position_error_m"]
+    assert fine["final_position_error_m"] < 0.02
+    assert abs(fine["final_heading_error_deg"]) < abs(gn["final_heading_error_deg"])
