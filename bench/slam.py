@@ -1,7 +1,8 @@
 """Loop closure and pose-graph optimisation on a real log, against the front end alone.
 
-`python -m bench.slam --data PATH [--limit N] [--json]`
-`python -m bench.slam --sim [--world loop] [--duration 240] [--odom-scale-error 0.03] [--json]`
+`python -m bench.slam --data PATH [--limit N] [--method M] [--json]`
+`python -m bench.slam --sim [--world loop] [--duration 240] [--odom-scale-error 0.03] [--method M]
+[--json]`
 
 The keyframes of a CARMEN log go through the in-process pipeline twice with the wheel odometry of
 each record: the front end alone (the baseline: scan-to-map tracking, what `scanflow run` does
@@ -143,13 +144,13 @@ def closure_agreement(
 
 def compare(
     name: str, feed: Feed, truth: NDArray[np.float64], initial_pose: Pose2D | None = None,
-    prior: OccupancyGrid | None = None,
+    prior: OccupancyGrid | None = None, settings: FrontendSettings | None = None,
 ) -> dict[str, object]:
     """The front end alone and with the back end on the same scans, against `truth` (both on
     `prior`, if any: then the errors without alignment too, in the prior map's frame)."""
-    settings = default_settings()
+    settings = settings or default_settings()
     OUT_DIR.mkdir(exist_ok=True)
-    report: dict[str, object] = {"scans": len(feed.scans)}
+    report: dict[str, object] = {"scans": len(feed.scans), "method": settings.method}
     for label, backend in (
         ("frontend", None),
         ("loop_closure", BackendSettings(loop_closure=True)),  # SCANFLOW_BACKEND_* apply
@@ -183,12 +184,13 @@ def compare(
     return report
 
 
-def run_log(path: Path, limit: int | None) -> dict:
+def run_log(path: Path, limit: int | None, settings: FrontendSettings | None = None) -> dict:
     frames = load_keyframes(path)[:limit] if limit else load_keyframes(path)
     feed = Feed([kf.scan for kf in frames], [kf.odom_pose for kf in frames],
                 [[] for _ in frames])
     truth = poses_array([kf.true_pose for kf in frames])
-    report = {"log": path.name, **compare(path.name.split(".")[0], feed, truth)}
+    report = {"log": path.name,
+              **compare(path.name.split(".")[0], feed, truth, settings=settings)}
     report["odometry"] = accuracy(poses_array([kf.odom_pose for kf in frames]), truth)
     return report
 
@@ -205,7 +207,8 @@ def sim_feed(
 
 
 def run_sim(
-    world: str, duration_s: float, scale_error: float, yaw_noise: float, prior_s: float = 0.0
+    world: str, duration_s: float, scale_error: float, yaw_noise: float, prior_s: float = 0.0,
+    settings: FrontendSettings | None = None,
 ) -> dict:
     """Both passes on the simulator; with `prior_s`, both on a prior map: the front end's map
     of an earlier run over the first `prior_s` seconds of the same tour from the same start."""
@@ -214,11 +217,12 @@ def run_sim(
     prior = None
     if prior_s > 0.0:
         first, _ = sim_feed(world, prior_s, scale_error, yaw_noise)
-        prior = run_pass(first, default_settings(), None, "prior", start).pipeline.frontend.map.grid
+        prior = run_pass(first, settings or default_settings(), None, "prior",
+                         start).pipeline.frontend.map.grid
     return {
         "world": world, "duration_s": duration_s, "odom_scale_error": scale_error,
         "odom_yaw_noise": yaw_noise, "prior_s": prior_s,
-        **compare(f"sim_{world}", feed, truth, start, prior),
+        **compare(f"sim_{world}", feed, truth, start, prior, settings),
     }
 
 
@@ -233,13 +237,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--odom-yaw-noise", type=float, default=0.01)
     parser.add_argument("--prior-s", type=float, default=0.0,
                         help="sim: both passes on the map of an earlier run's first S seconds")
+    parser.add_argument("--method", default=None, help="the front end's scan-to-map method")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
+    settings = default_settings()
+    if args.method:
+        settings = settings.model_copy(update={"method": args.method})
     if args.sim:
         report = run_sim(args.world, args.duration, args.odom_scale_error, args.odom_yaw_noise,
-                         args.prior_s)
+                         args.prior_s, settings)
     elif args.data is not None:
-        report = run_log(args.data, args.limit)
+        report = run_log(args.data, args.limit, settings)
     else:
         parser.error("give --data PATH or --sim")
     print(json.dumps(report, default=float, indent=None if args.json else 2))

@@ -6,6 +6,7 @@ import os
 from pathlib import Path
 
 import pytest
+from scanflow.frontend import default_settings
 
 from bench.slam import main, run_log, run_sim
 
@@ -29,6 +30,18 @@ def test_sim_reports_both_passes_and_the_closures_help(monkeypatch: pytest.Monke
     # The drifted lap draws walls twice; the optimised one does not.
     assert closed["occupied_cells"] < plain["occupied_cells"]
     assert Path(closed["map_png"]).exists()
+
+
+def test_the_front_end_s_method_reaches_both_passes(monkeypatch: pytest.MonkeyPatch) -> None:
+    """--method: the ring with gn+plicp, whose front end alone drifts far less than gn's
+    (BENCHMARKS.md "Front end"), so loop closure has less left to correct."""
+    monkeypatch.delenv("SCANFLOW_BACKEND_CULL_M", raising=False)
+    settings = default_settings()
+    gn = run_sim("loop", 30.0, 0.03, 0.01, settings=settings)
+    fine = run_sim("loop", 30.0, 0.03, 0.01,
+                   settings=settings.model_copy(update={"method": "gn+plicp"}))
+    assert gn["method"] == "gn" and fine["method"] == "gn+plicp"
+    assert fine["frontend"]["ate_rmse_m"] < 0.5 * gn["frontend"]["ate_rmse_m"]
 
 
 def test_sim_counts_the_culled_inserts(monkeypatch: pytest.MonkeyPatch) -> None:
