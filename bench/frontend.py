@@ -1,6 +1,7 @@
 """The scan-to-map front end on a real log, or on the simulator at fast motion.
 
 `python -m bench.frontend --data PATH [--limit N] [--method M] [--replays 2] [--json]`
+`python -m bench.frontend --data PATH --starts N [--method M] [--json]`
 `python -m bench.frontend --sim [--duration S] [--world W] [--perfect-odometry]
 [--mount X,Y,YAW_DEG] [--json]`
 
@@ -14,6 +15,8 @@ increment). Throughput = scans / wall time of the pipeline loop, with the share 
 match and map insertion. Peak RSS of the process (includes the loaded log). `--replays 2` runs
 the log again on the finished map (a new Frontend on the same grid, from the first pose) and
 reports the map's bytes after each pass: equal bytes = no growth with scan count once mapped.
+`--starts N` runs the log from each of its first N keyframes instead and reports every ATE:
+how much one run's figure depends on where the log starts.
 
 Sim mode: the built-in simulator at 1.5 m/s and 180 deg/s, ATE with and without deskewing,
 and the largest and last errors without alignment (where the map puts the robot).
@@ -179,6 +182,20 @@ def run_log(path: Path, settings: FrontendSettings, limit: int | None, replays: 
     return report
 
 
+def run_starts(path: Path, settings: FrontendSettings, limit: int | None, starts: int) -> dict:
+    """The log from each of its first `starts` keyframes: the ATE of every run. A log whose
+    figure swings with where it starts is decided by a few scans (a fast turn, a corridor),
+    not by the method's precision; the spread says how much one run's ATE can be trusted."""
+    frames = load_keyframes(path)[:limit] if limit else load_keyframes(path)
+    ates = []
+    for k in range(starts):
+        truth = poses_array([kf.true_pose for kf in frames[k:]])
+        run = run_pass(Pipeline(settings), frames[k:], f"{path.name} from {k}")
+        ates.append(accuracy(run.poses, truth)["ate_rmse_m"])
+    return {"log": path.name, "method": settings.method, "ate_by_start_m": ates,
+            "median_ate_m": float(np.median(ates)), "max_ate_m": float(np.max(ates))}
+
+
 def run_sim(
     settings: FrontendSettings,
     duration_s: float,
@@ -239,6 +256,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--sim", action="store_true", help="simulator at fast motion instead")
     parser.add_argument("--limit", type=int, default=None, help="first N keyframes only")
     parser.add_argument("--replays", type=int, default=1, help="passes over the log (>= 1)")
+    parser.add_argument("--starts", type=int, default=0,
+                        help="instead: the log from each of its first N keyframes, every ATE")
     parser.add_argument("--method", default=None, help="scan-to-map method (default: settings)")
     parser.add_argument("--duration", type=float, default=30.0, help="sim seconds")
     parser.add_argument("--seed", type=int, default=0)
@@ -255,6 +274,8 @@ def main(argv: list[str] | None = None) -> None:
     if args.sim:
         report = run_sim(settings, args.duration, args.seed, args.mount, args.world,
                          args.perfect_odometry)
+    elif args.data is not None and args.starts > 0:
+        report = run_starts(args.data, settings, args.limit, args.starts)
     elif args.data is not None:
         report = run_log(args.data, settings, args.limit, max(1, args.replays))
     else:

@@ -4,12 +4,18 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
+from pathlib import Path
 
 import pytest
 from scanflow.frontend import default_settings
 from scanflow.geometry import Pose2D
 
-from bench.frontend import parse_mount, run_sim
+from bench.frontend import parse_mount, run_sim, run_starts
+
+REPO = Path(__file__).resolve().parents[2]
+DATA = Path(os.environ.get("SCANFLOW_DATA_DIR", REPO / ".." / "shared" / "data"))
+INTEL = DATA / "intel-corrected.log.gz"
 
 
 def test_a_mount_adds_the_run_that_ignores_it_and_that_run_is_worse() -> None:
@@ -41,3 +47,12 @@ def test_with_perfect_odometry_the_error_left_is_the_matching_s() -> None:
     assert fine["max_position_error_m"] < 0.5 * gn["max_position_error_m"]
     assert fine["final_position_error_m"] < 0.02
     assert abs(fine["final_heading_error_deg"]) < abs(gn["final_heading_error_deg"])
+
+
+@pytest.mark.skipif(not INTEL.exists(), reason="the shared intel log is not beside the checkout")
+def test_starts_runs_the_log_from_each_of_its_first_keyframes() -> None:
+    report = run_starts(INTEL, default_settings(), 40, 3)
+    ates = report["ate_by_start_m"]
+    assert len(ates) == 3 and len(set(ates)) == 3  # each start a different run
+    assert all(0.0 < a < 0.5 for a in ates)
+    assert report["median_ate_m"] == sorted(ates)[1] and report["max_ate_m"] == max(ates)
