@@ -102,10 +102,12 @@ def test_bad_options_are_named(options: dict) -> None:
 
 
 finite = st.floats(-1.0, 1.0, allow_nan=False)
+# Fine steps are within the agreement window (0.1 m, 1 deg) by far: no heading wraps around.
+small = st.floats(-0.2, 0.2, allow_nan=False)
 
 
-@given(st.tuples(finite, finite, finite), st.tuples(finite, finite, finite),
-       st.floats(0.1, 20.0))
+@given(st.tuples(small, small, small), st.tuples(finite, finite, finite),
+       st.floats(0.5, 20.0))
 def test_the_weak_component_is_removed_and_the_rest_kept(
     correction: tuple, weak: tuple, length_m: float
 ) -> None:
