@@ -45,8 +45,9 @@ def assess_fit(
     margin_m: float = FREE_SPACE_MARGIN_M,
     max_share: float = MAX_FREE_SPACE_SHARE,
 ) -> MatchResult:
-    """`result` with status POOR_FIT when it is OK but contradicts the target scan's free space."""
-    if not result.ok or not isinstance(target, np.ndarray):
+    """`result` with status POOR_FIT when it is OK but contradicts the target scan's free space
+    (not tested at all with `max_share` >= 1, which no share can exceed)."""
+    if not result.ok or not isinstance(target, np.ndarray) or max_share >= 1.0:
         return result
     test = free_space_test(result.pose.transform_points(source), target, margin_m)
     extra = {**result.extra, "free_space_share": test.share, "free_space_tested": test.tested}
