@@ -243,7 +243,11 @@ class FrontendSettings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="SCANFLOW_FRONTEND_", extra="ignore")
 
-    method: str = Field("gn", description="scan-to-map method (scanflow.matching name)")
+    method: str = Field(
+        "gn",
+        description="scan-to-map method (scanflow.matching name); 'gn+plicp' drifts far less "
+        "but is less robust on sparse long-range scans (README, Front end)",
+    )
     fallback_method: str = Field(
         "csm", description="global-window search that seeds `method` when it fails; '' = none"
     )
