@@ -4,16 +4,16 @@
 sharp as the field around the scan: where the map ends (a wall seen for the first time, the
 far side of a turn), the field's tail pulls the scan's new points towards the known ends,
 along the walls. On the simulator with perfect odometry that costs 0.21 deg (std) per match
-against 0.03 deg on a complete map, and the front end drifts by it (BENCHMARKS.md, "Front
-end"). Point-to-line residuals have no such pull: a point past a wall's end pairs with the
-wall's line and is moved only across it. So from gn's pose, `plicp` runs against the map's
-mean hit points around the scan (`MatchingMap.hit_means_near`, within the gate), and its
-pose is kept only when it agrees with gn's (within agree_m / agree_rad): gn stays the judge
-of the basin. Where plicp finds the scan degenerate (a corridor), its correction is kept
-across the weak direction only; along it, gn's pose stands. Status, score and covariance
-are gn's (the front end's acceptance limits are set on gn's); the fine step moves the pose
-by at most agree_m / agree_rad. Measured in BENCHMARKS.md, "Front end": far less drift on
-the simulator, intel and freiburg-079, but less robust than gn on the aces log.
+against 0.03 deg on a complete map (bench.map_edge), and the front end drifts by it
+(BENCHMARKS.md, "Front end"). Point-to-line residuals have no such pull: a point past a
+wall's end pairs with the wall's line and is moved only across it. So from gn's pose, `plicp`
+runs against the map's mean hit points around the scan (`MatchingMap.hit_means_near`, within
+the gate), and its pose is kept only when it agrees with gn's (within agree_m / agree_rad):
+gn stays the judge of the basin. Where plicp finds the scan degenerate (a corridor), its
+correction is kept across the weak direction only; along it, gn's pose stands. Status, score
+and covariance are gn's (the front end's acceptance limits are set on gn's); the fine step
+moves the pose by at most agree_m / agree_rad. Measured in BENCHMARKS.md, "Front end": far
+less drift on the simulator, intel and freiburg-079, but less robust than gn on the aces log.
 """
 
 from __future__ import annotations
