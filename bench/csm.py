@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import time
 from pathlib import Path
 
@@ -24,6 +23,8 @@ from scanflow.maps.maxpool import MaxPoolStack
 from scanflow.matching import match
 from scanflow.matching.csm import build_candidates, search, stack_depth
 from scanflow.matching.field_cost import points_field
+
+from bench.data import corrected_log
 
 RESOLUTION_M = 0.05
 ANGULAR_STEP_RAD = math.radians(0.5)
@@ -38,12 +39,7 @@ WINDOW = {
 
 
 def default_log() -> Path:
-    root = Path(
-        os.environ.get(
-            "SCANFLOW_DATA_DIR", Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
-        )
-    )
-    return root / "intel-corrected.log.gz"
+    return corrected_log("intel")
 
 
 def existing_log(path: Path | None) -> Path:

@@ -196,6 +196,22 @@ def run_starts(path: Path, settings: FrontendSettings, limit: int | None, starts
             "median_ate_m": float(np.median(ates)), "max_ate_m": float(np.max(ates))}
 
 
+def fast_sim_config(
+    world: str, duration_s: float, seed: int, mount: Pose2D = IDENTITY,
+    perfect_odometry: bool = False,
+) -> SimConfig:
+    """The simulator at 1.5 m/s and 180 deg/s; with perfect odometry, exact wheel odometry."""
+    noise = {"odom_scale_error": 0.0, "odom_yaw_noise": 0.0} if perfect_odometry else {}
+    return SimConfig(world=world, duration_s=duration_s, seed=seed, max_speed_mps=1.5,
+                     max_yaw_rate_dps=180.0, mount=mount, **noise)
+
+
+def settings_for(method: str | None) -> FrontendSettings:
+    """The documented front-end defaults, with `method` when one is given."""
+    settings = default_settings()
+    return settings.model_copy(update={"method": method}) if method else settings
+
+
 def run_sim(
     settings: FrontendSettings,
     duration_s: float,
@@ -207,10 +223,7 @@ def run_sim(
     """ATE of the robot's poses on the simulator at 1.5 m/s and 180 deg/s, with and without
     deskewing (and with the lidar's mount ignored, when it has one). With perfect odometry,
     whatever error remains is the matching's own."""
-    noise = {"odom_scale_error": 0.0, "odom_yaw_noise": 0.0} if perfect_odometry else {}
-    config = SimConfig(world=world, duration_s=duration_s, seed=seed, max_speed_mps=1.5,
-                       max_yaw_rate_dps=180.0, mount=mount, **noise)
-    frames = list(simulate(config))
+    frames = list(simulate(fast_sim_config(world, duration_s, seed, mount, perfect_odometry)))
     truth = poses_array([SIM_MAP_FROM_WORLD * f.true_pose for f in frames])
     report: dict = {"scans": len(frames), "speed_mps": 1.5, "yaw_rate_dps": 180.0,
                     "world": world, "perfect_odometry": perfect_odometry,
@@ -268,9 +281,7 @@ def main(argv: list[str] | None = None) -> None:
                         help="sim: exact wheel odometry (the error left is the matching's)")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
-    settings = default_settings()
-    if args.method:
-        settings = settings.model_copy(update={"method": args.method})
+    settings = settings_for(args.method)
     if args.sim:
         report = run_sim(settings, args.duration, args.seed, args.mount, args.world,
                          args.perfect_odometry)

@@ -26,16 +26,14 @@ from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.matching import match
 from scanflow.pipeline import Pipeline
-from scanflow.sim import SimConfig, simulate
+from scanflow.sim import simulate
 
-from bench.frontend import SIM_MAP_FROM_WORLD
+from bench.frontend import SIM_MAP_FROM_WORLD, fast_sim_config
 
 
 def deskewed_scans(world: str, duration_s: float) -> tuple[list[NDArray[np.float64]], list[Pose2D]]:
     """Each sweep's deskewed endpoints (robot frame) and its true pose in the map frame."""
-    config = SimConfig(world=world, duration_s=duration_s, seed=0, max_speed_mps=1.5,
-                       max_yaw_rate_dps=180.0, odom_scale_error=0.0, odom_yaw_noise=0.0)
-    frames = list(simulate(config))
+    frames = list(simulate(fast_sim_config(world, duration_s, 0, perfect_odometry=True)))
     truth = [SIM_MAP_FROM_WORLD * f.true_pose for f in frames]
     pipeline = Pipeline(default_settings(), initial_pose=truth[0])
     points = []

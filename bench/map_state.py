@@ -28,7 +28,7 @@ from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.pipeline import Pipeline
 from scanflow.wire import MapInsertMessage, MapStateMessage
 
-from bench.resume import DATA_DIR
+from bench.data import corrected_log
 from services.mapserver.robot import RobotMap
 from services.matcher.recent import RecentInserts, map_state
 
@@ -95,7 +95,7 @@ def run(path: Path, limit: int | None) -> dict[str, Any]:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, default=DATA_DIR / "intel-corrected.log.gz")
+    parser.add_argument("--data", type=Path, default=corrected_log("intel"))
     parser.add_argument("--limit", type=int, default=None, help="first N keyframes only")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)

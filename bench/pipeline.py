@@ -32,15 +32,14 @@ from scanflow.pipeline import Pipeline
 from scanflow.scan import LaserScan
 from scanflow.wire import ScanMessage, ServiceStatsMessage, decode_any
 
+from bench.data import corrected_log
 from services.common.launch import PIPELINE as SERVICES
 from services.common.launch import Launcher, free_port
 from services.common.process import available_cpus
 from services.common.zsession import open_session
 from services.ingest.sources import source_events
 
-_DEFAULT_DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
-DATA_DIR = Path(os.environ.get("SCANFLOW_DATA_DIR", _DEFAULT_DATA))
-FREIBURG = DATA_DIR / "freiburg-079-corrected.log.gz"
+FREIBURG = corrected_log("freiburg-079")
 
 
 @contextmanager

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import time
 from pathlib import Path
 from typing import Any
@@ -27,13 +26,12 @@ from scanflow.frontend import Frontend
 from scanflow.io.carmen import Keyframe, load_keyframes
 from scanflow.wire import MapInsertMessage, ResumeMessage
 
+from bench.data import corrected_log
 from services.common.keyframes import scan_nodes
 from services.common.launch import free_port
 from services.common.zsession import open_session
 from services.mapserver.keyframes import Keyframes
 
-_DEFAULT_DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
-DATA_DIR = Path(os.environ.get("SCANFLOW_DATA_DIR", _DEFAULT_DATA))
 KEY = "scanflow-bench/keyframes"
 ROBOT = "robot"
 
@@ -109,7 +107,7 @@ def run(frames: list[Keyframe], count: int, scans_per_keyframe: int) -> dict[str
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, default=DATA_DIR / "freiburg-079-corrected.log.gz")
+    parser.add_argument("--data", type=Path, default=corrected_log("freiburg-079"))
     parser.add_argument("--keyframes", default="1916,5000,20000,60000")
     parser.add_argument("--every", type=int, default=1, help="take every k-th record")
     parser.add_argument("--scans-per-keyframe", type=int, default=3)

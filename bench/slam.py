@@ -57,6 +57,7 @@ from bench.frontend import (
     align_se2,
     ate_rmse_m,
     poses_array,
+    settings_for,
 )
 
 WRONG_CLOSURE_M = 0.3
@@ -212,13 +213,13 @@ def run_sim(
 ) -> dict:
     """Both passes on the simulator; with `prior_s`, both on a prior map: the front end's map
     of an earlier run over the first `prior_s` seconds of the same tour from the same start."""
+    settings = settings or default_settings()
     feed, truth = sim_feed(world, duration_s, scale_error, yaw_noise)
     start = Pose2D.from_array(truth[0])
     prior = None
     if prior_s > 0.0:
         first, _ = sim_feed(world, prior_s, scale_error, yaw_noise)
-        prior = run_pass(first, settings or default_settings(), None, "prior",
-                         start).pipeline.frontend.map.grid
+        prior = run_pass(first, settings, None, "prior", start).pipeline.frontend.map.grid
     return {
         "world": world, "duration_s": duration_s, "odom_scale_error": scale_error,
         "odom_yaw_noise": yaw_noise, "prior_s": prior_s,
@@ -240,9 +241,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--method", default=None, help="the front end's scan-to-map method")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
-    settings = default_settings()
-    if args.method:
-        settings = settings.model_copy(update={"method": args.method})
+    settings = settings_for(args.method)
     if args.sim:
         report = run_sim(args.world, args.duration, args.odom_scale_error, args.odom_yaw_noise,
                          args.prior_s, settings)

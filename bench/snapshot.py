@@ -22,7 +22,8 @@ import numpy as np
 from scanflow.io.carmen import Keyframe, load_keyframes
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
 
-from bench.resume import DATA_DIR, kept_keyframes
+from bench.data import corrected_log
+from bench.resume import kept_keyframes
 from services.mapserver.snapshot import PER_FILE, Snapshot, load_snapshots, save_snapshot
 
 ROBOT = "robot"
@@ -75,7 +76,7 @@ def run(
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, default=DATA_DIR / "freiburg-079-corrected.log.gz")
+    parser.add_argument("--data", type=Path, default=corrected_log("freiburg-079"))
     parser.add_argument("--keyframes", default="1916,5000,20000,60000")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()

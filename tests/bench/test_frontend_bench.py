@@ -4,18 +4,15 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
-from pathlib import Path
 
 import pytest
 from scanflow.frontend import default_settings
 from scanflow.geometry import Pose2D
 
+from bench.data import corrected_log
 from bench.frontend import parse_mount, run_sim, run_starts
 
-REPO = Path(__file__).resolve().parents[2]
-DATA = Path(os.environ.get("SCANFLOW_DATA_DIR", REPO / ".." / "shared" / "data"))
-INTEL = DATA / "intel-corrected.log.gz"
+INTEL = corrected_log("intel")
 
 
 def test_a_mount_adds_the_run_that_ignores_it_and_that_run_is_worse() -> None:

@@ -1,18 +1,17 @@
 """bench.localisation: the success figures and the CLI end to end on a real log."""
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
+from bench.data import corrected_log
 from bench.localisation import rates
 
 REPO = Path(__file__).resolve().parents[2]
-DATA = Path(os.environ.get("SCANFLOW_DATA_DIR", REPO / ".." / "shared" / "data"))
-LOG = DATA / "aces-corrected.log.gz"
+LOG = corrected_log("aces")
 
 
 def test_rates_count_both_bars() -> None:

@@ -6,10 +6,10 @@ import json
 
 import pytest
 
+from bench.data import corrected_log
 from bench.map_state import main
-from bench.resume import DATA_DIR
 
-INTEL = DATA_DIR / "intel-corrected.log.gz"
+INTEL = corrected_log("intel")
 
 
 @pytest.mark.skipif(not INTEL.exists(), reason="the shared intel log is not beside the checkout")

@@ -2,12 +2,13 @@
 BENCHMARKS.md quotes."""
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+
+from bench.data import corrected_log
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -32,8 +33,7 @@ def test_bench_maps_reports_times_and_memory():
     assert revisit["map_bytes"] == mapping["map_bytes"]
 
 
-DATA = Path(os.environ.get("SCANFLOW_DATA_DIR", REPO / ".." / "shared" / "data"))
-LOG = DATA / "intel-corrected.log.gz"
+LOG = corrected_log("intel")
 
 
 @pytest.mark.skipif(not LOG.exists(), reason=f"real log {LOG} not available")

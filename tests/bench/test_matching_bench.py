@@ -2,7 +2,6 @@
 
 import json
 import math
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -13,11 +12,11 @@ from scanflow.geometry import Pose2D
 from scanflow.io.carmen import Keyframe
 from scanflow.scan import LaserScan
 
+from bench.data import corrected_log
 from bench.matching import closure, keyframe_pairs, odometry_matcher, run_matcher
 
 REPO = Path(__file__).resolve().parents[2]
-DATA = Path(os.environ.get("SCANFLOW_DATA_DIR", REPO / ".." / "shared" / "data"))
-LOG = DATA / "intel-corrected.log.gz"
+LOG = corrected_log("intel")
 
 
 def frames_along(poses: list[Pose2D]) -> list[Keyframe]:

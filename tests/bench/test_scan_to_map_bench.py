@@ -2,16 +2,16 @@
 
 import json
 import math
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
+from bench.data import corrected_log
+
 REPO = Path(__file__).resolve().parents[2]
-DATA = Path(os.environ.get("SCANFLOW_DATA_DIR", REPO / ".." / "shared" / "data"))
-LOG = DATA / "intel-corrected.log.gz"
+LOG = corrected_log("intel")
 
 
 @pytest.mark.skipif(not LOG.exists(), reason=f"real log {LOG} not available")

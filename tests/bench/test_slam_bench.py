@@ -2,17 +2,15 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
 from scanflow.frontend import default_settings
 
+from bench.data import corrected_log
 from bench.slam import main, run_log, run_sim
 
-REPO = Path(__file__).resolve().parents[2]
-DATA = Path(os.environ.get("SCANFLOW_DATA_DIR", REPO / ".." / "shared" / "data"))
-INTEL = DATA / "intel-corrected.log.gz"
+INTEL = corrected_log("intel")
 
 
 def test_sim_reports_both_passes_and_the_closures_help(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -168,11 +168,9 @@ class MatchingMap:
         reach = math.ceil(radius_m / self.resolution_m)
         boxes = tile_boxes(self.grid.world_to_cells(points), NEAR_TILE_CELLS)
         boxes = disjoint_cover(boxes + np.array([-reach, -reach, reach, reach]))
-        # Counted from lattice cell (0, 0), whose centre is the anchor plus half a cell.
-        rc = self.grid.occupied_hit_means_in(boxes, 1, CellBox(0, 0, 0, 0))
-        x = self.grid.anchor_x_m + (rc[:, 1] + 0.5) * self.resolution_m
-        y = self.grid.anchor_y_m + (rc[:, 0] + 0.5) * self.resolution_m
-        return np.column_stack((x, y))
+        lattice = CellBox(0, 0, 0, 0)  # means counted from lattice cell (0, 0)
+        rc = self.grid.occupied_hit_means_in(boxes, 1, lattice)
+        return self.grid.spec_of(lattice).cell_centers(rc)
 
     def maxpool_stack(self, depth: int, level: int = 0) -> MaxPoolStack:
         """Branch-and-bound max-pooled scores of the level's likelihood field, 2**depth deep:

@@ -613,11 +613,7 @@ def test_csm_on_a_map_uses_its_stack_and_finds_what_a_rebuilt_stack_finds(monkey
 
 def _all_hit_means_world(grid: OccupancyGrid) -> np.ndarray:
     """Every occupied cell's mean hit point, in world coordinates (the whole map at once)."""
-    box = grid.extent
-    rc = grid.occupied_hit_means(box)
-    spec = grid.spec_of(box)
-    return np.column_stack((spec.origin_x_m + (rc[:, 1] + 0.5) * spec.resolution_m,
-                            spec.origin_y_m + (rc[:, 0] + 0.5) * spec.resolution_m))
+    return grid.spec_of(grid.extent).cell_centers(grid.occupied_hit_means(grid.extent))
 
 
 @settings(max_examples=25, deadline=None)
