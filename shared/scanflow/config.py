@@ -253,6 +253,15 @@ class FrontendSettings(BaseSettings):
     )
     fallback_linear_m: float = Field(1.0, gt=0.0, description="fallback search half-width")
     fallback_angular_deg: float = Field(30.0, gt=0.0, description="fallback search half-angle")
+    recheck_ratio: float = Field(
+        0.8, ge=0.0, le=1.0,
+        description="a passing match scoring below this x the median of the last 20 accepted "
+        "is searched again like a failed one (0 = never; needs fallback_method)",
+    )
+    recheck_margin: float = Field(
+        0.1, ge=0.0, description="the searched pose replaces that match only when it scores "
+        "this much higher",
+    )
     map_resolution_m: float = Field(0.05, gt=0.0)
     no_return_clear_m: float = Field(
         5.0, ge=0.0, description="beams with no return clear free space this far (0 = not at all)"

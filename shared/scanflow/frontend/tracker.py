@@ -15,7 +15,9 @@ Per scan:
 2. match the points against the map from the prediction with `settings.method`; if the checks of
    `acceptance` fail and a fallback is set, a correlative search (`settings.fallback_method`)
    over +-fallback_linear_m / +-fallback_angular_deg seeds the method again (and its own
-   optimum is used, at grid resolution, if that refinement fails the checks too);
+   optimum is used, at grid resolution, if that refinement fails the checks too). A match that
+   passes but scores below `recheck_ratio` x the median of the recent ones is searched the same
+   way, and the searched match replaces it when it scores `recheck_margin` higher (`recheck`);
 3. accepted: the pose is the match, the map gets the scan when the motion filter allows it;
    rejected (or too few points): the pose is the prediction with its covariance grown by the
    motion since the last accepted match, the map is untouched, the status and message say why.
@@ -42,6 +44,7 @@ from scanflow.config import FrontendSettings
 from scanflow.frontend.acceptance import AcceptanceLimits, rejection_reason
 from scanflow.frontend.motion_filter import MotionFilter
 from scanflow.frontend.prediction import MotionPredictor, Prediction
+from scanflow.frontend.recheck import RecentScores
 from scanflow.frontend.trajectory import TrajectoryStore
 from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.maps.matching_map import MatchingMap
@@ -184,6 +187,7 @@ class Frontend:
         self._lost = self._initialised and initial_pose is None
         self._rejections = 0  # rejected scans in a row
         self._covariance = np.zeros((3, 3))
+        self._scores = RecentScores()  # of the accepted matches by settings.method
 
     @property
     def pose(self) -> Pose2D | None:
@@ -232,7 +236,7 @@ class Frontend:
         result = match(points, self.map, guess, method=s.method)
         reason = rejection_reason(result, guess, self._limits)
         if not reason:
-            return result, FrontendStatus.TRACKED, result.message
+            return self._recheck(points, guess, result)
         if not s.fallback_method:
             return result, FrontendStatus.REJECTED, reason
         found, status, note = self.relocalise(points, guess)
@@ -240,6 +244,25 @@ class Frontend:
             return found, status, f"{note}: {reason}"
         # Rejected: the search's optimum when it found one, else the local match.
         return (found if found.ok else result), status, f"{reason}; {note}"
+
+    def _recheck(
+        self, points: NDArray[np.float64], guess: Pose2D, result: MatchResult
+    ) -> tuple[MatchResult, FrontendStatus, str]:
+        """A passing match, TRACKED; unless it scores far below the recent ones (see
+        `recheck`): then the fallback search's match when that scores recheck_margin higher
+        (RECOVERED), else the match as it was, with a note of the search."""
+        s = self.settings
+        if not (s.fallback_method and self._scores.is_low(result.score, s.recheck_ratio)):
+            return result, FrontendStatus.TRACKED, result.message
+        low = (
+            f"score {result.score:.3f} below {s.recheck_ratio} x the recent median "
+            f"{self._scores.median():.3f}"
+        )
+        found, status, note = self.relocalise(points, guess)
+        if status is FrontendStatus.RECOVERED and found.score >= result.score + s.recheck_margin:
+            return found, status, f"rechecked, {note} ({found.score:.3f}): {low}"
+        kept = f"rechecked and kept: {low}; the search: {note} ({found.score:.3f})"
+        return result, FrontendStatus.TRACKED, "; ".join(m for m in (result.message, kept) if m)
 
     def set_pose(self, pose: Pose2D) -> None:
         """An operator's word for where the robot is (ROS's /initialpose): the next scan is
@@ -322,6 +345,8 @@ class Frontend:
             self._rejections = 0
             pose = step.prediction.pose if result is None else result.pose
             self._covariance = np.zeros((3, 3)) if result is None else result.covariance
+            if result is not None and result.method == self.settings.method:
+                self._scores.add(result.score)
         else:
             # Too few points leave the count of rejections in a row as it is.
             self._rejections += status is FrontendStatus.REJECTED

@@ -23,6 +23,9 @@ from scanflow.frontend import (
 from scanflow.geometry import Pose2D
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.occupancy import OccupancyGrid
+from scanflow.matching import MatchResult
+from scanflow.matching import api as matching_api
+from scanflow.matching.field_cost import assess_field_match, field_pyramid
 
 START = Pose2D(2.5, 2.0, 0.0)
 # The map frame is turned against the world so walls do not lie on grid cell boundaries.
@@ -332,3 +335,74 @@ def test_an_estimate_moved_into_a_redrawn_frame_turns_its_covariance() -> None:
     np.testing.assert_allclose(moved.covariance, np.diag([1.0, 4.0, 0.1]), atol=1e-12)
     lost = replace(out, covariance=np.diag([math.inf] * 3)).in_frame(correction)
     assert np.isinf(np.diag(lost.covariance)).all() and not np.isnan(lost.covariance).any()
+
+
+@pytest.fixture
+def stays_put(monkeypatch: pytest.MonkeyPatch) -> str:
+    """A local matcher with no basin at all, registered for one test: it scores its guess on
+    the map's field and stays there, as `gn` does when it lands in a wrong basin."""
+
+    def match_stays_put(
+        source: NDArray[np.float64], target: object, guess: Pose2D, **_: object
+    ) -> MatchResult:
+        field = field_pyramid(target, 1, 0.05, 0.1)[-1]
+        return assess_field_match("stays-put", field, source, guess.to_array(), 0)
+
+    monkeypatch.setitem(matching_api._METHODS, "stays-put", match_stays_put)
+    return "stays-put"
+
+
+def track_with_a_bad_prediction(
+    settings: FrontendSettings, scan_at: Scanner, at: int = 7
+) -> FrontendOutput:
+    """Scans along a straight path with exact odometry, except at scan `at`: 0.32 m / 8 deg
+    off, a prediction the correction limits (1 m, 30 deg) still allow."""
+    truth = straight_path(START, 0.1, at + 1)
+    odom = odometry_with_drift(truth, 1.0)
+    odom[at] = odom[at] * Pose2D(0.25, -0.2, math.radians(8.0))
+    return run(Frontend(settings, initial_pose=START_IN_MAP), scan_at, truth, odom)[-1]
+
+
+def test_a_passing_match_far_below_the_recent_scores_is_searched_again(
+    scan_at: Scanner, stays_put: str
+) -> None:
+    truth = straight_path(START, 0.1, 8)[-1]
+    without = track_with_a_bad_prediction(
+        FrontendSettings.model_construct(method=stays_put, recheck_ratio=0.0), scan_at
+    )
+    # The failure the recheck is for: a wrong pose that passes every check of `acceptance`.
+    assert without.status is FrontendStatus.TRACKED, without.message
+    assert error(without.pose, truth)[0] > 0.2
+    out = track_with_a_bad_prediction(
+        FrontendSettings.model_construct(method=stays_put), scan_at
+    )
+    assert out.status is FrontendStatus.RECOVERED, out.message
+    assert out.message.startswith("rechecked, recovered by csm")
+    assert "below 0.8 x the recent median" in out.message
+    assert out.score >= without.score + 0.1
+    position_m, heading_rad = error(out.pose, truth)
+    assert position_m < 0.05 and heading_rad < math.radians(1.0)
+
+
+def test_a_searched_pose_that_scores_no_better_by_the_margin_leaves_the_match(
+    scan_at: Scanner, stays_put: str
+) -> None:
+    settings = FrontendSettings.model_construct(method=stays_put, recheck_margin=1.0)
+    out = track_with_a_bad_prediction(settings, scan_at)
+    assert out.status is FrontendStatus.TRACKED
+    assert "rechecked and kept: score" in out.message
+    assert "the search: recovered by csm (0.9" in out.message
+    assert error(out.pose, straight_path(START, 0.1, 8)[-1])[0] > 0.2
+
+
+def test_no_recheck_before_the_recent_scores_are_known_or_without_a_fallback(
+    scan_at: Scanner, stays_put: str
+) -> None:
+    # Scan 3 has 2 matches before it, fewer than recheck.MIN_SCORES.
+    early = track_with_a_bad_prediction(
+        FrontendSettings.model_construct(method=stays_put), scan_at, at=3
+    )
+    assert early.status is FrontendStatus.TRACKED and "rechecked" not in early.message
+    no_fallback = FrontendSettings.model_construct(method=stays_put, fallback_method="")
+    out = track_with_a_bad_prediction(no_fallback, scan_at)
+    assert out.status is FrontendStatus.TRACKED and "rechecked" not in out.message
