@@ -118,12 +118,15 @@ class Pass:
     stage_s: dict[str, float]
     statuses: dict[str, int]
     inserted: int
+    rechecked: int  # passing matches searched again (recheck), whether replaced or kept
+    rechecked_s: float  # the match time of those scans, first match and search together
 
 
 def run_pass(pipeline: Pipeline, frames: list[Keyframe], desc: str) -> Pass:
     poses, statuses = [], {}
     stage = {"deskew": 0.0, "match": 0.0, "insert": 0.0}
-    inserted = 0
+    inserted = rechecked = 0
+    rechecked_s = 0.0
     t0 = time.perf_counter()
     for kf in tqdm(frames, desc=desc, file=sys.stderr, leave=False):
         out = pipeline.process(kf.scan, kf.odom_pose)
@@ -134,7 +137,11 @@ def run_pass(pipeline: Pipeline, frames: list[Keyframe], desc: str) -> Pass:
         stage["match"] += est.match_time_s
         stage["insert"] += est.insert_time_s
         inserted += est.inserted
-    return Pass(poses_array(poses), time.perf_counter() - t0, stage, statuses, inserted)
+        if "rechecked" in est.message:
+            rechecked += 1
+            rechecked_s += est.match_time_s
+    return Pass(poses_array(poses), time.perf_counter() - t0, stage, statuses, inserted,
+                rechecked, rechecked_s)
 
 
 def peak_rss_mb() -> float:
@@ -158,10 +165,13 @@ def run_log(path: Path, settings: FrontendSettings, limit: int | None, replays: 
         "scans": len(frames),
         "beams": frames[0].scan.beam_count if frames else 0,
         "method": settings.method,
+        "recheck_ratio": settings.recheck_ratio,
         "fallback": settings.fallback_method,
         "frontend": accuracy(first.poses, truth),
         "odometry": accuracy(odometry, truth),
         "statuses": first.statuses,
+        "rechecked_scans": first.rechecked,
+        "rechecked_match_s": first.rechecked_s,
         "inserted_scans": first.inserted,
         "scans_per_s": len(frames) / first.wall_s,
         "stage_shares": shares,
@@ -187,13 +197,16 @@ def run_starts(path: Path, settings: FrontendSettings, limit: int | None, starts
     figure swings with where it starts is decided by a few scans (a fast turn, a corridor),
     not by the method's precision; the spread says how much one run's ATE can be trusted."""
     frames = load_keyframes(path)[:limit] if limit else load_keyframes(path)
-    ates = []
+    ates, rechecked = [], []
     for k in range(starts):
         truth = poses_array([kf.true_pose for kf in frames[k:]])
         run = run_pass(Pipeline(settings), frames[k:], f"{path.name} from {k}")
         ates.append(accuracy(run.poses, truth)["ate_rmse_m"])
-    return {"log": path.name, "method": settings.method, "ate_by_start_m": ates,
-            "median_ate_m": float(np.median(ates)), "max_ate_m": float(np.max(ates))}
+        rechecked.append(run.rechecked)
+    return {"log": path.name, "method": settings.method,
+            "recheck_ratio": settings.recheck_ratio, "ate_by_start_m": ates,
+            "median_ate_m": float(np.median(ates)), "max_ate_m": float(np.max(ates)),
+            "rechecked_scans_by_start": rechecked}
 
 
 def fast_sim_config(
@@ -206,10 +219,12 @@ def fast_sim_config(
                      max_yaw_rate_dps=180.0, mount=mount, **noise)
 
 
-def settings_for(method: str | None) -> FrontendSettings:
-    """The documented front-end defaults, with `method` when one is given."""
-    settings = default_settings()
-    return settings.model_copy(update={"method": method}) if method else settings
+def settings_for(method: str | None, recheck_ratio: float | None = None) -> FrontendSettings:
+    """The documented front-end defaults, with `method` and `recheck_ratio` when given."""
+    update: dict[str, object] = {"method": method} if method else {}
+    if recheck_ratio is not None:
+        update["recheck_ratio"] = recheck_ratio
+    return default_settings().model_copy(update=update)
 
 
 def run_sim(
@@ -227,7 +242,8 @@ def run_sim(
     truth = poses_array([SIM_MAP_FROM_WORLD * f.true_pose for f in frames])
     report: dict = {"scans": len(frames), "speed_mps": 1.5, "yaw_rate_dps": 180.0,
                     "world": world, "perfect_odometry": perfect_odometry,
-                    "method": settings.method, "mount": mount.to_array().tolist()}
+                    "method": settings.method, "recheck_ratio": settings.recheck_ratio,
+                    "mount": mount.to_array().tolist()}
     runs = {"deskewed": (True, mount), "raw": (False, mount)}
     if mount != IDENTITY:
         runs["mount_ignored"] = (True, IDENTITY)
@@ -272,6 +288,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--starts", type=int, default=0,
                         help="instead: the log from each of its first N keyframes, every ATE")
     parser.add_argument("--method", default=None, help="scan-to-map method (default: settings)")
+    parser.add_argument("--recheck-ratio", type=float, default=None,
+                        help="the front end's recheck_ratio (default: settings; 0 = off)")
     parser.add_argument("--duration", type=float, default=30.0, help="sim seconds")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--mount", type=parse_mount, default=IDENTITY,
@@ -281,7 +299,7 @@ def main(argv: list[str] | None = None) -> None:
                         help="sim: exact wheel odometry (the error left is the matching's)")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
-    settings = settings_for(args.method)
+    settings = settings_for(args.method, args.recheck_ratio)
     if args.sim:
         report = run_sim(settings, args.duration, args.seed, args.mount, args.world,
                          args.perfect_odometry)

@@ -8,11 +8,22 @@ import math
 import pytest
 from scanflow.frontend import default_settings
 from scanflow.geometry import Pose2D
+from scanflow.io.carmen import load_keyframes
+from scanflow.pipeline import Pipeline
 
 from bench.data import corrected_log
-from bench.frontend import parse_mount, run_sim, run_starts
+from bench.frontend import (
+    accuracy,
+    parse_mount,
+    poses_array,
+    run_pass,
+    run_sim,
+    run_starts,
+    settings_for,
+)
 
 INTEL = corrected_log("intel")
+ACES = corrected_log("aces")
 
 
 def test_a_mount_adds_the_run_that_ignores_it_and_that_run_is_worse() -> None:
@@ -53,3 +64,22 @@ def test_starts_runs_the_log_from_each_of_its_first_keyframes() -> None:
     assert len(ates) == 3 and len(set(ates)) == 3  # each start a different run
     assert all(0.0 < a < 0.5 for a in ates)
     assert report["median_ate_m"] == sorted(ates)[1] and report["max_ate_m"] == max(ates)
+    assert len(report["rechecked_scans_by_start"]) == 3
+
+
+@pytest.mark.skipif(not ACES.exists(), reason="the shared aces log is not beside the checkout")
+def test_the_recheck_keeps_aces_from_keyframe_13_on_its_map() -> None:
+    """aces from keyframe 13 (BENCHMARKS.md, "Front end", the recheck): at its 209th scan, a
+    fast turn, gn lands 17 deg off with a score of 0.43 and passes every check. Without the
+    recheck the front end breaks there."""
+    frames = load_keyframes(ACES)[13:273]
+    truth = poses_array([kf.true_pose for kf in frames])
+    runs = {
+        ratio: run_pass(Pipeline(settings_for(None, ratio)), frames, f"recheck {ratio}")
+        for ratio in (None, 0.0)
+    }
+    with_recheck, without = (accuracy(runs[r].poses, truth)["ate_rmse_m"] for r in (None, 0.0))
+    assert with_recheck < 0.3 < 1.0 < without
+    assert runs[None].statuses["recovered"] > runs[0.0].statuses.get("recovered", 0)
+    assert runs[None].rechecked >= 1 and runs[None].rechecked_s > 0.0
+    assert runs[0.0].rechecked == 0
