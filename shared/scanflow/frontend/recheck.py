@@ -2,9 +2,9 @@
 recent ones.
 
 A local matcher started from a bad prediction can settle in a wrong basin that passes every
-check of `acceptance`. On aces, a fast turn on the spot with the odometry 15 deg off ends 17 deg
-wrong, yet within the correction limits. Only its score gives it away: 0.43 where the scans
-before it scored 0.95. Such a match is searched again over the fallback window (see
+check of `acceptance`. On aces, run from its keyframe 13, `gn` ends a fast turn 17 deg wrong,
+yet within the correction limits. Only its score gives it away: 0.43, where the recent matches
+scored 0.95 (median). Such a match is searched again over the fallback window (see
 `Frontend`), and the searched pose is taken only when it scores clearly higher. A low score
 alone is no proof: a scan entering new ground scores low too, and the search then finds the
 same pose. The score is compared with the robot's own recent matches, not with a fixed limit,
