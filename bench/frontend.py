@@ -137,7 +137,7 @@ def run_pass(pipeline: Pipeline, frames: list[Keyframe], desc: str) -> Pass:
         stage["match"] += est.match_time_s
         stage["insert"] += est.insert_time_s
         inserted += est.inserted
-        if "rechecked" in est.message:
+        if est.rechecked:
             rechecked += 1
             rechecked_s += est.match_time_s
     return Pass(poses_array(poses), time.perf_counter() - t0, stage, statuses, inserted,

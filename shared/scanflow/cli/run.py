@@ -88,7 +88,7 @@ def run_command(
     total = limit or (None if log is not None else math.ceil(duration * SimConfig().rate_hz))
     statuses: dict[str, int] = {}
     sources: dict[str, int] = {}
-    scans = inserted = redraws = 0
+    scans = inserted = rechecked = redraws = 0
     t0 = time.perf_counter()
     for out in tqdm(outputs, total=total, unit="scan", disable=as_json):
         est = out.estimate
@@ -96,6 +96,7 @@ def run_command(
         sources[out.deskew.source_used] = sources.get(out.deskew.source_used, 0) + 1
         scans += 1
         inserted += est.inserted
+        rechecked += est.rechecked
         redraws += out.backend is not None and out.backend.redrawn
         if limit is not None and scans >= limit:
             break
@@ -112,6 +113,7 @@ def run_command(
         "method": settings.method,
         "scans": scans,
         "statuses": statuses,
+        "rechecked": rechecked,
         "deskew_sources": sources,
         "inserted": inserted,
         "distance_m": round(distance_m, 3),

@@ -88,6 +88,7 @@ class FrontendOutput:
     prediction_source: str
     match_time_s: float = 0.0
     insert_time_s: float = 0.0
+    rechecked: bool = False  # a passing match searched again; `status` says if it was replaced
 
     @property
     def accepted(self) -> bool:
@@ -115,6 +116,7 @@ class _Step:
     seq: int
     mount: Pose2D
     match_time_s: float = 0.0
+    rechecked: bool = False
 
 
 def insert_scan(
@@ -218,7 +220,7 @@ class Frontend:
         if self._lost or self._search_due():
             result, status, note = self._localise_globally(points)
         else:
-            result, status, note = self._match(points, prediction.pose)
+            result, status, note = self._match(step)
         step.match_time_s = time.perf_counter() - t0
         return self._finish(step, status, result, note)
 
@@ -228,15 +230,14 @@ class Frontend:
             return Prediction(self.initial_pose, Pose2D(), prediction.source, prediction.message)
         return prediction
 
-    def _match(
-        self, points: NDArray[np.float64], guess: Pose2D
-    ) -> tuple[MatchResult, FrontendStatus, str]:
+    def _match(self, step: _Step) -> tuple[MatchResult, FrontendStatus, str]:
         """The local match, else the fallback search refined locally, with a note on why."""
         s = self.settings
+        points, guess = step.points, step.prediction.pose
         result = match(points, self.map, guess, method=s.method)
         reason = rejection_reason(result, guess, self._limits)
         if not reason:
-            return self._recheck(points, guess, result)
+            return self._recheck(step, result)
         if not s.fallback_method:
             return result, FrontendStatus.REJECTED, reason
         found, status, note = self.relocalise(points, guess)
@@ -246,7 +247,7 @@ class Frontend:
         return (found if found.ok else result), status, f"{reason}; {note}"
 
     def _recheck(
-        self, points: NDArray[np.float64], guess: Pose2D, result: MatchResult
+        self, step: _Step, result: MatchResult
     ) -> tuple[MatchResult, FrontendStatus, str]:
         """A passing match, TRACKED; unless it scores far below the recent ones (see
         `recheck`): then the fallback search's match when that scores recheck_margin higher
@@ -254,11 +255,12 @@ class Frontend:
         s = self.settings
         if not (s.fallback_method and self._scores.is_low(result.score, s.recheck_ratio)):
             return result, FrontendStatus.TRACKED, result.message
+        step.rechecked = True
         low = (
             f"score {result.score:.3f} below {s.recheck_ratio} x the recent median "
             f"{self._scores.median():.3f}"
         )
-        found, status, note = self.relocalise(points, guess)
+        found, status, note = self.relocalise(step.points, step.prediction.pose)
         if status is FrontendStatus.RECOVERED and found.score >= result.score + s.recheck_margin:
             return found, status, f"rechecked, {note} ({found.score:.3f}): {low}"
         kept = f"rechecked and kept: {low}; the search: {note} ({found.score:.3f})"
@@ -380,6 +382,7 @@ class Frontend:
             prediction_source=str(step.prediction.source),
             match_time_s=step.match_time_s,
             insert_time_s=insert_time_s,
+            rechecked=step.rechecked,
         )
 
     def _motion_noise(self, motion: Pose2D) -> NDArray[np.float64]:
