@@ -230,26 +230,24 @@ def test_odometry_jump_is_ignored(
 
 
 def test_fallback_recovers_from_a_bad_prediction(scan_at: Scanner, stays_put: str) -> None:
-    truth = straight_path(START, 0.1, 8)
-    odom = odometry_with_drift(truth, 1.0)
+    truth = straight_path(START, 0.1, 6)[-1]
     # One odometry step 0.6 m / 12 deg off, within the jump limits: a wrong prior.
-    odom[5] = odom[5] * Pose2D(0.4, -0.45, math.radians(12.0))
+    off = Pose2D(0.4, -0.45, math.radians(12.0))
     # gn's pyramid reaches that far by itself.
-    out = run(Frontend(FrontendSettings.model_construct(), initial_pose=START_IN_MAP),
-              scan_at, truth[:6], odom[:6])[-1]
+    out = track_with_a_bad_prediction(FrontendSettings.model_construct(), scan_at, 5, off)
     assert out.accepted, out.message
-    assert error(out.pose, truth[5])[0] < 0.03
+    assert error(out.pose, truth)[0] < 0.03
     # A matcher that stays at its guess does not: its match fails min_score, and the fallback
     # search finds the pose.
     with_fallback = FrontendSettings.model_construct(method=stays_put)
-    out = run(Frontend(with_fallback, initial_pose=START_IN_MAP), scan_at, truth[:6], odom[:6])[-1]
+    out = track_with_a_bad_prediction(with_fallback, scan_at, 5, off)
     assert out.status is FrontendStatus.RECOVERED, out.message
     assert out.message.startswith("recovered by csm: score")
-    assert error(out.pose, truth[5])[0] < 0.05
+    assert error(out.pose, truth)[0] < 0.05
     no_fallback = with_fallback.model_copy(update={"fallback_method": ""})
-    without = run(Frontend(no_fallback, initial_pose=START_IN_MAP), scan_at, truth[:6], odom[:6])
-    assert without[-1].status is FrontendStatus.REJECTED
-    assert "below min_score" in without[-1].message
+    without = track_with_a_bad_prediction(no_fallback, scan_at, 5, off)
+    assert without.status is FrontendStatus.REJECTED
+    assert "below min_score" in without.message
 
 
 def test_relocalise_finds_the_pose_from_a_far_guess_and_leaves_the_state_alone(
@@ -358,14 +356,18 @@ def stays_put(monkeypatch: pytest.MonkeyPatch) -> str:
     return "stays-put"
 
 
+# 0.32 m / 8 deg: a prediction the correction limits (1 m, 30 deg) still allow.
+BAD_PREDICTION = Pose2D(0.25, -0.2, math.radians(8.0))
+
+
 def track_with_a_bad_prediction(
-    settings: FrontendSettings, scan_at: Scanner, at: int = 7
+    settings: FrontendSettings, scan_at: Scanner, at: int = 7, off: Pose2D = BAD_PREDICTION
 ) -> FrontendOutput:
-    """Scans along a straight path with exact odometry, except at scan `at`: 0.32 m / 8 deg
-    off, a prediction the correction limits (1 m, 30 deg) still allow."""
+    """Scans along a straight path with exact odometry, except at scan `at`, the last: the
+    odometry is `off` there."""
     truth = straight_path(START, 0.1, at + 1)
     odom = odometry_with_drift(truth, 1.0)
-    odom[at] = odom[at] * Pose2D(0.25, -0.2, math.radians(8.0))
+    odom[at] = odom[at] * off
     return run(Frontend(settings, initial_pose=START_IN_MAP), scan_at, truth, odom)[-1]
 
 
