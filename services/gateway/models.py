@@ -13,6 +13,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, model_validator
 from scanflow import keys
 from scanflow.geometry import IDENTITY, Pose2D
+from scanflow.matching import DEFAULT_METHOD
 from scanflow.scan import MAX_BEAMS, LaserScan, Odometry
 from scanflow.wire import MapMetaMessage, MatchResponse, PoseEstimateMessage
 
@@ -161,7 +162,7 @@ class MatchIn(BaseModel):
     ], "oneOf": [{"required": ["target"]}, {"required": ["robot_id"]}]})
 
     method: Annotated[str, Field(max_length=32, description="see GET /api/v1/match/methods")] = (
-        "icp"
+        DEFAULT_METHOD
     )
     source: ScanIn
     target: ScanIn | None = None

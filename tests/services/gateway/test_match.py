@@ -63,6 +63,15 @@ def test_a_scans_mount_travels_with_it(client, peer, auth):
     assert request.target.mount == Pose2D()
 
 
+def test_without_a_method_the_advertised_default_is_used(client, peer, auth):
+    seen: list[MatchRequest] = []
+    peer.answer(keys.scan_match(), echo_matcher(seen))
+    default = client.get("/api/v1/match/methods").json()["default"]
+    r = client.post("/api/v1/match", json={"source": SCAN, "target": SCAN}, headers=auth)
+    assert r.status_code == 200, r.text
+    assert seen[0].method == default == r.json()["method"]
+
+
 def test_scan_to_map_goes_to_the_robots_matcher(client, peer, auth):
     seen: list[MatchRequest] = []
     peer.answer(keys.robot_match("r1"), echo_matcher(seen))
