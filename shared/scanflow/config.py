@@ -48,11 +48,22 @@ class ZenohSettings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="SCANFLOW_ZENOH_", extra="ignore")
 
-    mode: Literal["client", "peer", "router"] = "client"
-    connect: Annotated[list[str], NoDecode] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
-    listen: Annotated[list[str], NoDecode] = Field(default_factory=list)
-    prefix: str = "scanflow"
-    multicast_scouting: bool = False
+    mode: Literal["client", "peer", "router"] = Field(
+        "client", description="Zenoh session mode; services are clients of a router"
+    )
+    connect: Annotated[list[str], NoDecode] = Field(
+        default_factory=lambda: ["tcp/127.0.0.1:7447"], description="Zenoh endpoints to connect to"
+    )
+    listen: Annotated[list[str], NoDecode] = Field(
+        default_factory=list, description="Zenoh endpoints to listen on (peer or router mode)"
+    )
+    prefix: str = Field(
+        "scanflow", description="first segment of every key: deployments sharing a router "
+        "with different prefixes do not see each other"
+    )
+    multicast_scouting: bool = Field(
+        False, description="also find routers and peers by UDP multicast (off: `connect` only)"
+    )
     block_close_s: float = Field(
         60.0, gt=0.0, description="a link whose reader holds a reliable message back this long "
         "is closed, and what it held is lost (a service whose worker stalls; Zenoh's own "
@@ -67,7 +78,9 @@ class ProcessSettings(BaseSettings):
 
     model_config = SettingsConfigDict(extra="ignore")
 
-    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(
+        "INFO", description="the process's log level (logs go to stderr)"
+    )
     cpus: Annotated[list[int], NoDecode] = Field(
         default_factory=list, description="CPU ids the process runs on (Linux); empty = any"
     )
@@ -83,7 +96,9 @@ class ProcessSettings(BaseSettings):
 class ServiceSettings(ProcessSettings):
     """Fields every service process shares; each service subclass sets its env prefix."""
 
-    instance: str = "0"
+    instance: str = Field(
+        "0", description="tells two instances of one service apart in health and stats keys"
+    )
     queue_size: int = Field(
         256, ge=1, description="bounded inbox between Zenoh and the worker (> 3 x ingest window)"
     )
@@ -105,8 +120,12 @@ class RouterSettings(ServiceSettings):
 
     model_config = SettingsConfigDict(env_prefix="SCANFLOW_ROUTER_", extra="ignore")
 
-    listen: Annotated[list[str], NoDecode] = Field(default_factory=lambda: ["tcp/0.0.0.0:7447"])
-    connect: Annotated[list[str], NoDecode] = Field(default_factory=list)
+    listen: Annotated[list[str], NoDecode] = Field(
+        default_factory=lambda: ["tcp/0.0.0.0:7447"], description="endpoints the router listens on"
+    )
+    connect: Annotated[list[str], NoDecode] = Field(
+        default_factory=list, description="other routers to join (a multi-host deployment)"
+    )
 
     _split = field_validator("connect", "listen", mode="before")(_split_csv)
 
@@ -129,14 +148,14 @@ class IngestSettings(ServiceSettings):
 
     model_config = SettingsConfigDict(env_prefix="SCANFLOW_INGEST_", extra="ignore")
 
-    log: str | None = Field(None, description="CARMEN log (.log/.gz) or ROS bag; None = simulator")
-    robot_id: str = "robot"
+    log: str | None = Field(None, description="CARMEN log (.log/.gz) or ROS bag; unset = simulator")
+    robot_id: str = Field("robot", description="the robot id the source's scans are published as")
     rate: float = Field(1.0, ge=0.0, description="multiple of real time; 0 = as fast as possible")
     limit: int | None = Field(None, ge=1, description="publish at most this many scans")
     window: int = Field(32, ge=0, description="scans in flight before waiting for poses; 0 = off")
     replays: int = Field(1, ge=1, description="publish the source this many times in a row")
-    sim_duration_s: float = Field(60.0, gt=0.0)
-    sim_seed: int = 0
+    sim_duration_s: float = Field(60.0, gt=0.0, description="the simulator's run length")
+    sim_seed: int = Field(0, description="the simulator's seed (runs are reproducible)")
     sim_world: Literal["rooms", "corridor", "loop"] = Field(
         "rooms", description="the simulator's world (loop: a ring corridor to close a loop in)"
     )
@@ -204,8 +223,13 @@ class MapServerSettings(KernelServiceSettings):
 
     model_config = SettingsConfigDict(env_prefix="SCANFLOW_MAPSERVER_", extra="ignore")
 
-    data_dir: str = "scanflow-data"
-    snapshot_interval_s: float = Field(10.0, gt=0.0)
+    data_dir: str = Field(
+        "scanflow-data", description="snapshots of every robot's map, path and keyframes; a "
+        "restart resumes from them"
+    )
+    snapshot_interval_s: float = Field(
+        10.0, gt=0.0, description="snapshot a robot this often while its map changes"
+    )
     changed_rate_hz: float = Field(2.0, gt=0.0, description="at most this many change notices/s")
     resend_timeout_s: float = Field(
         2.0, gt=0.0, description="wait this long for a matcher to send missed inserts again"
@@ -221,10 +245,11 @@ class GatewaySettings(ProcessSettings):
 
     model_config = SettingsConfigDict(env_prefix="SCANFLOW_GATEWAY_", extra="ignore")
 
-    host: str = "127.0.0.1"
-    port: int = Field(8000, ge=1, le=65535)
+    host: str = Field("127.0.0.1", description="HTTP bind address (0.0.0.0 in containers)")
+    port: int = Field(8000, ge=1, le=65535, description="HTTP port")
     api_key: SecretStr | None = Field(
-        None, description="X-API-Key required by ingest and match (unset: those are open)"
+        None, description="X-API-Key required by ingest, match and setting a pose (unset: "
+        "those are open)"
     )
     guard_reads: bool = Field(False, description="require the API key on read endpoints too")
     max_body_bytes: int = Field(4 * 1024 * 1024, ge=1024, description="bigger bodies get 413")
@@ -262,7 +287,7 @@ class FrontendSettings(BaseSettings):
         0.1, ge=0.0, description="the searched pose replaces that match only when it scores "
         "this much higher",
     )
-    map_resolution_m: float = Field(0.05, gt=0.0)
+    map_resolution_m: float = Field(0.05, gt=0.0, description="the tracking map's cell size")
     no_return_clear_m: float = Field(
         5.0, ge=0.0, description="beams with no return clear free space this far (0 = not at all)"
     )
@@ -273,21 +298,25 @@ class FrontendSettings(BaseSettings):
     max_correction_deg: float = Field(30.0, gt=0.0, description="same, heading")
     min_score: float = Field(0.2, description="lowest accepted match score")
     max_position_std_m: float = Field(0.5, gt=0.0, description="largest accepted sqrt(var x/y)")
-    max_heading_std_deg: float = Field(10.0, gt=0.0)
+    max_heading_std_deg: float = Field(10.0, gt=0.0, description="largest accepted heading std")
     accept_degenerate: bool = Field(
         True, description="accept matches constrained in two directions only (corridors)"
     )
     max_odom_step_m: float = Field(3.0, gt=0.0, description="larger odometry steps are jumps")
-    max_odom_step_deg: float = Field(120.0, gt=0.0)
+    max_odom_step_deg: float = Field(120.0, gt=0.0, description="same, heading")
     cv_horizon_s: float = Field(
         1.0, gt=0.0, description="constant-velocity prediction reach without odometry"
     )
     odom_noise_m_per_m: float = Field(
         0.1, ge=0.0, description="prediction std growth per metre travelled (unmatched scans)"
     )
-    odom_noise_rad_per_rad: float = Field(0.1, ge=0.0)
-    prediction_floor_std_m: float = Field(0.05, ge=0.0)
-    prediction_floor_std_deg: float = Field(2.0, ge=0.0)
+    odom_noise_rad_per_rad: float = Field(0.1, ge=0.0, description="same, heading per turn")
+    prediction_floor_std_m: float = Field(
+        0.05, ge=0.0, description="smallest position std of a prediction"
+    )
+    prediction_floor_std_deg: float = Field(
+        2.0, ge=0.0, description="smallest heading std of a prediction"
+    )
     insert_min_distance_m: float = Field(0.2, ge=0.0, description="motion filter: distance")
     insert_min_angle_deg: float = Field(10.0, ge=0.0, description="motion filter: heading")
     insert_max_interval_s: float = Field(
@@ -343,7 +372,7 @@ class BackendSettings(BaseSettings):
     method: str = Field("gn", description="refines the search's best pose on the submap")
     min_score: float = Field(0.5, description="lowest refined match score kept as a closure")
     max_position_std_m: float = Field(0.1, gt=0.0, description="largest sqrt(var x/y) kept")
-    max_heading_std_deg: float = Field(2.0, gt=0.0)
+    max_heading_std_deg: float = Field(2.0, gt=0.0, description="largest heading std kept")
     ambiguity_ratio: float = Field(
         0.9, gt=0.0, le=1.0, description="a distinct rival scoring this x the best: no closure"
     )

@@ -30,6 +30,7 @@ def _register() -> None:
         inspect,
         run,
         serve,
+        settings,
         simulate,
         up,
         version,
