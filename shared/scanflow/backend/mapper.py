@@ -139,9 +139,9 @@ class Mapper:
         self.keyframe_seqs: list[int] = []  # per keyframe: its scan's seq
         self.culled_seqs = array("q")  # the seqs of inserts culled as keyframes (8 bytes each)
         self.resumed_keyframes = 0  # how many keyframes came from a saved run (no culled seqs do)
-        self._scan_stamps: list[float] = []  # per scan: its stamp
-        self._scan_node: list[int] = []  # per scan: the keyframe it hangs from
-        self._scan_offset: list[NDArray[np.float64]] = []  # its pose relative to that keyframe
+        self._scan_stamps = array("d")  # per scan: its stamp
+        self._scan_node = array("q")  # per scan: the keyframe it hangs from (-1: none yet)
+        self._scan_offset = array("d")  # per scan: x, y, theta relative to that keyframe
         self._waiting: list[_Waiting] = []  # recent closures, entered or waiting for another
         self._entered_at = -1  # the last keyframe whose search put a closure in the graph
         self._searched_at = -1  # the last keyframe searched for closures
@@ -194,10 +194,10 @@ class Mapper:
         """Every scan's pose (x, y, theta), in the optimised graph's frame."""
         if not self._scan_node:
             return np.zeros((0, 3))
-        offsets = np.asarray(self._scan_offset)
+        offsets = self._offset_rows()
         if self.graph.node_count == 0:
             return offsets
-        anchors = self.graph.poses[np.asarray(self._scan_node)]
+        anchors = self.graph.poses[np.array(self._scan_node, dtype=np.int64)]
         return compose_arrays(anchors, offsets)
 
     def drawn_pose(self, k: int) -> Pose2D:
@@ -214,7 +214,11 @@ class Mapper:
 
     def stamps_s(self) -> NDArray[np.float64]:
         """Every scan's stamp, in the order of `trajectory()`."""
-        return np.asarray(self._scan_stamps, dtype=np.float64)
+        return np.array(self._scan_stamps, dtype=np.float64)
+
+    def _offset_rows(self) -> NDArray[np.float64]:
+        """Every scan's pose relative to its keyframe, (N, 3) (a copy: the store can grow)."""
+        return np.array(self._scan_offset, dtype=np.float64).reshape(-1, 3)
 
     def draw_map(self) -> MatchingMap:
         """A new map of every keyframe at its optimised pose (on the prior map, if any)."""
@@ -238,8 +242,10 @@ class Mapper:
             self._travelled_m.append(0.0)
             # Scans before the first keyframe hang from it.
             first = pose.inverse().to_array()
-            self._scan_offset = [compose_arrays(first, o)[0] for o in self._scan_offset]
-            self._scan_node = [0] * len(self._scan_node)
+            if self._scan_node:
+                rebased = compose_arrays(first, self._offset_rows())
+                self._scan_offset = array("d", rebased.ravel().tolist())
+            self._scan_node = array("q", bytes(8 * len(self._scan_node)))
         else:
             # Linked to the keyframe it hangs from: the last one, or the one an insert was
             # culled to (the front end tracked on it since).
@@ -294,9 +300,9 @@ class Mapper:
             offsets = relative_arrays(np.asarray(saved.poses)[nodes], path)
         else:
             nodes, offsets = np.full(len(stamps), -1), path
-        self._scan_stamps = stamps.tolist()
-        self._scan_node = nodes.tolist()
-        self._scan_offset = list(offsets)
+        self._scan_stamps = array("d", stamps.tolist())
+        self._scan_node = array("q", nodes.tolist())
+        self._scan_offset = array("d", np.asarray(offsets, dtype=np.float64).ravel().tolist())
 
     def _keyframe_information(self, motion: Pose2D) -> NDArray[np.float64]:
         s = self.settings
@@ -399,4 +405,4 @@ class Mapper:
         self._scan_stamps.append(stamp_s)
         anchor = self.drawn_pose(node) if node >= 0 else IDENTITY
         self._scan_node.append(node)
-        self._scan_offset.append((anchor.inverse() * pose).to_array())
+        self._scan_offset.extend((anchor.inverse() * pose).to_array().tolist())
