@@ -43,7 +43,8 @@ def create_app(
             z = zenoh_settings or ZenohSettings()
             app.state.backend = await anyio.to_thread.run_sync(ZenohBackend.open, settings, z)
         if settings.api_key is None:
-            log.warning("SCANFLOW_GATEWAY_API_KEY is not set: ingest and match are open")
+            log.warning("SCANFLOW_GATEWAY_API_KEY is not set: ingest, match and pose setting "
+                        "are open")
         try:
             yield
         finally:

@@ -55,7 +55,8 @@ from scanflow.matching.global_search import localise_globally
 
 
 class FrontendStatus(StrEnum):
-    """What the front end did with a scan. The first four mean the pose is a match."""
+    """What the front end did with a scan. The first four (ACCEPTED) mean the pose is the
+    estimate; all but INITIALISED come from a match."""
 
     INITIALISED = "initialised"
     LOCALISED = "localised"  # found by the whole-map search
