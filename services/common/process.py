@@ -16,7 +16,7 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
-from scanflow.config import ProcessSettings
+from scanflow.config import ProcessSettings, Section, SettingsError, check_environment
 
 _log = logging.getLogger("scanflow.process")
 
@@ -26,6 +26,15 @@ def configure_logging(level: str) -> None:
     logging.basicConfig(
         level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s", force=True
     )
+
+
+def require_settings(service: str, *sections: type[Section]) -> None:
+    """Exit at start, naming every bad SCANFLOW_* variable the service reads, rather than
+    with a traceback for the first one (or, for a NaN limit, not at all)."""
+    try:
+        check_environment(*sections)
+    except SettingsError as error:
+        raise SystemExit(f"{service}: bad settings: {error}") from None
 
 
 def init_process(settings: ProcessSettings) -> None:

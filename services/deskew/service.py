@@ -27,7 +27,7 @@ from scanflow.scan import LaserScan, Odometry
 from scanflow.warmup import warm_up
 from scanflow.wire import DeskewedScanMessage, OdometryMessage, PoseEstimateMessage, ScanMessage
 
-from services.common.process import init_process
+from services.common.process import init_process, require_settings
 from services.common.shell import ServiceShell
 
 _MIN_POLL_S = 0.002
@@ -178,6 +178,7 @@ class DeskewService:
 
 def main() -> None:
     """Run the deskew service with settings from SCANFLOW_DESKEW_* and SCANFLOW_ZENOH_*."""
+    require_settings("deskew", DeskewSettings, ZenohSettings)
     settings = DeskewSettings()
     init_process(settings)
     DeskewService(settings, ZenohSettings()).run()

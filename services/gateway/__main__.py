@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import uvicorn
-from scanflow.config import GatewaySettings
+from scanflow.config import GatewaySettings, ZenohSettings
 
-from services.common.process import init_process
+from services.common.process import init_process, require_settings
 from services.gateway.app import create_app
 
 
 def main() -> None:
+    require_settings("gateway", GatewaySettings, ZenohSettings)
     settings = GatewaySettings()
     init_process(settings)
     uvicorn.run(

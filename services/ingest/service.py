@@ -12,7 +12,7 @@ from scanflow.config import IngestSettings, ZenohSettings
 from scanflow.scan import LaserScan
 from scanflow.wire import OdometryMessage, PoseEstimateMessage, ScanMessage
 
-from services.common.process import init_process
+from services.common.process import init_process, require_settings
 from services.common.shell import ServiceShell
 from services.ingest.flow import CreditWindow, Pacer
 from services.ingest.sources import source_events
@@ -105,6 +105,7 @@ class Ingest:
 
 def main() -> None:
     """Run ingest with settings from SCANFLOW_INGEST_* and SCANFLOW_ZENOH_*."""
+    require_settings("ingest", IngestSettings, ZenohSettings)
     settings = IngestSettings()
     init_process(settings)
     Ingest(settings, ZenohSettings()).run()

@@ -33,7 +33,7 @@ from scanflow.wire import (
     decode_any,
 )
 
-from services.common.process import init_process
+from services.common.process import init_process, require_settings
 from services.common.resend import FIRST, resend_selector
 from services.common.shell import ServiceShell
 from services.mapserver import replies
@@ -302,6 +302,9 @@ def main() -> None:
     """Run the map server (settings: SCANFLOW_MAPSERVER_*, SCANFLOW_ZENOH_*, and the map
     resolution from SCANFLOW_FRONTEND_*, so its maps have the matchers' lattice, and
     SCANFLOW_BACKEND_LOOP_CLOSURE as the matchers have it)."""
+    require_settings(
+        "mapserver", MapServerSettings, ZenohSettings, FrontendSettings, BackendSettings
+    )
     settings = MapServerSettings()
     init_process(settings)
     MapServer(settings, ZenohSettings(), FrontendSettings(), BackendSettings()).run()

@@ -58,7 +58,7 @@ from scanflow.wire import (
 )
 
 from services.common.keyframes import scan_nodes
-from services.common.process import init_process
+from services.common.process import init_process, require_settings
 from services.common.resend import resend_range
 from services.common.shell import ServiceShell
 from services.matcher.recent import (
@@ -379,6 +379,9 @@ class MatcherService:
 def main() -> None:
     """Run a matcher (settings: SCANFLOW_MATCHER_*, SCANFLOW_FRONTEND_*, SCANFLOW_BACKEND_*,
     SCANFLOW_ZENOH_*)."""
+    require_settings(
+        "matcher", MatcherSettings, FrontendSettings, ZenohSettings, BackendSettings
+    )
     settings = MatcherSettings()
     init_process(settings)
     try:  # a bad prior map: stop at start, naming it

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from scanflow.config import RouterSettings, ZenohSettings
 
-from services.common.process import init_process
+from services.common.process import init_process, require_settings
 from services.common.shell import ServiceShell
 
 
@@ -17,6 +17,7 @@ def router_zenoh_settings(settings: RouterSettings, prefix: str) -> ZenohSetting
 
 def main() -> None:
     """Run the router until SIGTERM/Ctrl-C."""
+    require_settings("router", RouterSettings, ZenohSettings)
     settings = RouterSettings()
     init_process(settings)
     zenoh_settings = router_zenoh_settings(settings, ZenohSettings().prefix)

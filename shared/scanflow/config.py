@@ -9,9 +9,9 @@ down explicitly; the core library takes plain arguments and never reads the envi
 from __future__ import annotations
 
 import math
-from typing import Annotated, Literal
+from typing import Annotated, Literal, TypeVar
 
-from pydantic import Field, SecretStr, field_validator
+from pydantic import Field, SecretStr, ValidationError, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from scanflow.geometry import Pose2D
@@ -26,6 +26,52 @@ def _split_csv(value: object) -> object:
             return json.loads(value)
         return [v.strip() for v in value.split(",") if v.strip()]
     return value
+
+
+class SettingsError(ValueError):
+    """Environment values a settings section cannot take; the message names each variable."""
+
+
+class Section(BaseSettings):
+    """A settings section: its variables share a prefix; NaN and infinities are refused (a NaN
+    limit would turn its check off without a word)."""
+
+    model_config = SettingsConfigDict(extra="ignore", allow_inf_nan=False)
+
+
+S = TypeVar("S", bound=Section)
+
+
+def load_settings(section: type[S]) -> S:
+    """`section` read from the environment; `SettingsError` names every bad variable."""
+    try:
+        return section()
+    except ValidationError as error:
+        prefix = str(section.model_config.get("env_prefix", ""))
+        raise SettingsError("; ".join(
+            f"{prefix}{'_'.join(str(p) for p in e['loc'][:1])}".upper()
+            + f"={_shown(e.get('input'))}: {e['msg']}"
+            for e in error.errors()
+        )) from None
+
+
+def check_environment(*sections: type[Section]) -> None:
+    """Read each section from the environment; `SettingsError` names every bad variable of
+    all of them (a deployment checked before anything starts)."""
+    errors = []
+    for section in sections:
+        try:
+            load_settings(section)
+        except SettingsError as error:
+            errors.append(str(error))
+    if errors:
+        raise SettingsError("; ".join(errors))
+
+
+def _shown(value: object) -> str:
+    """An offending value as the error shows it: short, and never a whole secret."""
+    text = repr(value) if isinstance(value, str) else str(value)
+    return text if len(text) <= 40 else text[:37] + "..."
 
 
 def _check_pose(value: list[float]) -> list[float]:
@@ -43,10 +89,10 @@ def _pose_of(value: list[float]) -> Pose2D | None:
     return Pose2D(x, y, math.radians(yaw_deg))
 
 
-class ZenohSettings(BaseSettings):
+class ZenohSettings(Section):
     """How a process joins the Zenoh network (SCANFLOW_ZENOH_*)."""
 
-    model_config = SettingsConfigDict(env_prefix="SCANFLOW_ZENOH_", extra="ignore")
+    model_config = SettingsConfigDict(env_prefix="SCANFLOW_ZENOH_")
 
     mode: Literal["client", "peer", "router"] = Field(
         "client", description="Zenoh session mode; services are clients of a router"
@@ -73,10 +119,8 @@ class ZenohSettings(BaseSettings):
     _split = field_validator("connect", "listen", mode="before")(_split_csv)
 
 
-class ProcessSettings(BaseSettings):
+class ProcessSettings(Section):
     """Fields of every scanflow process: log level and the CPUs it may run on."""
-
-    model_config = SettingsConfigDict(extra="ignore")
 
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(
         "INFO", description="the process's log level (logs go to stderr)"
@@ -118,7 +162,7 @@ class KernelServiceSettings(ServiceSettings):
 class RouterSettings(ServiceSettings):
     """The Zenoh router process (SCANFLOW_ROUTER_*): where it listens, which routers it joins."""
 
-    model_config = SettingsConfigDict(env_prefix="SCANFLOW_ROUTER_", extra="ignore")
+    model_config = SettingsConfigDict(env_prefix="SCANFLOW_ROUTER_")
 
     listen: Annotated[list[str], NoDecode] = Field(
         default_factory=lambda: ["tcp/0.0.0.0:7447"], description="endpoints the router listens on"
@@ -130,10 +174,10 @@ class RouterSettings(ServiceSettings):
     _split = field_validator("connect", "listen", mode="before")(_split_csv)
 
 
-class LaunchSettings(BaseSettings):
+class LaunchSettings(Section):
     """A local launch of the services: `scanflow up`, tests, benchmarks (SCANFLOW_LAUNCH_*)."""
 
-    model_config = SettingsConfigDict(env_prefix="SCANFLOW_LAUNCH_", extra="ignore")
+    model_config = SettingsConfigDict(env_prefix="SCANFLOW_LAUNCH_")
 
     matcher_cpus: int = Field(
         1,
@@ -146,7 +190,7 @@ class LaunchSettings(BaseSettings):
 class IngestSettings(ServiceSettings):
     """The ingest service (SCANFLOW_INGEST_*): source, pacing and backpressure window."""
 
-    model_config = SettingsConfigDict(env_prefix="SCANFLOW_INGEST_", extra="ignore")
+    model_config = SettingsConfigDict(env_prefix="SCANFLOW_INGEST_")
 
     log: str | None = Field(None, description="CARMEN log (.log/.gz) or ROS bag; unset = simulator")
     robot_id: str = Field("robot", description="the robot id the source's scans are published as")
@@ -183,7 +227,7 @@ class IngestSettings(ServiceSettings):
 class DeskewSettings(KernelServiceSettings):
     """The deskew service (SCANFLOW_DESKEW_*): how long a scan may wait for odometry."""
 
-    model_config = SettingsConfigDict(env_prefix="SCANFLOW_DESKEW_", extra="ignore")
+    model_config = SettingsConfigDict(env_prefix="SCANFLOW_DESKEW_")
 
     odom_wait_s: float = Field(0.05, ge=0.0, description="latency budget for covering odometry")
 
@@ -191,7 +235,7 @@ class DeskewSettings(KernelServiceSettings):
 class MatcherSettings(KernelServiceSettings):
     """The matcher service (SCANFLOW_MATCHER_*): which robots this instance tracks."""
 
-    model_config = SettingsConfigDict(env_prefix="SCANFLOW_MATCHER_", extra="ignore")
+    model_config = SettingsConfigDict(env_prefix="SCANFLOW_MATCHER_")
 
     shard: str = Field("0/1", description="'i/n': track robots whose id hashes to i of n")
     robots: Annotated[list[str], NoDecode] = Field(
@@ -221,7 +265,7 @@ class MatcherSettings(KernelServiceSettings):
 class MapServerSettings(KernelServiceSettings):
     """The map server (SCANFLOW_MAPSERVER_*): snapshot directory and notice rate."""
 
-    model_config = SettingsConfigDict(env_prefix="SCANFLOW_MAPSERVER_", extra="ignore")
+    model_config = SettingsConfigDict(env_prefix="SCANFLOW_MAPSERVER_")
 
     data_dir: str = Field(
         "scanflow-data", description="snapshots of every robot's map, path and keyframes; a "
@@ -243,7 +287,7 @@ class MapServerSettings(KernelServiceSettings):
 class GatewaySettings(ProcessSettings):
     """The HTTP gateway (SCANFLOW_GATEWAY_*): bind address, API key, request limits, cache size."""
 
-    model_config = SettingsConfigDict(env_prefix="SCANFLOW_GATEWAY_", extra="ignore")
+    model_config = SettingsConfigDict(env_prefix="SCANFLOW_GATEWAY_")
 
     host: str = Field("127.0.0.1", description="HTTP bind address (0.0.0.0 in containers)")
     port: int = Field(8000, ge=1, le=65535, description="HTTP port")
@@ -259,14 +303,14 @@ class GatewaySettings(ProcessSettings):
     stream_queue_len: int = Field(256, ge=1, description="events buffered per stream client")
 
 
-class FrontendSettings(BaseSettings):
+class FrontendSettings(Section):
     """The scan-to-map tracking front end (SCANFLOW_FRONTEND_*): method, checks, motion filter.
 
     Read from the environment only when a service or the CLI constructs it; library code gets
     an instance passed in (see `scanflow.frontend`).
     """
 
-    model_config = SettingsConfigDict(env_prefix="SCANFLOW_FRONTEND_", extra="ignore")
+    model_config = SettingsConfigDict(env_prefix="SCANFLOW_FRONTEND_")
 
     method: str = Field(
         "gn",
@@ -349,10 +393,10 @@ class FrontendSettings(BaseSettings):
         return _pose_of(self.initial_pose)
 
 
-class BackendSettings(BaseSettings):
+class BackendSettings(Section):
     """Loop closure and pose-graph optimisation (SCANFLOW_BACKEND_*): `scanflow.backend`."""
 
-    model_config = SettingsConfigDict(env_prefix="SCANFLOW_BACKEND_", extra="ignore")
+    model_config = SettingsConfigDict(env_prefix="SCANFLOW_BACKEND_")
 
     loop_closure: bool = Field(
         False, description="close loops and optimise the keyframes' pose graph"
@@ -418,3 +462,18 @@ class BackendSettings(BaseSettings):
         100.0, gt=0.0, description="std of the link across an operator's pose (unmeasured)"
     )
     relocated_std_deg: float = Field(90.0, gt=0.0, description="and its heading std")
+
+
+# Every section, in the order a deployment meets them (docs/settings.md follows it).
+SECTIONS: tuple[type[Section], ...] = (
+    ZenohSettings,
+    RouterSettings,
+    IngestSettings,
+    DeskewSettings,
+    MatcherSettings,
+    MapServerSettings,
+    GatewaySettings,
+    FrontendSettings,
+    BackendSettings,
+    LaunchSettings,
+)

@@ -48,6 +48,56 @@ def test_every_section_has_its_own_scanflow_prefix() -> None:
     assert len(set(prefixes)) == len(prefixes), prefixes
 
 
+def test_sections_lists_every_section() -> None:
+    assert set(config.SECTIONS) == set(_sections())
+    assert len(config.SECTIONS) == len(set(config.SECTIONS))
+
+
+def _float_fields() -> list[tuple[type[BaseSettings], str]]:
+    return [(c, name) for c in _sections() for name, f in c.model_fields.items()
+            if f.annotation is float]
+
+
+@pytest.mark.parametrize(("section", "field"), _float_fields(),
+                         ids=lambda v: v if isinstance(v, str) else v.__name__)
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf"])
+def test_no_number_setting_takes_nan_or_infinity(clean_env, section, field, value) -> None:
+    """A NaN limit turns its check off without a word (score < nan is never true)."""
+    name = f"{section.model_config['env_prefix']}{field}".upper()
+    clean_env.setenv(name, value)
+    with pytest.raises(config.SettingsError, match=f"{name}='{value}': Input should be a finite"):
+        config.load_settings(section)
+
+
+def test_load_settings_names_each_bad_variable_and_its_value(clean_env) -> None:
+    clean_env.setenv("SCANFLOW_GATEWAY_PORT", "eighty")
+    clean_env.setenv("SCANFLOW_GATEWAY_MAX_BEAMS", "0")
+    clean_env.setenv("SCANFLOW_GATEWAY_HOST", "x" * 500)  # any text is a host: not an error
+    with pytest.raises(config.SettingsError) as error:
+        config.load_settings(config.GatewaySettings)
+    message = str(error.value)
+    assert "SCANFLOW_GATEWAY_PORT='eighty': Input should be a valid integer" in message
+    assert "SCANFLOW_GATEWAY_MAX_BEAMS='0': Input should be greater than or equal to 1" in message
+    assert isinstance(error.value, ValueError)
+
+
+def test_a_long_bad_value_is_shortened_in_the_message(clean_env) -> None:
+    clean_env.setenv("SCANFLOW_GATEWAY_PORT", "9" * 300)
+    with pytest.raises(config.SettingsError) as error:
+        config.load_settings(config.GatewaySettings)
+    assert len(str(error.value)) < 200 and "..." in str(error.value)
+
+
+def test_check_environment_names_the_bad_variables_of_every_section(clean_env) -> None:
+    clean_env.setenv("SCANFLOW_ZENOH_MODE", "satellite")
+    clean_env.setenv("SCANFLOW_BACKEND_OPTIMISE_EVERY", "0")
+    config.check_environment(config.GatewaySettings)  # neither is its business
+    with pytest.raises(config.SettingsError) as error:
+        config.check_environment(*config.SECTIONS)
+    assert "SCANFLOW_ZENOH_MODE='satellite'" in str(error.value)
+    assert "SCANFLOW_BACKEND_OPTIMISE_EVERY='0'" in str(error.value)
+
+
 @pytest.mark.parametrize("section", _sections(), ids=lambda c: c.__name__)
 def test_every_section_builds_from_defaults(section: type[BaseSettings]) -> None:
     section()

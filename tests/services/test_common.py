@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import threading
@@ -172,3 +173,21 @@ def test_a_resend_selector_reads_back_as_its_range(after: int, span: int) -> Non
 def test_a_bad_resend_query_is_refused_naming_the_parameter(parameters: str, named: str) -> None:
     with pytest.raises(ValueError, match=named):
         resend_range(zenoh.Parameters(parameters))
+
+
+@pytest.mark.parametrize(("service", "name", "value"), [
+    ("router", "SCANFLOW_ROUTER_QUEUE_SIZE", "0"),
+    ("ingest", "SCANFLOW_INGEST_RATE", "fast"),
+    ("deskew", "SCANFLOW_DESKEW_ODOM_WAIT_S", "-1"),
+    ("matcher", "SCANFLOW_FRONTEND_MIN_SCORE", "nan"),
+    ("mapserver", "SCANFLOW_BACKEND_LOOP_CLOSURE", "perhaps"),
+    ("gateway", "SCANFLOW_ZENOH_MODE", "satellite"),
+])
+def test_a_service_with_a_bad_setting_stops_at_start_naming_it(service, name, value):
+    """One line naming the variable, before any session is opened (no router runs here)."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("SCANFLOW_")}
+    done = subprocess.run([sys.executable, "-m", f"services.{service}"], env={**env, name: value},
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 1
+    assert f"{service}: bad settings: {name}={value!r}" in done.stderr
+    assert "Traceback" not in done.stderr

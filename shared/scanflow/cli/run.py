@@ -15,7 +15,7 @@ import typer
 from tqdm import tqdm
 
 from scanflow.cli import app
-from scanflow.config import BackendSettings, FrontendSettings
+from scanflow.config import BackendSettings, FrontendSettings, SettingsError, check_environment
 from scanflow.frontend import save_tum
 from scanflow.frontend.prior import FrontendStart, PriorMapError
 from scanflow.io.carmen import load_keyframes
@@ -71,6 +71,10 @@ def run_command(
     SCANFLOW_BACKEND_*."""
     if log is not None and not log.exists():
         raise typer.BadParameter(f"no log at {log}", param_hint="--log")
+    try:
+        check_environment(FrontendSettings, BackendSettings)
+    except SettingsError as exc:
+        raise typer.BadParameter(str(exc), param_hint="SCANFLOW_* environment") from exc
     settings = FrontendSettings()
     if prior_map is not None:
         settings = settings.model_copy(update={"prior_map": str(prior_map)})

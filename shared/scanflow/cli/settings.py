@@ -15,27 +15,14 @@ from typing import Annotated, Any
 
 import annotated_types
 import typer
-from pydantic import SecretStr, ValidationError
+from pydantic import SecretStr
 from pydantic.fields import FieldInfo
 from pydantic_settings import BaseSettings
 
 from scanflow import config
 from scanflow.cli import app
+from scanflow.config import SECTIONS, SettingsError, check_environment, load_settings
 
-# Every settings section, in the order a deployment meets them; a test checks that every
-# section of scanflow.config is here.
-SECTIONS: tuple[type[BaseSettings], ...] = (
-    config.ZenohSettings,
-    config.RouterSettings,
-    config.IngestSettings,
-    config.DeskewSettings,
-    config.MatcherSettings,
-    config.MapServerSettings,
-    config.GatewaySettings,
-    config.FrontendSettings,
-    config.BackendSettings,
-    config.LaunchSettings,
-)
 # Bases whose fields every service section repeats under its own prefix: listed once.
 SHARED_BASES: tuple[type[BaseSettings], ...] = (
     config.ProcessSettings,
@@ -175,17 +162,9 @@ def _row(name: str, s: Setting, note: str = "") -> str:
 
 def current_values() -> list[dict[str, str]]:
     """Every variable with its default and the value the environment gives it; raises
-    `ValueError` naming each variable whose value is not valid."""
-    errors: list[str] = []
-    loaded: dict[type[BaseSettings], BaseSettings] = {}
-    for section in SECTIONS:
-        try:
-            loaded[section] = section()
-        except ValidationError as error:
-            prefix = str(section.model_config.get("env_prefix", ""))
-            errors += [f"{prefix}{str(e['loc'][0]).upper()}: {e['msg']}" for e in error.errors()]
-    if errors:
-        raise ValueError("; ".join(errors))
+    `SettingsError` naming each variable whose value is not valid."""
+    check_environment(*SECTIONS)
+    loaded = {section: load_settings(section) for section in SECTIONS}
     return [
         {"name": s.name, "kind": type_text(s.info), "default": default_text(s.info),
          "value": value_text(getattr(loaded[s.section], s.field)),
@@ -206,6 +185,6 @@ def settings(
         return
     try:
         typer.echo(json.dumps(current_values(), indent=1))
-    except ValueError as error:
+    except SettingsError as error:
         typer.echo(f"bad settings: {error}", err=True)
         raise typer.Exit(2) from error

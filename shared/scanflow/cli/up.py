@@ -12,7 +12,7 @@ from typing import Annotated
 import typer
 
 from scanflow.cli import app
-from scanflow.config import BackendSettings
+from scanflow.config import SECTIONS, BackendSettings, SettingsError, check_environment
 
 
 @app.command()
@@ -35,6 +35,10 @@ def up(
     Exits 0 when every service stopped cleanly, else 1 naming the ones that did not."""
     from services.common.launch import ORDER, PIPELINE, Launcher
 
+    try:  # every service reads the same environment: one bad variable stops them all
+        check_environment(*SECTIONS)
+    except SettingsError as exc:
+        raise typer.BadParameter(str(exc), param_hint="SCANFLOW_* environment") from exc
     backend = BackendSettings()
     if loop_closure:
         backend = backend.model_copy(update={"loop_closure": True})
