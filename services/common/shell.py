@@ -212,6 +212,9 @@ class ServiceShell:
                 return
             try:
                 message = decode(sample.payload.to_bytes())
+                robot_id = getattr(message, "robot_id", None)
+                if robot_id is not None:  # every per-robot message: on its own robot's key
+                    keys.check_sender(str(sample.key_expr), robot_id, self.prefix)
             except Exception as exc:  # any decode failure: count, log, keep going
                 self._count_malformed(kind, str(sample.key_expr), exc)
                 return

@@ -10,7 +10,9 @@ from __future__ import annotations
 import logging
 import threading
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TypeVar
 
 import anyio.to_thread
 import zenoh
@@ -23,6 +25,8 @@ from services.gateway.events import EventHub
 from services.gateway.metrics import Metrics
 from services.gateway.models import PoseOut
 from services.gateway.tracks import TrackStore
+
+M = TypeVar("M", PoseEstimateMessage, MapChangedMessage)
 
 log = logging.getLogger("scanflow.gateway")
 EXPECTED_SERVICES = ("router", "deskew", "matcher", "mapserver")
@@ -118,12 +122,20 @@ class ZenohBackend:
         except keys.KeyExprError:
             return None
 
-    def _on_pose(self, sample: zenoh.Sample) -> None:
+    def _decoded(self, sample: zenoh.Sample, decode: Callable[[bytes], M], kind: str) -> M | None:
+        """The sample's message, None when malformed or on another robot's key (counted)."""
         try:
-            estimate = PoseEstimateMessage.decode(sample.payload.to_bytes())
-        except DecodeError as exc:
-            self.metrics.count("scanflow_gateway_malformed_total", kind="pose")
-            log.warning("malformed pose on %s: %s", sample.key_expr, exc)
+            message = decode(sample.payload.to_bytes())
+            keys.check_sender(str(sample.key_expr), message.robot_id, self.prefix)
+        except (DecodeError, keys.KeyExprError) as exc:
+            self.metrics.count("scanflow_gateway_malformed_total", kind=kind)
+            log.warning("malformed %s on %s: %s", kind, sample.key_expr, exc)
+            return None
+        return message
+
+    def _on_pose(self, sample: zenoh.Sample) -> None:
+        estimate = self._decoded(sample, PoseEstimateMessage.decode, "pose")
+        if estimate is None:
             return
         self.tracks.add_pose(estimate)
         self.metrics.count("scanflow_gateway_poses_received_total")
@@ -135,11 +147,8 @@ class ZenohBackend:
             self.tracks.saw_scan(robot)
 
     def _on_map_changed(self, sample: zenoh.Sample) -> None:
-        try:
-            notice = MapChangedMessage.decode(sample.payload.to_bytes())
-        except DecodeError as exc:
-            self.metrics.count("scanflow_gateway_malformed_total", kind="map_changed")
-            log.warning("malformed map notice on %s: %s", sample.key_expr, exc)
+        notice = self._decoded(sample, MapChangedMessage.decode, "map_changed")
+        if notice is None:
             return
         self.tracks.saw_map(notice.robot_id, notice.revision)
         box = [notice.min_x_m, notice.min_y_m, notice.max_x_m, notice.max_y_m]
@@ -204,11 +213,16 @@ class ZenohBackend:
 
     # -- writes ---------------------------------------------------------------------------
     def next_seq(self, robot_id: str, stream: str, given: int | None) -> int:
-        """The seq to publish: the client's, or one past the last one on this stream."""
+        """The seq to publish: the client's, or one past the last one on this stream, and for
+        scans past the robot's last pose too: a scan numbered behind a robot that another
+        source feeds would read as a restart of its stream, and reset its map."""
         with self._lock:
-            seq = self._seqs[(robot_id, stream)] + 1 if given is None else given
-            self._seqs[(robot_id, stream)] = seq
-            return seq
+            if given is None:
+                latest = self.tracks.latest(robot_id) if stream == "scan" else None
+                given = max(self._seqs[(robot_id, stream)], -1 if latest is None else latest.seq)
+                given += 1
+            self._seqs[(robot_id, stream)] = given
+            return given
 
     def publish(self, key: str, payload: bytes) -> None:
         """Reliable put through a cached publisher that blocks rather than drops."""

@@ -51,10 +51,12 @@ class KeyExprError(ValueError):
 
 
 def check_id(value: str, what: str = "robot id") -> str:
-    """Ids become key chunks: letters, digits, '_', '-', '.', at most 64 characters."""
-    if not isinstance(value, str) or not _ID_RE.match(value):
+    """Ids become key chunks and file names: letters, digits, '_', '-', '.', at most 64
+    characters, not dots alone ('.', '..' would be paths)."""
+    if not isinstance(value, str) or not _ID_RE.match(value) or not value.strip("."):
         raise KeyExprError(
-            f"{what} {value!r} is invalid: use 1-64 letters, digits, '_', '-' or '.'"
+            f"{what} {value!r} is invalid: use 1-64 letters, digits, '_', '-' or '.' (not dots "
+            "alone)"
         )
     return value
 
@@ -127,6 +129,15 @@ def robot_of(key: str, prefix: str = DEFAULT_PREFIX) -> str:
     if not str(key).startswith(head) or len(parts) < 2:
         raise KeyExprError(f"key {key!r} is not a per-robot key under {prefix!r}")
     return check_robot_id(parts[0])
+
+
+def check_sender(key: str, robot_id: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """`robot_id`, a message's own, when it is the robot its per-robot `key` names: one robot's
+    message on another's key would change the other robot's state."""
+    keyed = robot_of(key, prefix)
+    if keyed != robot_id:
+        raise KeyExprError(f"a message of robot {robot_id!r} on robot {keyed!r}'s key {key!r}")
+    return robot_id
 
 
 def _chunk(value: str, what: str) -> str:

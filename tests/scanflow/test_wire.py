@@ -17,7 +17,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
-from scanflow import wire
+from scanflow import keys, wire
 from scanflow.geometry import Pose2D
 from scanflow.scan import LaserScan, Odometry, ScanError
 
@@ -27,7 +27,10 @@ FAST = settings(max_examples=60, deadline=None, suppress_health_check=[HealthChe
 
 finite = st.floats(-1e6, 1e6, allow_nan=False, allow_infinity=False)
 non_negative = st.floats(0.0, 1e3, allow_nan=False, allow_infinity=False)
-ids = st.text(min_size=1, max_size=12)
+# Robot ids as keys take them (scanflow.keys.check_robot_id).
+ids = st.from_regex(r"\A[A-Za-z0-9_.-]{1,12}\Z").filter(
+    lambda v: v.strip(".") and v not in keys.RESERVED_ROBOT_IDS
+)
 texts = st.text(max_size=20)
 counts = st.integers(0, 2**63 - 1)
 poses = st.builds(Pose2D, finite, finite, st.floats(-10, 10))
@@ -646,6 +649,15 @@ def test_error_messages_stay_short_for_huge_hostile_strings() -> None:
     with pytest.raises(wire.SchemaError, match="format must be one of") as info:
         wire.decode_any(_payload(image, format=huge))
     assert len(str(info.value)) < 400
+
+
+@pytest.mark.parametrize("robot_id", ["*", "**", "$*", "a/b", "..", ".", "stats", "x" * 65])
+@pytest.mark.parametrize("message", [SCAN, wire.MapImageMessage("r", 1, "png", b"")],
+                         ids=lambda m: m.TYPE)
+def test_a_robot_id_that_is_no_key_chunk_is_malformed(message, robot_id: str) -> None:
+    """Such an id would be a wildcard, a path (snapshot files) or a service's key."""
+    with pytest.raises(wire.DecodeError, match="robot id"):
+        wire.decode_any(_payload(message, robot_id=robot_id))
 
 
 def test_oversized_payload_is_rejected_before_unpacking() -> None:

@@ -39,6 +39,12 @@ def test_every_scan_is_deskewed_like_the_library_and_junk_is_counted(launcher, b
     for payload in junk:
         bus.put(keys.raw_scan("robot"), payload)
         bus.put(keys.odom("robot"), payload)
+    # Valid messages of another robot on this robot's keys: refused, not deskewed.
+    bus.put(keys.raw_scan("robot"), ScanMessage(LaserScan(
+        np.ones(8), 0.0, 0.1, robot_id="elsewhere", seq=0)).encode())
+    bus.put(keys.odom("robot"), OdometryMessage(Odometry(
+        0.0, Pose2D(), robot_id="elsewhere", seq=0)).encode())
+    junk.append(b"another robot's message")
     launcher.start(
         "ingest", SCANFLOW_INGEST_WINDOW="0", SCANFLOW_INGEST_DRAIN_TIMEOUT_S="0.5", **SIM
     )

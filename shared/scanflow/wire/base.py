@@ -13,6 +13,7 @@ from typing import Any, ClassVar, Self
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from scanflow import keys
 from scanflow.geometry import Pose2D
 from scanflow.wire.codec import Fields, clip, pack_message, short, unpack_message
 from scanflow.wire.errors import DecodeError, MessageError, SchemaError
@@ -119,6 +120,16 @@ def check_text(name: str, value: str, allow_empty: bool = False) -> str:
             f"{name} must be a {'' if allow_empty else 'non-empty '}string, got {value!r}"
         )
     return value
+
+
+def check_robot_id(value: str) -> str:
+    """A robot id as keys take it (`scanflow.keys.check_robot_id`): a decoded message cannot
+    name a robot whose keys would be wildcards ('*'), paths ('a/b', '..') or service keys."""
+    check_text("robot_id", value)
+    try:
+        return keys.check_robot_id(value)
+    except keys.KeyExprError as error:
+        raise MessageError(str(error)) from None
 
 
 def check_bytes(name: str, value: Any) -> bytes:

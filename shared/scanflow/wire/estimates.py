@@ -22,6 +22,7 @@ from scanflow.wire.base import (
     check_finite,
     check_path,
     check_pose,
+    check_robot_id,
     check_text,
 )
 from scanflow.wire.codec import Fields, Scalar, encode_array, short
@@ -90,7 +91,7 @@ class PoseEstimateMessage(Message):
     correction: Pose2D | None = None
 
     def __post_init__(self) -> None:
-        check_text("robot_id", self.robot_id)
+        check_robot_id(self.robot_id)
         object.__setattr__(self, "seq", check_count("seq", self.seq))
         object.__setattr__(self, "stamp_s", check_finite("stamp_s", self.stamp_s))
         check_pose("pose", self.pose)
@@ -137,7 +138,7 @@ class InitialPoseMessage(Message):
     pose: Pose2D
 
     def __post_init__(self) -> None:
-        check_text("robot_id", self.robot_id)
+        check_robot_id(self.robot_id)
         check_pose("pose", self.pose)
 
 
@@ -148,7 +149,7 @@ class MapRef:
     robot_id: str
 
     def __post_init__(self) -> None:
-        check_text("robot_id", self.robot_id)
+        check_robot_id(self.robot_id)
 
 
 Operand = LaserScan | NDArray[np.float64]
@@ -339,7 +340,7 @@ class TrajectoryMessage(Message):
     covariances: NDArray[np.float64] | None = None
 
     def __post_init__(self) -> None:
-        check_text("robot_id", self.robot_id)
+        check_robot_id(self.robot_id)
         check_path(self)
         if self.covariances is not None:
             shape = (len(self.stamps_s), 3, 3)

@@ -22,8 +22,8 @@ from scanflow.wire.base import (
     check_finite,
     check_path,
     check_pose,
+    check_robot_id,
     check_seqs,
-    check_text,
 )
 from scanflow.wire.errors import MessageError
 from scanflow.wire.schema import (
@@ -83,7 +83,7 @@ class MapInsertMessage(Message):
     keyframe: bool = True
 
     def __post_init__(self) -> None:
-        check_text("robot_id", self.robot_id)
+        check_robot_id(self.robot_id)
         object.__setattr__(self, "seq", check_count("seq", self.seq))
         object.__setattr__(self, "keyframe", bool(self.keyframe))
         if self.previous_seq is not None:
@@ -128,7 +128,7 @@ class MapRedrawMessage(Message):
     poses: NDArray[np.float64]
 
     def __post_init__(self) -> None:
-        check_text("robot_id", self.robot_id)
+        check_robot_id(self.robot_id)
         object.__setattr__(self, "seq", check_count("seq", self.seq))
         check_pose("correction", self.correction)
         seqs = check_seqs("keyframe_seqs", self.keyframe_seqs)
@@ -172,7 +172,7 @@ class KeyframesMessage(Message):
     misses: NDArray[np.float64]
 
     def __post_init__(self) -> None:
-        check_text("robot_id", self.robot_id)
+        check_robot_id(self.robot_id)
         seqs = check_seqs("seqs", self.seqs)
         n = len(seqs)
         checked = {
@@ -246,7 +246,7 @@ class ResumeMessage(Message):
     keyframes: KeyframesMessage | None = None
 
     def __post_init__(self) -> None:
-        check_text("robot_id", self.robot_id)
+        check_robot_id(self.robot_id)
         object.__setattr__(self, "revision", check_count("revision", self.revision))
         _check_map_path_kept(self)
 
@@ -285,7 +285,7 @@ class MapStateMessage(Message):
     keyframes: KeyframesMessage | None = None
 
     def __post_init__(self) -> None:
-        check_text("robot_id", self.robot_id)
+        check_robot_id(self.robot_id)
         object.__setattr__(self, "seq", check_count("seq", self.seq))
         insert_seq = check_count("insert_seq", self.insert_seq)
         if insert_seq > self.seq:
@@ -319,7 +319,7 @@ class MapMetaMessage(Message):
     stamp_s: float
 
     def __post_init__(self) -> None:
-        check_text("robot_id", self.robot_id)
+        check_robot_id(self.robot_id)
         object.__setattr__(self, "rows", check_count("rows", self.rows))
         object.__setattr__(self, "cols", check_count("cols", self.cols))
         object.__setattr__(self, "revision", check_count("revision", self.revision))
@@ -412,7 +412,7 @@ class MapImageMessage(Message):
     data: bytes
 
     def __post_init__(self) -> None:
-        check_text("robot_id", self.robot_id)
+        check_robot_id(self.robot_id)
         object.__setattr__(self, "revision", check_count("revision", self.revision))
         if self.format not in MAP_IMAGE_FORMATS:
             raise MessageError(f"format must be one of {MAP_IMAGE_FORMATS}, got {self.format!r}")
@@ -442,7 +442,7 @@ class MapChangedMessage(Message):
     max_y_m: float
 
     def __post_init__(self) -> None:
-        check_text("robot_id", self.robot_id)
+        check_robot_id(self.robot_id)
         object.__setattr__(self, "revision", check_count("revision", self.revision))
         for name in ("stamp_s", "min_x_m", "min_y_m", "max_x_m", "max_y_m"):
             object.__setattr__(self, name, check_finite(name, getattr(self, name)))

@@ -16,6 +16,7 @@ from scanflow.wire.base import (
     check_count,
     check_finite,
     check_pose,
+    check_robot_id,
     check_text,
 )
 from scanflow.wire.codec import Fields
@@ -80,6 +81,7 @@ class ScanMessage(Message):
             raise MessageError(f"scan must be a LaserScan, got {type(self.scan).__name__}")
         if not isinstance(self.scan.frame_id, str):
             raise MessageError(f"scan.frame_id must be a string, got {self.scan.frame_id!r}")
+        check_robot_id(self.scan.robot_id)
         check_count("scan.seq", self.scan.seq)
 
     @property
@@ -144,7 +146,7 @@ class DeskewedScanMessage(Message):
     mount: Pose2D = IDENTITY
 
     def __post_init__(self) -> None:
-        check_text("robot_id", self.robot_id)
+        check_robot_id(self.robot_id)
         if self.odom_pose is not None:
             check_pose("odom_pose", self.odom_pose)
         check_pose("mount", self.mount)
@@ -183,6 +185,7 @@ class OdometryMessage(Message):
     def __post_init__(self) -> None:
         if not isinstance(self.odom, Odometry):
             raise MessageError(f"odom must be an Odometry, got {type(self.odom).__name__}")
+        check_robot_id(self.odom.robot_id)
         check_count("odom.seq", self.odom.seq)
 
     @property

@@ -84,6 +84,25 @@ def test_ingest_scan_and_odometry_publish_with_seqs(client, peer, auth):
     assert (sample.seq, sample.pose.x, sample.velocity) == (7, 1.0, (0.5, 0.0, 0.0))
 
 
+def test_a_scan_without_seq_follows_the_robots_last_pose(client, peer, auth, publish_poses):
+    """Numbered from 0, a scan for a robot another source feeds would restart its stream (the
+    services would start its map afresh)."""
+    publish_poses("fed", [(1.0, 0.0, 0.0, 0.0), (2.0, 0.1, 0.0, 0.0)], seq0=40)
+    scan = {"ranges_m": [1.0, 2.0], "angle_min_rad": 0.0, "angle_increment_rad": 0.1}
+    acks = [client.post("/api/v1/robots/fed/scans", json=scan, headers=auth) for _ in range(2)]
+    assert [a.json()["seq"] for a in acks] == [42, 43]
+
+
+def test_a_pose_on_another_robots_key_is_refused(client, peer, backend, publish_poses):
+    publish_poses("victim", [(1.0, 0.0, 0.0, 0.0), (2.0, 0.1, 0.0, 0.0)], seq0=30)
+    peer.put(keys.pose("other"), estimate("victim", 0, 3.0, 5.0, 5.0, 0.0).encode())
+    eventually(lambda: "scanflow_gateway_malformed_total" in client.get("/metrics").text,
+               "the refused pose counted")
+    assert 'kind="pose"' in client.get("/metrics").text
+    assert backend.tracks.latest("victim").seq == 31  # its cache kept, not reset by seq 0
+    assert backend.tracks.latest("other") is None
+
+
 def test_ingest_msgpack_is_retagged_to_the_url_robot(client, peer, auth):
     scans = peer.subscribe(keys.raw_scan("r2"))
     message = ScanMessage(LaserScan(np.ones(5, np.float32), 0.0, 0.1, robot_id="other", seq=4))
