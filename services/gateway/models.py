@@ -15,7 +15,7 @@ from scanflow import keys
 from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.matching import DEFAULT_METHOD
 from scanflow.scan import MAX_BEAMS, LaserScan, Odometry
-from scanflow.wire import MapMetaMessage, MatchResponse, PoseEstimateMessage
+from scanflow.wire import MAX_COUNT, MapMetaMessage, MatchResponse, PoseEstimateMessage
 
 COORD_LIMIT_M = 1e6
 STAMP_LIMIT_S = 1e11
@@ -25,7 +25,7 @@ RobotId = Annotated[
 Coord = Annotated[float, Field(ge=-COORD_LIMIT_M, le=COORD_LIMIT_M)]
 Angle = Annotated[float, Field(ge=-100.0, le=100.0, description="radians")]
 Stamp = Annotated[float, Field(ge=0.0, le=STAMP_LIMIT_S, description="seconds (epoch or log)")]
-Seq = Annotated[int, Field(ge=0, le=2**62, description="message sequence number")]
+Seq = Annotated[int, Field(ge=0, le=MAX_COUNT, description="message sequence number")]
 Range = Annotated[float, Field(ge=-COORD_LIMIT_M, le=COORD_LIMIT_M)] | None
 Matrix3 = list[list[float | None]]
 

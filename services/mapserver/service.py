@@ -234,13 +234,23 @@ class MapServer:
                 self.shell.counters.add("notices")
 
     def snapshot(self) -> None:
-        """Persist every robot whose map or trajectory moved since its last snapshot."""
+        """Persist every robot whose map or trajectory moved since its last snapshot. One that
+        cannot be written (a full disk) is logged and tried again at the next interval; the
+        others are still written."""
+        self._last_snapshot_s = time.monotonic()
         for robot in self.robots.values():
             if robot.last_seq >= 0 and robot.saved != robot.state:
-                save_snapshot(self.data_dir, robot.snapshot(), self.settings.keyframes_per_file)
+                try:
+                    save_snapshot(
+                        self.data_dir, robot.snapshot(), self.settings.keyframes_per_file
+                    )
+                except (OSError, ValueError, OverflowError) as exc:
+                    self.shell.counters.add("snapshots_failed")
+                    self.shell.log.error("robot %s: snapshot not written: %s: %s",
+                                         robot.robot_id, type(exc).__name__, exc)
+                    continue
                 robot.saved = robot.state
                 self.shell.counters.add("snapshots")
-        self._last_snapshot_s = time.monotonic()
 
     # -- queries --------------------------------------------------------------------------
     def _serve(self, key_of: Callable[[str], str], build: Builder) -> None:

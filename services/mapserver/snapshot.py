@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
+from scanflow import keys
 from scanflow.backend import ScanNode
 from scanflow.config import MapServerSettings
 from scanflow.maps.export import grid_from_npz, npz_arrays, write_npz
@@ -120,6 +121,7 @@ def load_snapshots(data_dir: Path) -> tuple[list[Snapshot], list[str]]:
     for path in sorted(data_dir.glob(f"*{SUFFIX}")):
         robot_id = path.name.removesuffix(SUFFIX)
         try:
+            keys.check_robot_id(robot_id)  # a file not written by a map server: never served
             with np.load(path, allow_pickle=False) as data:
                 grid = grid_from_npz(data, path)
                 stamps_s, poses = data["stamps_s"], data["poses"]

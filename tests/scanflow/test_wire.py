@@ -32,7 +32,7 @@ ids = st.from_regex(r"\A[A-Za-z0-9_.-]{1,12}\Z").filter(
     lambda v: v.strip(".") and v not in keys.RESERVED_ROBOT_IDS
 )
 texts = st.text(max_size=20)
-counts = st.integers(0, 2**63 - 1)
+counts = st.integers(0, wire.MAX_COUNT)
 poses = st.builds(Pose2D, finite, finite, st.floats(-10, 10))
 small_n = st.integers(0, 40)
 
@@ -658,6 +658,14 @@ def test_a_robot_id_that_is_no_key_chunk_is_malformed(message, robot_id: str) ->
     """Such an id would be a wildcard, a path (snapshot files) or a service's key."""
     with pytest.raises(wire.DecodeError, match="robot id"):
         wire.decode_any(_payload(message, robot_id=robot_id))
+
+
+@pytest.mark.parametrize("seq", [2**62 + 1, 2**63, 2**64 - 1])
+def test_a_seq_past_max_count_is_malformed(seq: int) -> None:
+    """It would overflow int64 in snapshots and in the next seq numbered after it."""
+    with pytest.raises(wire.DecodeError, match=r"seq must be in \[0, 2\*\*62\]"):
+        wire.decode_any(_payload(SCAN, seq=seq))
+    wire.decode_any(_payload(SCAN, seq=wire.MAX_COUNT))
 
 
 def test_oversized_payload_is_rejected_before_unpacking() -> None:

@@ -338,6 +338,36 @@ def test_a_new_run_on_a_resumed_map_starts_the_kept_keyframes_afresh(tmp_path):
     assert replies.resume(resumed).keyframes.seqs.tolist() == [0]
 
 
+def test_a_snapshot_file_whose_name_is_no_robot_id_is_skipped(tmp_path):
+    """Written by something else (or before ids were checked): never served as a robot."""
+    robot = new_robot()
+    robot.insert(insert(0))
+    robot.apply(pose(0))
+    save_snapshot(tmp_path, robot.snapshot())
+    (tmp_path / "r.snapshot.npz").rename(tmp_path / "*.snapshot.npz")
+    snaps, skipped = load_snapshots(tmp_path)
+    assert snaps == [] and "robot *" in skipped[0] and "invalid" in skipped[0]
+
+
+def test_a_snapshot_that_cannot_be_written_is_named_and_the_others_still_are(tmp_path, caplog):
+    server = MapServer(MapServerSettings(data_dir=str(tmp_path)),
+                       ZenohSettings(mode="peer", connect=[]))
+    try:
+        for robot_id in ("a", "b"):
+            server.handle("insert", replace(insert(0), robot_id=robot_id))
+            server.handle("pose", replace(pose(0), robot_id=robot_id))
+        (tmp_path / "a.snapshot.npz").mkdir()  # the file cannot be replaced
+        server.snapshot()
+        assert server.shell.counters.get("snapshots_failed") == 1
+        assert server.shell.counters.get("snapshots") == 1
+        assert "robot a: snapshot not written" in caplog.text
+        assert (tmp_path / "b.snapshot.npz").is_file()
+        server.snapshot()  # tried again, still failing, still not fatal
+        assert server.shell.counters.get("snapshots_failed") == 2
+    finally:
+        server.shell.close(flush_s=0.0)
+
+
 def test_inserts_missed_that_no_matcher_sends_again_are_counted_and_named(tmp_path, caplog):
     """No matcher answers the resend query (an isolated session): the gap is logged with its
     seqs and counted, and the insert that showed it still goes in."""

@@ -23,7 +23,7 @@ readers refuse other versions with a VersionError, so services of two versions f
 instead of dropping or missing a field.
 """
 
-from scanflow.wire.base import Message, decode_any, message_types
+from scanflow.wire.base import MAX_COUNT, Message, decode_any, message_types
 from scanflow.wire.codec import (
     ALLOWED_DTYPES,
     MAX_BULK_BYTES,
@@ -64,6 +64,7 @@ __all__ = [
     "ALLOWED_DTYPES",
     "MAP_IMAGE_FORMATS",
     "MAX_BULK_BYTES",
+    "MAX_COUNT",
     "MAX_PAYLOAD_BYTES",
     "SCHEMA_VERSION",
     "DecodeError",

@@ -95,16 +95,19 @@ def check_finite(name: str, value: float) -> float:
     return value
 
 
+MAX_COUNT = 2**62  # seqs and counts: int64 with room to add one (snapshots, numpy arrays)
+
+
 def check_count(name: str, value: int) -> int:
-    """A non-negative integer (numpy integers welcome, bools and floats refused)."""
+    """An integer in [0, MAX_COUNT] (numpy integers welcome, bools and floats refused)."""
     if isinstance(value, bool):
         raise MessageError(f"{name} must be an integer, got {value!r}")
     try:
         value = operator.index(value)
     except TypeError:
         raise MessageError(f"{name} must be an integer, got {value!r}") from None
-    if value < 0:
-        raise MessageError(f"{name} must be >= 0, got {value}")
+    if not 0 <= value <= MAX_COUNT:
+        raise MessageError(f"{name} must be in [0, 2**62], got {value}")
     return value
 
 
