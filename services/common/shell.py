@@ -229,6 +229,9 @@ class ServiceShell:
         answered at once on its Zenoh thread, never queued behind a slow query (a whole-map
         search takes seconds)."""
 
+        if not keys.addresses_services(key, self.prefix):  # a per-robot queryable
+            handler = robots_only(handler, self.prefix)
+
         def on_query(query: zenoh.Query) -> None:
             try:
                 self._queries.put_nowait((handler, query))
@@ -387,6 +390,18 @@ class ServiceShell:
     def _on_signal(self, signum: int, _frame: object) -> None:
         self.log.info("signal %d: stopping", signum)
         self.stop_event.set()
+
+
+def robots_only(handler: QueryHandler, prefix: str) -> QueryHandler:
+    """`handler`, for queries on robots' keys: a query for the services' keys (a metrics
+    scrape on `stats/*/*`) that reaches a `<prefix>/*/...` queryable is left unanswered,
+    quietly (it used to fail there as robot 'stats', a warning per scrape)."""
+
+    def answer(query: zenoh.Query) -> None:
+        if not keys.addresses_services(str(query.key_expr), prefix):
+            handler(query)
+
+    return answer
 
 
 def rss_bytes() -> int:

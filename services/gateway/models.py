@@ -15,9 +15,15 @@ from scanflow import keys
 from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.matching import DEFAULT_METHOD
 from scanflow.scan import MAX_BEAMS, LaserScan, Odometry
-from scanflow.wire import MAX_COUNT, MapMetaMessage, MatchResponse, PoseEstimateMessage
+from scanflow.wire import (
+    MAX_COUNT,
+    MAX_POSITION_M,
+    MapMetaMessage,
+    MatchResponse,
+    PoseEstimateMessage,
+)
 
-COORD_LIMIT_M = 1e6
+COORD_LIMIT_M = MAX_POSITION_M
 STAMP_LIMIT_S = 1e11
 RobotId = Annotated[
     str, Field(pattern=r"^[A-Za-z0-9_\-.]{1,64}$", examples=["robot"], description="robot id")

@@ -3,6 +3,7 @@ and what a restarted matcher resumes from (with loop closure, the kept keyframes
 
 from __future__ import annotations
 
+import math
 import tempfile
 import time
 from pathlib import Path
@@ -11,6 +12,7 @@ import numpy as np
 from scanflow.maps.export import npz_arrays, npz_bytes, save_map_server, save_png
 from scanflow.maps.grid import CellBox
 from scanflow.wire import (
+    MAX_POSITION_M,
     MapImageMessage,
     MapMetaMessage,
     MapRegionMessage,
@@ -56,10 +58,15 @@ def region(robot: RobotMap, bounds_m: tuple[float, float, float, float] | None) 
     box = extent
     if bounds_m is not None:
         x0, y0, x1, y1 = bounds_m
+        if not all(math.isfinite(b) and abs(b) <= MAX_POSITION_M for b in bounds_m):
+            raise ValueError(f"region bounds must be finite, within +-{MAX_POSITION_M:g} m, got "
+                             f"{bounds_m}")
         if not (x0 <= x1 and y0 <= y1):
             raise ValueError(f"region bounds must have x0 <= x1 and y0 <= y1, got {bounds_m}")
         corners = grid.world_to_cells(np.array([[x0, y0], [x1, y1]]))
         box = CellBox.around(corners).intersection(extent)
+        if box.is_empty or not extent.contains_box(box):  # apart from the map: no cells
+            return MapRegionMessage(head, 0, 0, np.zeros((0, 0), dtype=np.int8))
     window = box.slices_in(extent)
     return MapRegionMessage(
         head, box.row0 - extent.row0, box.col0 - extent.col0, grid.to_int8()[window]

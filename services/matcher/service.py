@@ -362,9 +362,11 @@ class MatcherService:
                 live = self._map_of(request.target.robot_id)
                 snapshot = None if live is None else MatchingMap(copy.deepcopy(live.grid))
             response = answer(request, lambda _robot_id: snapshot)
-        else:
+        elif isinstance(request.target, MapRef):
             with self.lock:
                 response = answer(request, self._map_of)
+        else:  # two scans: nothing of the robots' state, no reason to hold their tracking up
+            response = answer(request, self._map_of)
         self.shell.counters.add("match_requests")
         query.reply(query.key_expr, response.encode())
 

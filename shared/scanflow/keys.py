@@ -131,6 +131,14 @@ def robot_of(key: str, prefix: str = DEFAULT_PREFIX) -> str:
     return check_robot_id(parts[0])
 
 
+def addresses_services(key: str, prefix: str = DEFAULT_PREFIX) -> bool:
+    """True when `key` lies below the services' keys (`<prefix>/stats/...`, `/health/...`):
+    a queryable on `<prefix>/*/...` receives such queries too (`stats/*/*` matches
+    `*/map/resend`), and they are not for it."""
+    head = check_prefix(prefix) + "/"
+    return str(key).startswith(head) and str(key)[len(head):].split("/")[0] in RESERVED_ROBOT_IDS
+
+
 def check_sender(key: str, robot_id: str, prefix: str = DEFAULT_PREFIX) -> str:
     """`robot_id`, a message's own, when it is the robot its per-robot `key` names: one robot's
     message on another's key would change the other robot's state."""

@@ -668,6 +668,16 @@ def test_a_seq_past_max_count_is_malformed(seq: int) -> None:
     wire.decode_any(_payload(SCAN, seq=wire.MAX_COUNT))
 
 
+def test_an_operators_pose_beyond_max_position_is_malformed() -> None:
+    """HTTP bounds it the same; 1e300 m reached the tracker and broke its first scan."""
+    far = wire.InitialPoseMessage("r", Pose2D(0.0, 0.0, 0.0))
+    with pytest.raises(wire.DecodeError, match="beyond"):
+        wire.decode_any(_payload(far, pose=[1e300, 0.0, 0.0]))
+    with pytest.raises(wire.MessageError, match="beyond"):
+        wire.InitialPoseMessage("r", Pose2D(0.0, -2e6, 0.0))
+    wire.InitialPoseMessage("r", Pose2D(wire.MAX_POSITION_M, 0.0, 0.0))
+
+
 def test_oversized_payload_is_rejected_before_unpacking() -> None:
     data = bytes(wire.MAX_PAYLOAD_BYTES + 1)
     with pytest.raises(wire.PayloadTooLarge, match="over MAX_PAYLOAD_BYTES"):

@@ -7,6 +7,7 @@ import subprocess
 import sys
 import threading
 import time
+from types import SimpleNamespace
 
 import pytest
 import zenoh
@@ -17,6 +18,7 @@ from services.common.counters import Counters, SeqTracker
 from services.common.inbox import Inbox
 from services.common.launch import Launcher
 from services.common.resend import resend_range, resend_selector
+from services.common.shell import robots_only
 from services.ingest.flow import CreditWindow, Pacer
 
 
@@ -191,3 +193,13 @@ def test_a_service_with_a_bad_setting_stops_at_start_naming_it(service, name, va
     assert done.returncode == 1
     assert f"{service}: bad settings: {name}={value!r}" in done.stderr
     assert "Traceback" not in done.stderr
+
+
+def test_a_query_for_the_services_keys_passes_robot_queryables_by():
+    """A metrics scrape (stats/*/*) also reaches `*/map/resend`: not a robot named 'stats'."""
+    seen = []
+    handler = robots_only(seen.append, "site/sf")
+    for key in ("site/sf/stats/matcher/0", "site/sf/health/deskew/0", "site/sf/r1/map/resend",
+                "site/sf/statsbot/initial_pose"):
+        handler(SimpleNamespace(key_expr=key))
+    assert [q.key_expr for q in seen] == ["site/sf/r1/map/resend", "site/sf/statsbot/initial_pose"]

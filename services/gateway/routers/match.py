@@ -22,6 +22,7 @@ ANSWERS = {
     403: {"description": "API key wrong"},
     413: {"description": "body over max_body_bytes"},
     415: {"description": "body neither JSON nor msgpack"},
+    404: {"description": "scan-to-map: the robot is unknown (no matcher, no pose of it)"},
     422: {"description": "invalid request; the message names the field"},
     503: {"description": "no matcher answers"},
     504: {"description": "the matcher did not answer in time"},
@@ -55,7 +56,14 @@ async def post_match(
     else:
         selector, kind = keys.scan_match(backend.prefix), "scan_to_scan"
     t0 = time.perf_counter()
-    replies = await backend.aquery(selector, wire.encode())
+    try:
+        replies = await backend.aquery(selector, wire.encode())
+    except BackendError as exc:
+        robot_id = wire.target.robot_id if isinstance(wire.target, MapRef) else None
+        if exc.status_code == 503 and robot_id is not None and not backend.tracks.known(robot_id):
+            raise BackendError(404, f"robot {robot_id!r} is unknown: no matcher tracks it, and "
+                               "it has published no pose") from exc
+        raise
     round_trip_s = time.perf_counter() - t0
     answer = MatchResponse.decode(replies[0].payload)
     if answer.error:

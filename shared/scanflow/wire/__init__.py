@@ -23,7 +23,7 @@ readers refuse other versions with a VersionError, so services of two versions f
 instead of dropping or missing a field.
 """
 
-from scanflow.wire.base import MAX_COUNT, Message, decode_any, message_types
+from scanflow.wire.base import MAX_COUNT, MAX_POSITION_M, Message, decode_any, message_types
 from scanflow.wire.codec import (
     ALLOWED_DTYPES,
     MAX_BULK_BYTES,
@@ -66,6 +66,7 @@ __all__ = [
     "MAX_BULK_BYTES",
     "MAX_COUNT",
     "MAX_PAYLOAD_BYTES",
+    "MAX_POSITION_M",
     "SCHEMA_VERSION",
     "DecodeError",
     "DeskewedScanMessage",

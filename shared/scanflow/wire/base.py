@@ -95,6 +95,7 @@ def check_finite(name: str, value: float) -> float:
     return value
 
 
+MAX_POSITION_M = 1e6  # an operator's pose: no map is larger (the gateway bounds the same)
 MAX_COUNT = 2**62  # seqs and counts: int64 with room to add one (snapshots, numpy arrays)
 
 

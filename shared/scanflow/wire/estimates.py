@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 from scanflow.geometry import Pose2D
 from scanflow.scan import LaserScan
 from scanflow.wire.base import (
+    MAX_POSITION_M,
     Message,
     check_array,
     check_count,
@@ -140,6 +141,10 @@ class InitialPoseMessage(Message):
     def __post_init__(self) -> None:
         check_robot_id(self.robot_id)
         check_pose("pose", self.pose)
+        if max(abs(self.pose.x), abs(self.pose.y)) > MAX_POSITION_M:
+            raise MessageError(
+                f"pose ({self.pose.x}, {self.pose.y}) m is beyond +-{MAX_POSITION_M:g} m"
+            )
 
 
 @dataclass(frozen=True)

@@ -81,6 +81,16 @@ def test_scan_to_map_goes_to_the_robots_matcher(client, peer, auth):
     assert isinstance(seen[0].target, MapRef) and seen[0].target.robot_id == "r1"
 
 
+def test_scan_to_map_for_an_unknown_robot_is_404_for_a_known_one_503(client, auth,
+                                                                        publish_poses):
+    body = {"method": "gn", "source": SCAN, "robot_id": "nobody"}
+    r = client.post("/api/v1/match", json=body, headers=auth)
+    assert r.status_code == 404 and "'nobody' is unknown" in r.text
+    publish_poses("seen", [(1.0, 0.0, 0.0, 0.0)])
+    r = client.post("/api/v1/match", json={**body, "robot_id": "seen"}, headers=auth)
+    assert r.status_code == 503  # known, but its matcher does not answer: not the client's fault
+
+
 def test_msgpack_body_and_answer(client, peer, auth):
     peer.answer(keys.scan_match(), echo_matcher([]))
     points = np.random.default_rng(0).normal(size=(20, 2))
