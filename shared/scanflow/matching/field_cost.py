@@ -24,6 +24,8 @@ from scanflow.matching.checks import DEGENERATE_RATIO, analyse_hessian, characte
 from scanflow.matching.covariance import least_squares_covariance
 
 MIN_POINTS = 10
+# Coarse-to-fine levels, cell size x2 per level: 16 levels make a 5 cm cell 1.6 km.
+MAX_LEVELS = 16
 GAP_BASE_M = 0.05
 GAP_PER_RANGE = 0.06  # about 3.5 degrees of arc: wider gaps are occlusion edges
 # The coarse levels may lead into a worse basin: a final fine-level cost this many times the

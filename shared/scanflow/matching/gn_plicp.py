@@ -25,7 +25,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanflow.geometry import IDENTITY, Pose2D
-from scanflow.matching.api import MatchResult, MatchStatus, register_method, target_points
+from scanflow.matching.api import (
+    MatchResult,
+    MatchStatus,
+    register_method,
+    require_at_most,
+    require_positive,
+    target_points,
+)
 from scanflow.matching.checks import characteristic_length_m
 from scanflow.matching.gn import match_gn
 from scanflow.matching.plicp import match_plicp
@@ -50,7 +57,7 @@ def fine_target(target: object, moved: NDArray[np.float64], gate_m: float) -> ND
     return near(moved, gate_m) if near is not None else target_points(target)
 
 
-@register_method("gn+plicp")
+@register_method("gn+plicp", forwards_to=[match_gn])
 def match_gn_plicp(
     source: NDArray[np.float64],
     target: object,
@@ -64,10 +71,8 @@ def match_gn_plicp(
 ) -> MatchResult:
     """gn from `guess`, then plicp from gn's pose on the target within `gate_m` (see the
     module docstring); `extra["fine_step"]` says whether the fine pose was kept and why not."""
-    if not (gate_m > 0.0 and 0.0 < min_gate_m <= gate_m):
-        raise ValueError(f"need 0 < min_gate_m <= gate_m, got {min_gate_m} and {gate_m}")
-    if not (agree_m > 0.0 and agree_rad > 0.0):
-        raise ValueError(f"agree_m and agree_rad must be > 0, got {agree_m} and {agree_rad}")
+    require_positive(gate_m=gate_m, min_gate_m=min_gate_m, agree_m=agree_m, agree_rad=agree_rad)
+    require_at_most(gate_m, min_gate_m=min_gate_m)
     coarse = match_gn(source, target, guess, **gn_options)
     if not coarse.ok:
         return replace(coarse, method="gn+plicp")

@@ -20,7 +20,15 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from scanflow.geometry import Pose2D
-from scanflow.matching.api import MatchResult, register_method, target_points
+from scanflow.matching.api import (
+    MatchResult,
+    register_method,
+    require_at_least,
+    require_in,
+    require_non_negative,
+    require_positive,
+    target_points,
+)
 from scanflow.matching.csm import match_csm
 from scanflow.matching.field_cost import densify_scan
 from scanflow.matching.plicp import match_plicp
@@ -60,7 +68,7 @@ def pick_hypothesis(overlaps: list[float], switch_margin: float) -> int:
     return best if overlaps[best] > overlaps[0] + switch_margin else 0
 
 
-@register_method("csm+plicp")
+@register_method("csm+plicp", forwards_to=[match_plicp])
 def match_csm_plicp(
     source: NDArray[np.float64],
     target: object,
@@ -80,6 +88,12 @@ def match_csm_plicp(
     """Search +-linear_m / +-angular_rad around `guess` with csm for up to `hypotheses` distinct
     peaks (suppress_m / suppress_rad apart, scoring >= hypothesis_min_ratio x the best), refine
     each with plicp, keep csm's best unless another refinement overlaps by > switch_margin more."""
+    require_non_negative(
+        linear_m=linear_m, angular_rad=angular_rad, suppress_m=suppress_m, suppress_rad=suppress_rad
+    )
+    require_positive(resolution_m=resolution_m, overlap_gate_m=overlap_gate_m)
+    require_at_least(1, hypotheses=hypotheses)
+    require_in(0.0, 1.0, hypothesis_min_ratio=hypothesis_min_ratio)
     coarse = match_csm(
         source, target, guess, linear_m=linear_m, angular_rad=angular_rad,
         resolution_m=resolution_m, candidates=hypotheses, suppress_m=suppress_m,

@@ -26,6 +26,10 @@ from scanflow.matching.api import (
     MatchResult,
     check_point_inputs,
     register_method,
+    require_at_least,
+    require_in,
+    require_non_negative,
+    require_positive,
     target_points,
 )
 from scanflow.matching.checks import line_hessian
@@ -147,8 +151,17 @@ def match_icp(
     """Method "icp": point-to-point ICP from `guess`. A target given as points is a scan,
     densified every `surface_step_m` along its surfaces (None: its samples only); a map's
     occupied cells are used as they are."""
-    if not 0.0 < keep_fraction <= 1.0:
-        raise ValueError(f"keep_fraction must be in (0, 1], got {keep_fraction}")
+    require_positive(
+        max_correspondence_m=max_correspondence_m, min_correspondence_m=min_correspondence_m,
+        keep_fraction=keep_fraction, grid_cell_m=grid_cell_m, surface_step_m=surface_step_m,
+        line_radius_m=line_radius_m,
+    )
+    require_in(0.0, 1.0, keep_fraction=keep_fraction, min_inlier_fraction=min_inlier_fraction)
+    require_at_least(1, max_iterations=max_iterations)
+    require_non_negative(
+        tolerance_m=tolerance_m, tolerance_rad=tolerance_rad,
+        relative_error_change=relative_error_change,
+    )
     tgt = target_points(target)
     bad = check_point_inputs("icp", source, tgt, guess, MIN_PAIRS)
     if bad is not None:

@@ -14,9 +14,18 @@ from numpy.typing import NDArray
 
 from scanflow.geometry import Pose2D
 from scanflow.maps.field import LikelihoodField
-from scanflow.matching.api import MatchResult, MatchStatus, register_method
+from scanflow.matching.api import (
+    MatchResult,
+    MatchStatus,
+    register_method,
+    require_at_least,
+    require_in,
+    require_non_negative,
+    require_positive,
+)
 from scanflow.matching.checks import characteristic_length_m
 from scanflow.matching.field_cost import (
+    MAX_LEVELS,
     LevelOutcome,
     converged_step,
     field_cost,
@@ -47,6 +56,10 @@ def match_lm(
     tau: float = 1e-3,
 ) -> MatchResult:
     """Levenberg-Marquardt, coarse to fine over `levels` fields (cell size doubles per level)."""
+    require_in(1, MAX_LEVELS, levels=levels)
+    require_positive(resolution_m=resolution_m, sigma_m=sigma_m, tau=tau)
+    require_at_least(1, max_iterations=max_iterations)
+    require_non_negative(translation_tol_m=translation_tol_m, rotation_tol_rad=rotation_tol_rad)
     length_m = characteristic_length_m(source)
 
     def solve_level(

@@ -19,10 +19,21 @@ from numpy.typing import NDArray
 
 from scanflow.geometry import Pose2D
 from scanflow.maps.ndt_cells import OverlappingCells
-from scanflow.matching.api import MatchResult, MatchStatus, failed, register_method, target_points
+from scanflow.matching.api import (
+    MatchResult,
+    MatchStatus,
+    failed,
+    register_method,
+    require_at_least,
+    require_in,
+    require_non_negative,
+    require_positive,
+    target_points,
+)
 from scanflow.matching.checks import analyse_hessian, characteristic_length_m, line_hessian
 from scanflow.matching.covariance import unknown_covariance
 from scanflow.matching.field_cost import (
+    MAX_LEVELS,
     MIN_POINTS,
     LevelOutcome,
     check_inputs,
@@ -241,6 +252,10 @@ def match_ndt(
     A map target serves its cells kept current incrementally, on its lattice anchor; a point
     set's are built per call, anchored at the origin.
     """
+    require_positive(cell_size_m=cell_size_m)
+    require_in(1, MAX_LEVELS, levels=levels)
+    require_at_least(1, max_iterations=max_iterations)
+    require_non_negative(translation_tol_m=translation_tol_m, rotation_tol_rad=rotation_tol_rad)
     cells_at, held = _target_cells(target, cell_size_m * 2 ** (levels - 1))
     bad = check_inputs("ndt", source, held, guess)
     if bad is not None:

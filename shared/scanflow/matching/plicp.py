@@ -23,6 +23,11 @@ from scanflow.matching.api import (
     check_point_inputs,
     failed,
     register_method,
+    require_at_least,
+    require_at_most,
+    require_in,
+    require_non_negative,
+    require_positive,
     target_points,
 )
 from scanflow.matching.checks import analyse_hessian, characteristic_length_m
@@ -152,6 +157,17 @@ def match_plicp(
     min_inlier_fraction: float = 0.2,
 ) -> MatchResult:
     """Method "plicp": point-to-line ICP from `guess`; the accurate local 2D matcher."""
+    require_positive(
+        max_correspondence_m=max_correspondence_m, min_correspondence_m=min_correspondence_m,
+        cauchy_min_m=cauchy_min_m, normal_radius_m=normal_radius_m,
+        normal_fit_radius_m=normal_fit_radius_m, grid_cell_m=grid_cell_m,
+        max_step_m=max_step_m, max_step_rad=max_step_rad,
+    )
+    require_at_most(normal_radius_m, normal_fit_radius_m=normal_fit_radius_m)
+    require_at_least(2, normal_neighbours=normal_neighbours)
+    require_at_least(1, max_iterations=max_iterations)
+    require_non_negative(tolerance_m=tolerance_m, tolerance_rad=tolerance_rad)
+    require_in(0.0, 1.0, min_inlier_fraction=min_inlier_fraction)
     tgt = target_points(target)
     bad = check_point_inputs("plicp", source, tgt, guess, MIN_PAIRS)
     if bad is not None:

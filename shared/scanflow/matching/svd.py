@@ -66,7 +66,10 @@ def match_svd(
             f"svd needs source and target of equal length (known correspondences), "
             f"got {len(source)} and {len(target)}; drop NaN rows from both together"
         )
-    w = np.ones(len(source)) if weights is None else np.asarray(weights, dtype=np.float64)
+    try:
+        w = np.ones(len(source)) if weights is None else np.asarray(weights, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise MatchInputError(f"weights must be {len(source)} numbers, got {weights!r}") from exc
     if w.shape != (len(source),) or not np.all(np.isfinite(w)) or np.any(w < 0.0):
         raise MatchInputError(f"weights must be {len(source)} finite values >= 0, got {w!r}")
     used = w > 0.0

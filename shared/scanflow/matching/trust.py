@@ -22,6 +22,7 @@ contradict right poses too often (same update, "Front end").
 from __future__ import annotations
 
 import functools
+import inspect
 from dataclasses import replace
 from typing import Any
 
@@ -29,7 +30,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanflow.geometry import Pose2D
-from scanflow.matching.api import MatchResult, MatchStatus, MethodFn
+from scanflow.matching.api import (
+    MatchResult,
+    MatchStatus,
+    MethodFn,
+    require_in,
+    require_non_negative,
+)
 from scanflow.matching.free_space import free_space_test
 
 FREE_SPACE_MARGIN_M = 0.2
@@ -70,8 +77,23 @@ def fit_checked(fn: MethodFn) -> MethodFn:
     ) -> MatchResult:
         margin_m = options.pop("free_space_margin_m", FREE_SPACE_MARGIN_M)
         max_share = options.pop("max_free_space_share", MAX_FREE_SPACE_SHARE)
-        if not 0.0 <= max_share <= 1.0:
-            raise ValueError(f"max_free_space_share must be in [0, 1], got {max_share}")
+        require_non_negative(free_space_margin_m=margin_m)
+        require_in(0.0, 1.0, max_free_space_share=max_share)
         return assess_fit(fn(source, target, guess, **options), source, target, margin_m, max_share)
 
+    # The method's own options and these two, as `match` checks them and help() shows them.
+    signature = inspect.signature(fn)
+    run.__signature__ = signature.replace(  # type: ignore[attr-defined]
+        parameters=[
+            *signature.parameters.values(),
+            *(
+                inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=default,
+                                  annotation=float)
+                for name, default in (
+                    ("free_space_margin_m", FREE_SPACE_MARGIN_M),
+                    ("max_free_space_share", MAX_FREE_SPACE_SHARE),
+                )
+            ),
+        ]
+    )
     return run
