@@ -2,6 +2,8 @@
 
 Arun/Umeyama (first seed, part 2): centre both sets, H = sum w q_i q'_i^T = U S V^T, R = V D U^T
 with D = diag(1, det(V U^T)) so a reflection (det = -1) is never returned, t = p' - R p.
+Registered `paired`: `match` keeps the rows as given, and a pair is used only when both of its
+points are finite (dropping each array's NaN rows apart would shift every pair between them).
 """
 
 from __future__ import annotations
@@ -50,7 +52,7 @@ def point_hessian(points: NDArray[np.float64], weights: NDArray[np.float64]) -> 
     return np.array([[w_sum, 0.0, -sy], [0.0, w_sum, sx], [-sy, sx, sq]])
 
 
-@register_method("svd")
+@register_method("svd", paired=True)
 def match_svd(
     source: NDArray[np.float64],
     target: NDArray[np.float64],
@@ -58,13 +60,14 @@ def match_svd(
     *,
     weights: NDArray[np.float64] | None = None,
 ) -> MatchResult:
-    """Method "svd": one closed-form step; `initial_guess` is ignored (the solution is global)."""
+    """Method "svd": one closed-form step; `initial_guess` is ignored (the solution is global).
+    source[i] pairs with target[i] (and weights[i]); a pair with a non-finite point is left out."""
     if not isinstance(target, np.ndarray):
         raise MatchInputError("svd needs a target point array with known correspondences")
     if len(source) != len(target):
         raise MatchInputError(
             f"svd needs source and target of equal length (known correspondences), "
-            f"got {len(source)} and {len(target)}; drop NaN rows from both together"
+            f"got {len(source)} and {len(target)}"
         )
     try:
         w = np.ones(len(source)) if weights is None else np.asarray(weights, dtype=np.float64)
@@ -72,9 +75,12 @@ def match_svd(
         raise MatchInputError(f"weights must be {len(source)} numbers, got {weights!r}") from exc
     if w.shape != (len(source),) or not np.all(np.isfinite(w)) or np.any(w < 0.0):
         raise MatchInputError(f"weights must be {len(source)} finite values >= 0, got {w!r}")
-    used = w > 0.0
+    finite = np.all(np.isfinite(source), axis=1) & np.all(np.isfinite(target), axis=1)
+    used = finite & (w > 0.0)
     if used.sum() < 2:
-        return failed("svd", MatchStatus.TOO_FEW_POINTS, guess, f"{used.sum()} weighted pairs < 2")
+        return failed(
+            "svd", MatchStatus.TOO_FEW_POINTS, guess, f"{used.sum()} finite weighted pairs < 2"
+        )
     pose = rigid_transform_svd(source[used], target[used], w[used])
     moved = pose.transform_points(source[used])
     sq = np.sum((moved - target[used]) ** 2, axis=1)

@@ -83,3 +83,63 @@ def test_coincident_points_leave_rotation_unobservable() -> None:
 
 def test_single_pair_is_too_few() -> None:
     assert match([[0.0, 0.0]], [[1.0, 1.0]], method="svd").status is MatchStatus.TOO_FEW_POINTS
+
+
+@pytest.mark.parametrize(
+    ("source_nan", "target_nan"),
+    [([3], [30]), ([30], [3]), ([0], [39]), ([5], [5]), ([1, 2], []), ([], [7, 20, 33])],
+)
+def test_nan_rows_drop_their_pairs_not_shift_the_others(
+    source_nan: list[int], target_nan: list[int]
+) -> None:
+    """A NaN row in one array (a dropped beam) leaves out its pair only: dropping each array's
+    NaN rows apart shifted every pair between them (3 deg off, still 'ok')."""
+    rng = np.random.default_rng(0)
+    source = rng.uniform(-5, 5, (40, 2))
+    target = Pose2D(0.5, -0.2, 0.1).transform_points(source) + rng.normal(0, 0.01, (40, 2))
+    keep = np.setdiff1d(np.arange(40), source_nan + target_nan)
+    expected = match(source[keep], target[keep], method="svd")
+    source[source_nan], target[target_nan] = np.nan, np.nan
+    r = match(source, target, method="svd")
+    assert r.ok and r.inliers == len(keep) == expected.inliers
+    assert np.allclose(r.pose.to_array(), expected.pose.to_array(), rtol=0, atol=1e-12)
+    assert np.allclose(r.covariance, expected.covariance, rtol=1e-9, atol=0)
+
+
+def test_weights_pair_with_the_rows_as_given() -> None:
+    rng = np.random.default_rng(2)
+    source = rng.uniform(-3, 3, (20, 2))
+    truth = Pose2D(-0.3, 0.2, -0.4)
+    target = truth.transform_points(source)
+    target[4] += 9.0  # an outlier, weighted out by its own row's weight
+    source[10] = np.nan
+    weights = np.ones(20)
+    weights[4] = 0.0
+    r = match(source, target, method="svd", weights=weights)
+    assert r.ok and r.inliers == 18
+    assert r.pose.relative_to(truth).translation_norm() < 1e-9
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    pose=poses,
+    seed=st.integers(0, 2**31),
+    n=st.integers(3, 40),
+    source_nan=st.sets(st.integers(0, 39), max_size=10),
+    target_nan=st.sets(st.integers(0, 39), max_size=10),
+)
+def test_nan_rows_anywhere_still_give_the_exact_pose(
+    pose: Pose2D, seed: int, n: int, source_nan: set[int], target_nan: set[int]
+) -> None:
+    source = np.random.default_rng(seed).uniform(-5, 5, (n, 2))
+    target = pose.transform_points(source)
+    source[[i for i in source_nan if i < n]] = np.nan
+    target[[i for i in target_nan if i < n]] = np.nan
+    finite = n - len({i for i in source_nan | target_nan if i < n})
+    r = match(source, target, method="svd")
+    if finite < 2:
+        assert r.status is MatchStatus.TOO_FEW_POINTS
+        return
+    assert r.inliers == finite
+    err = r.pose.relative_to(pose)
+    assert err.translation_norm() < 1e-9 and abs(err.theta) < 1e-9
