@@ -22,6 +22,7 @@ from scanflow.wire import (
     MapInsertMessage,
     MapRedrawMessage,
     MapStateMessage,
+    MatchRequest,
     ResumeMessage,
     codec,
     decode_any,
@@ -30,6 +31,7 @@ from scanflow.wire import (
 from services.common.keyframes import keyframes_message
 from services.common.resend import FIRST, resend_selector
 from services.matcher.recent import RecentInserts, keyframe_inserts, map_state
+from services.matcher.requests import answer
 from services.matcher.service import MatcherService
 
 LOOP_CLOSURE = BackendSettings.model_construct(loop_closure=True)
@@ -369,3 +371,18 @@ def test_a_robot_resumed_on_a_prior_map_keeps_drawing_on_it(tmp_path) -> None:
             mapper.nodes, mapper.graph.poses, mapper.params).grid.occupied_mask().sum()
     finally:
         service.shell.close(flush_s=0.0)
+
+
+@pytest.mark.parametrize(
+    ("options", "named"),
+    [
+        ({"no_such_option": 1}, "unknown option 'no_such_option' for method 'plicp'"),
+        ({"max_iterations": "many"}, "option max_iterations of method 'plicp' must be"),
+        ({"max_step_m": 0.0}, "option max_step_m must be > 0"),
+    ],
+)
+def test_a_match_request_with_a_bad_option_is_answered_with_its_name(options, named) -> None:
+    """Not every request comes through the gateway: the matcher's answer names the option."""
+    points = np.random.default_rng(0).uniform(-3, 3, (40, 2))
+    reply = answer(MatchRequest("plicp", points, points, options=options), lambda _r: None)
+    assert reply.error.startswith("MatchInputError: ") and named in reply.error

@@ -7,7 +7,8 @@ import time
 from fastapi import APIRouter, Depends, Request
 from fastapi.responses import Response
 from scanflow import keys
-from scanflow.matching import DEFAULT_METHOD, available_methods
+from scanflow.matching import DEFAULT_METHOD, MatchInputError, available_methods
+from scanflow.matching.api import check_options
 from scanflow.scan import LaserScan, ScanError
 from scanflow.wire import MapRef, MatchRequest, MatchResponse, MessageError
 
@@ -103,10 +104,15 @@ def _scan(scan: ScanIn, field: str, robot_id: str, seq: int, max_beams: int) -> 
 
 
 def check_request(request: MatchRequest, max_beams: int) -> None:
-    """Method known, operands within max_beams (also for msgpack bodies)."""
+    """Method known, its options' names, types and finiteness right (their ranges are the
+    matcher's to check), operands within max_beams (also for msgpack bodies)."""
     methods = available_methods()
     if request.method not in methods:
         raise invalid(("body", "method"), f"unknown method {request.method!r}; one of {methods}")
+    try:
+        check_options(request.method, request.options)
+    except MatchInputError as exc:
+        raise invalid(("body", "options"), str(exc)) from exc
     for field in ("source", "target"):
         operand = getattr(request, field)
         if isinstance(operand, MapRef):

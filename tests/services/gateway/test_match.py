@@ -132,6 +132,21 @@ def test_bad_bodies_get_422_naming_the_field(client, auth, body, field):
     assert field in r.text
 
 
+@pytest.mark.parametrize(
+    ("options", "named"),
+    [({"no_such_option": 1}, "unknown option 'no_such_option'"),
+     ({"max_iterations": 2.5}, "max_iterations")],
+)
+def test_bad_option_names_and_types_are_refused_before_the_bus(client, auth, options, named):
+    """No matcher answers here: the gateway itself refuses (with msgpack too)."""
+    body = {"method": "plicp", "source": SCAN, "target": SCAN, "options": options}
+    r = client.post("/api/v1/match", json=body, headers=auth)
+    assert r.status_code == 422 and named in r.text and "options" in r.text, r.text
+    request = MatchRequest("plicp", np.ones((5, 2)), np.ones((5, 2)), options=options)
+    r = client.post("/api/v1/match", content=request.encode(), headers={**auth, **MSGPACK})
+    assert r.status_code == 422 and named in r.text, r.text
+
+
 def test_nan_in_json_is_refused(client, auth):
     text = '{"source": {"ranges_m": [NaN], "angle_min_rad": 0, "angle_increment_rad": 0.1}}'
     headers = {**auth, "Content-Type": "application/json"}
@@ -177,3 +192,41 @@ def test_matcher_error_is_forwarded(client, peer, auth):
                 lambda q: MatchResponse.from_error("no map for robot 'r1'", "gn").encode())
     r = client.post("/api/v1/match", json={"source": SCAN, "robot_id": "r1"}, headers=auth)
     assert r.status_code == 422 and "no map" in r.json()["detail"]
+
+
+def _room_scan() -> dict:
+    """180 beams in a 6 m x 4 m room, the sensor in its middle: enough for plicp to run."""
+    angles = np.linspace(-math.pi / 2, math.pi / 2, 180)
+    with np.errstate(divide="ignore"):
+        ranges = np.minimum(3.0 / np.abs(np.cos(angles)), 2.0 / np.abs(np.sin(angles)))
+    return {"ranges_m": ranges.tolist(), "angle_min_rad": float(angles[0]),
+            "angle_increment_rad": float(angles[1] - angles[0]), "range_max_m": 30.0}
+
+
+def library_matcher(query) -> bytes:
+    """The matcher service's own answer (services.matcher.requests) over scans: the library's
+    `match` runs on the request, its refusals become error replies."""
+    from services.matcher.requests import answer
+
+    return answer(MatchRequest.decode(query.payload.to_bytes()), lambda _robot_id: None).encode()
+
+
+@pytest.mark.parametrize(
+    ("options", "named"),
+    [
+        ({"max_step_m": 0}, "max_step_m must be > 0"),
+        ({"max_iterations": -1}, "max_iterations must be >= 1"),
+        ({"normal_neighbours": 1}, "normal_neighbours must be >= 2"),
+    ],
+)
+def test_an_option_out_of_its_range_is_a_422_naming_it(client, peer, auth, options, named):
+    """Ranges are the method's: the matcher refuses, the gateway passes its reason on."""
+    peer.answer(keys.scan_match(), library_matcher)
+    room = _room_scan()
+    ok = client.post("/api/v1/match", json={"method": "plicp", "source": room, "target": room},
+                     headers=auth)
+    assert ok.status_code == 200 and ok.json()["status"] == "ok", ok.text
+    body = {"method": "plicp", "source": room, "target": room, "options": options}
+    r = client.post("/api/v1/match", json=body, headers=auth)
+    assert r.status_code == 422, r.text
+    assert named in r.text and "MatchInputError" in r.text
