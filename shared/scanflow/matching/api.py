@@ -292,6 +292,16 @@ def require_at_most(maximum: float, **options: Any) -> None:
     _require(lambda v: v <= maximum, f"<= {maximum:g}", options)
 
 
+MAX_ITERATIONS = 1000  # no method here gains past a few dozen; a bound keeps a request's cost
+
+
+def require_iterations(max_iterations: int) -> None:
+    """MatchInputError unless 1 <= max_iterations <= MAX_ITERATIONS (600,000 icp iterations
+    held a matcher for 22 s)."""
+    require_at_least(1, max_iterations=max_iterations)
+    require_at_most(MAX_ITERATIONS, max_iterations=max_iterations)
+
+
 def require_in(low: float, high: float, **options: Any) -> None:
     """MatchInputError naming the first option outside [low, high]."""
     _require(lambda v: low <= v <= high, f"in [{low:g}, {high:g}]", options)

@@ -19,8 +19,8 @@ from scanflow.matching.api import (
     MatchResult,
     MatchStatus,
     register_method,
-    require_at_least,
     require_in,
+    require_iterations,
     require_non_negative,
     require_positive,
 )
@@ -59,7 +59,7 @@ def match_gn(
     require_positive(
         resolution_m=resolution_m, sigma_m=sigma_m, max_step_m=max_step_m, max_step_rad=max_step_rad
     )
-    require_at_least(1, max_iterations=max_iterations)
+    require_iterations(max_iterations)
     require_non_negative(translation_tol_m=translation_tol_m, rotation_tol_rad=rotation_tol_rad)
     length_m = characteristic_length_m(source)
 

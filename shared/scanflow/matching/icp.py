@@ -26,8 +26,8 @@ from scanflow.matching.api import (
     MatchResult,
     check_point_inputs,
     register_method,
-    require_at_least,
     require_in,
+    require_iterations,
     require_non_negative,
     require_positive,
     target_points,
@@ -157,7 +157,7 @@ def match_icp(
         line_radius_m=line_radius_m,
     )
     require_in(0.0, 1.0, keep_fraction=keep_fraction, min_inlier_fraction=min_inlier_fraction)
-    require_at_least(1, max_iterations=max_iterations)
+    require_iterations(max_iterations)
     require_non_negative(
         tolerance_m=tolerance_m, tolerance_rad=tolerance_rad,
         relative_error_change=relative_error_change,

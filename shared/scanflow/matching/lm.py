@@ -18,8 +18,8 @@ from scanflow.matching.api import (
     MatchResult,
     MatchStatus,
     register_method,
-    require_at_least,
     require_in,
+    require_iterations,
     require_non_negative,
     require_positive,
 )
@@ -58,7 +58,7 @@ def match_lm(
     """Levenberg-Marquardt, coarse to fine over `levels` fields (cell size doubles per level)."""
     require_in(1, MAX_LEVELS, levels=levels)
     require_positive(resolution_m=resolution_m, sigma_m=sigma_m, tau=tau)
-    require_at_least(1, max_iterations=max_iterations)
+    require_iterations(max_iterations)
     require_non_negative(translation_tol_m=translation_tol_m, rotation_tol_rad=rotation_tol_rad)
     length_m = characteristic_length_m(source)
 

@@ -24,8 +24,8 @@ from scanflow.matching.api import (
     MatchStatus,
     failed,
     register_method,
-    require_at_least,
     require_in,
+    require_iterations,
     require_non_negative,
     require_positive,
     target_points,
@@ -254,7 +254,7 @@ def match_ndt(
     """
     require_positive(cell_size_m=cell_size_m)
     require_in(1, MAX_LEVELS, levels=levels)
-    require_at_least(1, max_iterations=max_iterations)
+    require_iterations(max_iterations)
     require_non_negative(translation_tol_m=translation_tol_m, rotation_tol_rad=rotation_tol_rad)
     cells_at, held = _target_cells(target, cell_size_m * 2 ** (levels - 1))
     bad = check_inputs("ndt", source, held, guess)

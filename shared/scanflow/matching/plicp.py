@@ -26,6 +26,7 @@ from scanflow.matching.api import (
     require_at_least,
     require_at_most,
     require_in,
+    require_iterations,
     require_non_negative,
     require_positive,
     target_points,
@@ -165,7 +166,7 @@ def match_plicp(
     )
     require_at_most(normal_radius_m, normal_fit_radius_m=normal_fit_radius_m)
     require_at_least(2, normal_neighbours=normal_neighbours)
-    require_at_least(1, max_iterations=max_iterations)
+    require_iterations(max_iterations)
     require_non_negative(tolerance_m=tolerance_m, tolerance_rad=tolerance_rad)
     require_in(0.0, 1.0, min_inlier_fraction=min_inlier_fraction)
     tgt = target_points(target)

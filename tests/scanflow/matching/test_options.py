@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scanflow.geometry import Pose2D
 from scanflow.matching import MatchInputError, available_methods, match
-from scanflow.matching.api import method_options, require_positive
+from scanflow.matching.api import MAX_ITERATIONS, method_options, require_positive
 from scanflow.matching.plicp import match_plicp
 
 METHODS = available_methods()
@@ -134,6 +134,15 @@ def test_no_iterations_is_an_input_error_not_a_status(
     source, target = caster(room, Pose2D(0.1, 0.0, 0.02)), caster(room, Pose2D())
     with pytest.raises(MatchInputError, match=r"max_iterations must be >= 1"):
         match(source, target, Pose2D(), method=method, max_iterations=max_iterations)
+
+
+@pytest.mark.parametrize("method", ["icp", "plicp", "gn", "lm", "ndt", "gn+plicp", "csm+plicp"])
+def test_iterations_are_bounded(room, caster, method: str) -> None:
+    """600,000 icp iterations held a matcher service for 22 s."""
+    source, target = caster(room, Pose2D(0.1, 0.0, 0.02)), caster(room, Pose2D())
+    with pytest.raises(MatchInputError, match=r"max_iterations must be <= 1000"):
+        match(source, target, Pose2D(), method=method, max_iterations=MAX_ITERATIONS + 1)
+    match(source, target, Pose2D(), method=method, max_iterations=MAX_ITERATIONS)
 
 
 def test_a_method_called_directly_checks_its_ranges_too(room, caster) -> None:
