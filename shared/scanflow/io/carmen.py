@@ -50,9 +50,11 @@ file and line; otherwise they are skipped, recorded in `CarmenReader.errors` and
 
 from __future__ import annotations
 
+import contextlib
 import gzip
 import io
 import math
+import zlib
 from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -295,13 +297,32 @@ def _parse_odom(parts: list[str], robot_id: str, seq: int) -> Odometry:
     return Odometry(_stamp(parts[7:]), _pose(parts[1:4], "pose"), (tv, 0.0, rv), robot_id, seq)
 
 
+class _DamagedError(Exception):
+    """Internal: the file cannot be read past line `line_no` (truncated or corrupt gzip)."""
+
+    def __init__(self, line_no: int, reason: str) -> None:
+        super().__init__(reason)
+        self.line_no = line_no
+
+
+def _numbered_lines(f: IO[str]) -> Iterator[tuple[int, str]]:
+    """(line number, line) of a text log; `_DamagedError` where the compressed stream breaks off
+    (the lines before it are good and were given)."""
+    line_no = 0
+    try:
+        for line_no, line in enumerate(f, start=1):
+            yield line_no, line
+    except (EOFError, zlib.error, gzip.BadGzipFile) as exc:
+        raise _DamagedError(line_no + 1, f"the file cannot be read past here: {exc}") from None
+
+
 def detect_sentinel_m(
     path: str | Path, max_records: int = SENTINEL_PRESCAN_RECORDS
 ) -> float | None:
     """The "no return" value of a log, if its readings pile up at their maximum (module doc)."""
     chunks: list[NDArray[np.float64]] = []
-    with open_text(path) as f:
-        for line in f:
+    with open_text(path) as f, contextlib.suppress(_DamagedError):  # the reader reports it
+        for _, line in _numbered_lines(f):
             parts = line.split()
             if not parts or parts[0] not in LASER_TYPES:
                 continue
@@ -359,23 +380,31 @@ class CarmenReader:
 
     def __iter__(self) -> Iterator[CarmenLaser | CarmenOdom]:
         limit_m = self._range_limit_m()
-        n_laser = n_odom = 0
         with open_text(self.path) as f:
-            for line_no, line in enumerate(f, start=1):
-                parts = line.split()
-                kind = parts[0] if parts else ""
-                try:
-                    if kind in LASER_TYPES:
-                        yield self._laser(kind, parts, line_no, n_laser, limit_m)
-                        n_laser += 1
-                    elif kind == "ODOM":
-                        odom = _parse_odom(parts, self.robot_id, n_odom)
-                        yield CarmenOdom(odom, line_no)
-                        n_odom += 1
-                    else:
-                        self.skipped[kind if kind and not kind.startswith("#") else "#"] += 1
-                except (_LineError, ScanError) as exc:
-                    self._report(line_no, f"{kind}: {exc}")
+            try:
+                yield from self._records(_numbered_lines(f), limit_m)
+            except _DamagedError as damage:  # what came before stands; nothing after can be read
+                self._report(damage.line_no, str(damage))
+
+    def _records(
+        self, lines: Iterator[tuple[int, str]], limit_m: float
+    ) -> Iterator[CarmenLaser | CarmenOdom]:
+        n_laser = n_odom = 0
+        for line_no, line in lines:
+            parts = line.split()
+            kind = parts[0] if parts else ""
+            try:
+                if kind in LASER_TYPES:
+                    yield self._laser(kind, parts, line_no, n_laser, limit_m)
+                    n_laser += 1
+                elif kind == "ODOM":
+                    odom = _parse_odom(parts, self.robot_id, n_odom)
+                    yield CarmenOdom(odom, line_no)
+                    n_odom += 1
+                else:
+                    self.skipped[kind if kind and not kind.startswith("#") else "#"] += 1
+            except (_LineError, ScanError) as exc:
+                self._report(line_no, f"{kind}: {exc}")
 
     def _laser(
         self, kind: str, parts: list[str], line_no: int, seq: int, limit_m: float

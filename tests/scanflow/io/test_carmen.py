@@ -156,6 +156,33 @@ def test_gzip_detected_by_magic_bytes(tmp_path: Path) -> None:
     assert a[1].odom.pose == b[1].odom.pose
 
 
+def _damaged_gzip(tmp_path: Path, how: str) -> tuple[Path, int]:
+    """A gzip log of 400 records cut short ("truncated") or with bytes flipped midway
+    ("corrupt"), and how many lines come before the damage at least."""
+    lines = [flaser([1.0 + i % 7, 2.0] * 90, Pose2D(i, 0, 0), stamp=float(i)) for i in range(400)]
+    packed = gzip.compress(("\n".join(lines) + "\n").encode())
+    cut = len(packed) // 2
+    data = packed[:cut] if how == "truncated" else (
+        packed[:cut] + bytes(b ^ 0xFF for b in packed[cut:cut + 64]) + packed[cut + 64:])
+    path = tmp_path / f"{how}.log.gz"
+    path.write_bytes(data)
+    return path, 50
+
+
+@pytest.mark.parametrize("how", ["truncated", "corrupt"])
+def test_a_damaged_gzip_gives_its_good_part_and_names_where_it_breaks(tmp_path, how) -> None:
+    path, at_least = _damaged_gzip(tmp_path, how)
+    reader = CarmenReader(path)
+    records = list(reader)
+    assert at_least <= len(records) < 400
+    assert [r.scan.stamp_s for r in records] == [float(i) for i in range(len(records))]
+    error = reader.errors[-1]  # after any garbled lines the corrupt stream gave first
+    assert "cannot be read past here" in error.reason and error.line_no > len(records)
+    with pytest.raises(CarmenFormatError, match=rf"{how}\.log\.gz:\d+: "):  # its first error
+        list(read_carmen(path, strict=True))
+    assert len(load_keyframes(path)) == len(records)
+
+
 MALFORMED = {
     "too few ranges": "FLASER 180 1 2 3",
     "bad range": flaser([1.0] * 180, Pose2D()).replace(" 1.0 ", " abc ", 1),
