@@ -20,15 +20,31 @@ class ConstantVelocityModel:
 
     Predictions reach at most `max_horizon_s` from the last pose: beyond that the robot has had
     time to change its motion and the prior is refused. A pose older than the last one resets the
-    model (time went backwards), which then needs two new poses.
+    model (time went backwards), which then needs two new poses. A pose less than
+    `min_interval_s` after the last one is not a baseline for a twist (two estimates a
+    microsecond apart and 5 cm apart would be 50 km/s): it is skipped. A twist faster than
+    `max_speed_mps` / `max_turn_rate_rads` is an error of the poses, not motion: the model
+    resets, saying so.
     """
 
     name = "constant_velocity"
 
-    def __init__(self, max_horizon_s: float = 0.5) -> None:
-        if not (math.isfinite(max_horizon_s) and max_horizon_s > 0):
-            raise DeskewError(f"max_horizon_s must be finite and > 0, got {max_horizon_s!r}")
+    def __init__(
+        self,
+        max_horizon_s: float = 0.5,
+        min_interval_s: float = 0.005,
+        max_speed_mps: float = 50.0,
+        max_turn_rate_rads: float = 4.0 * math.pi,
+    ) -> None:
+        for name, value in (("max_horizon_s", max_horizon_s), ("min_interval_s", min_interval_s),
+                            ("max_speed_mps", max_speed_mps),
+                            ("max_turn_rate_rads", max_turn_rate_rads)):
+            if not (math.isfinite(value) and value > 0):
+                raise DeskewError(f"{name} must be finite and > 0, got {value!r}")
         self.max_horizon_s = float(max_horizon_s)
+        self.min_interval_s = float(min_interval_s)
+        self.max_speed_mps = float(max_speed_mps)
+        self.max_turn_rate_rads = float(max_turn_rate_rads)
         self._last: tuple[float, Pose2D] | None = None
         self._twist: NDArray[np.float64] | None = None
         self.reset_reason = ""
@@ -48,10 +64,20 @@ class ConstantVelocityModel:
             if stamp_s < last_s:
                 self.reset_reason = f"time went backwards from {last_s:.6f} s to {stamp_s:.6f} s"
                 self._twist = None
-            elif stamp_s > last_s:
-                step = se2_log(pose.relative_to(last_pose).to_array())[0]
-                self._twist = step / (stamp_s - last_s)
-                self.reset_reason = ""
+            elif stamp_s - last_s < self.min_interval_s:
+                return  # too short a baseline: the last pose and its twist stand
+            else:
+                twist = se2_log(pose.relative_to(last_pose).to_array())[0] / (stamp_s - last_s)
+                speed, turn = math.hypot(twist[0], twist[1]), abs(twist[2])
+                if speed > self.max_speed_mps or turn > self.max_turn_rate_rads:
+                    self.reset_reason = (
+                        f"the poses at {last_s:.6f} s and {stamp_s:.6f} s imply {speed:.3g} m/s, "
+                        f"{turn:.3g} rad/s (max_speed_mps {self.max_speed_mps:g}, "
+                        f"max_turn_rate_rads {self.max_turn_rate_rads:.3g})"
+                    )
+                    self._twist = None
+                else:
+                    self._twist, self.reset_reason = twist, ""
         self._last = (stamp_s, pose)
 
     def move_frame(self, correction: Pose2D) -> None:
