@@ -191,8 +191,16 @@ def newton_level(
     max_iterations: int,
     translation_tol_m: float,
     rotation_tol_rad: float,
+    reach_m: float,
 ) -> LevelOutcome:
-    """Newton iterations on one cell size until a step is small in translation and |rotation|."""
+    """Newton iterations on one cell size until a step is small in translation and |rotation|.
+
+    A level whose converged pose lies over `reach_m` (the coarsest cell size) from where it
+    started is a STEP_LIMIT: the cells' Gaussians pull only within about a cell, so such a
+    slide has left its basin for a look-alike one (the simulator's rooms, 4 m apart, drew a
+    0.3 m guess 4 m away on 2 m cells, status ok). Checked at the level's end, so a path that
+    swings out and comes back stands."""
+    start = pose
     ev = ndt_evaluate(cells, points, pose)
     if ev.hits < MIN_POINTS:
         return LevelOutcome(pose, 0, MatchStatus.NO_OVERLAP, f"only {ev.hits} point-cell hits")
@@ -209,6 +217,11 @@ def newton_level(
                 break
         pose = pose + alpha * step
         if converged_step(alpha * step, translation_tol_m, rotation_tol_rad):
+            moved_m = math.hypot(pose[0] - start[0], pose[1] - start[1])
+            if moved_m > reach_m:
+                return LevelOutcome(pose, it, MatchStatus.STEP_LIMIT,
+                                    f"moved {moved_m:.2f} m on {reach_m:g} m cells (at most "
+                                    "the coarsest cell)")
             return LevelOutcome(pose, it, None)
         ev = ndt_evaluate(cells, points, pose)
     return LevelOutcome(
@@ -271,7 +284,8 @@ def match_ndt(
                 f"no {cell_size_m * 2**level} m cell holds enough target points",
             )
         outcome = newton_level(
-            cells, source, pose, max_iterations, translation_tol_m, rotation_tol_rad
+            cells, source, pose, max_iterations, translation_tol_m, rotation_tol_rad,
+            reach_m=cell_size_m * 2 ** (levels - 1),
         )
         total += outcome.iterations
         if outcome.status is not None:

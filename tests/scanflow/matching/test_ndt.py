@@ -126,3 +126,28 @@ def test_an_empty_map_is_an_empty_target(room, caster) -> None:
     world.update(np.zeros((0, 2)), (0.0, 0.0), no_return_endpoints=[[3.0, 0.0]])
     r = match(caster(room, Pose2D()), world, method="ndt")
     assert r.status is MatchStatus.EMPTY_MAP
+
+
+def test_a_slide_into_a_look_alike_basin_is_a_step_limit_not_ok() -> None:
+    """The simulator's rooms repeat 4 m apart: from 0.3 m / 10 deg off, ndt's 2 m cells drew
+    this scan 3.98 m away, status ok (found by an audit). A level may move a coarsest cell at
+    most."""
+    from scanflow.frontend import insert_scan
+    from scanflow.sim import get_world, static_scan
+
+    world = get_world("rooms")
+
+    def cast(pose: Pose2D, seed: int) -> np.ndarray:
+        angles = np.arange(360) * (2 * math.pi / 360)
+        return static_scan(world.segments, pose, angles, 12.0, 0.01 * (seed > 0),
+                           np.random.default_rng(seed))
+
+    rooms = MatchingMap(OccupancyGrid(None))
+    for x, y in world.waypoints:
+        insert_scan(rooms, cast(Pose2D(float(x), float(y), 0.0), 0), Pose2D(float(x), float(y)))
+    truth = Pose2D(7.949579881547067, 6.082453711094868, -1.4018339086446543)
+    guess = Pose2D(8.22677490227489, 5.9677239395283666, -1.2273009834452215)
+    result = match(cast(truth, 3), rooms, guess, method="ndt")
+    assert result.status is MatchStatus.STEP_LIMIT and "at most the coarsest cell" in result.message
+    finer = match(cast(truth, 3), rooms, guess, method="ndt", levels=2)  # 1 m cells: no alias
+    assert finer.ok and finer.pose.relative_to(truth).translation_norm() < 0.05
