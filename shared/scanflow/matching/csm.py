@@ -19,9 +19,36 @@ from numba import njit
 from numpy.typing import NDArray
 
 from scanflow.geometry import Pose2D
+from scanflow.maps.grid import GridSpec
 from scanflow.maps.maxpool import SCORE_SCALE, MaxPoolStack
-from scanflow.matching.api import MatchResult, MatchStatus, failed, match, register_method
+from scanflow.matching.api import (
+    MatchInputError,
+    MatchResult,
+    MatchStatus,
+    failed,
+    match,
+    register_method,
+)
 from scanflow.matching.field_cost import check_inputs, points_field
+
+# Bounds on one search, checked before anything is allocated (`check_search_size`); a larger
+# search is refused with MatchInputError naming the options. Measured for scale: the default
+# window (+-1 m, +-30 deg, 5 cm) is ~0.35-1.8 M candidates; the whole-map search of aces
+# (59 x 58 m at 10 cm, every heading) ~1.0e9, in 0.5 s.
+# Translations: +-MAX_HALF_CELLS cells a side (+-102 m at 5 cm): the max-pool stack is padded by
+# about that much on every side and holds log2(it) levels (~400 MB of int16 at this cap).
+MAX_HALF_CELLS = 2048
+# Angles: at most 2**16 per search (a full turn in 0.1 mrad steps); branch and bound seeds up
+# to 16 nodes per angle.
+MAX_ANGLES = 2**16
+# Angles x source points: the (angles, points) int64 cell tables, 1 GiB at this cap.
+MAX_TABLE_ENTRIES = 2**26
+# Angles x translations: the work of the exhaustive search, and of branch and bound when
+# nothing prunes (~17 times the whole-map search of aces).
+MAX_CANDIDATES = 2**34
+# Distinct optima one search may return (`candidates`): each is a further search that checks
+# every earlier one's suppression box.
+MAX_TOP_CANDIDATES = 100
 
 
 @dataclass(frozen=True)
@@ -46,15 +73,57 @@ def build_candidates(
 ) -> Candidates:
     """Rotate the source by every angle of the window at once and find each point's cell."""
     res = stack.spec.resolution_m
-    half_cells = math.floor(linear_m / res + 1e-9)
-    half_steps = math.floor(angular_rad / angular_step_rad + 1e-9)
+    half_cells, half_steps = window_steps(res, linear_m, angular_rad, angular_step_rad)
     angles = guess.theta + np.arange(-half_steps, half_steps + 1) * angular_step_rad
-    c, s = np.cos(angles)[:, None], np.sin(angles)[:, None]
-    x = c * source[:, 0] - s * source[:, 1] + guess.x
-    y = s * source[:, 0] + c * source[:, 1] + guess.y
-    cols = np.floor((x - stack.spec.origin_x_m) / res).astype(np.int64)
-    rows = np.floor((y - stack.spec.origin_y_m) / res).astype(np.int64)
+    rows = np.empty((len(angles), len(source)), dtype=np.int64)
+    cols = np.empty_like(rows)
+    # A block of angles at a time: the float temporaries stay small (same values as all at once).
+    block = max(1, ROTATION_BLOCK_ENTRIES // max(len(source), 1))
+    for a0 in range(0, len(angles), block):
+        part = angles[a0 : a0 + block]
+        c, s = np.cos(part)[:, None], np.sin(part)[:, None]
+        x = c * source[:, 0] - s * source[:, 1] + guess.x
+        y = s * source[:, 0] + c * source[:, 1] + guess.y
+        cols[a0 : a0 + block] = np.floor((x - stack.spec.origin_x_m) / res)
+        rows[a0 : a0 + block] = np.floor((y - stack.spec.origin_y_m) / res)
     return Candidates(stack, rows, cols, angles, half_cells, half_steps)
+
+
+# Entries of the float temporaries `build_candidates` holds at once (16 MB each).
+ROTATION_BLOCK_ENTRIES = 2**21
+
+
+def window_steps(
+    resolution_m: float, linear_m: float, angular_rad: float, angular_step_rad: float
+) -> tuple[int, int]:
+    """(half_cells, half_steps) of a window: whole cells and whole angular steps each side; the
+    angular window is at most half a turn each side (a full turn in all)."""
+    half_cells = math.floor(linear_m / resolution_m + 1e-9)
+    half_steps = math.floor(min(angular_rad, math.pi) / angular_step_rad + 1e-9)
+    return half_cells, half_steps
+
+
+def check_search_size(
+    half_cells: int, half_steps: int, n_points: int, linear: str, angular: str
+) -> None:
+    """MatchInputError, naming the options (`linear`, `angular`: their names for the caller),
+    when a search exceeds MAX_HALF_CELLS, MAX_ANGLES, MAX_TABLE_ENTRIES or MAX_CANDIDATES."""
+    angles = 2 * half_steps + 1
+    translations = (2 * half_cells + 1) ** 2
+    limits = (
+        ("translation half-width", half_cells, MAX_HALF_CELLS, f"{linear}: +-{half_cells} cells"),
+        ("angle count", angles, MAX_ANGLES, f"{angular}: {angles} angles"),
+        ("angles x source points", angles * n_points, MAX_TABLE_ENTRIES,
+         f"{angular}: {angles} angles x {n_points} points"),
+        ("candidate count", angles * translations, MAX_CANDIDATES,
+         f"{linear}, {angular}: {angles} angles x {translations} translations"),
+    )
+    for name, count, cap, what in limits:
+        if count > cap:
+            raise MatchInputError(
+                f"search too large: {name} {count} exceeds {cap} ({what}); narrow the window "
+                f"or coarsen the resolution"
+            )
 
 
 @njit(cache=True)
@@ -280,10 +349,75 @@ def olson_covariance(
     return cov + np.diag([res**2 / 12, res**2 / 12, angular_step_rad**2 / 12])
 
 
-def default_angular_step_rad(source: NDArray[np.float64], resolution_m: float) -> float:
-    """Cartographer's step: the angle that moves the farthest point by about one cell."""
-    far_m = max(float(np.max(np.hypot(source[:, 0], source[:, 1]))), resolution_m)
+def default_angular_step_rad(
+    source: NDArray[np.float64], resolution_m: float, reach_m: float = math.inf
+) -> float:
+    """Cartographer's step: the angle that moves the farthest point by about one cell, counting
+    points up to REACH_FACTOR x `reach_m` from the source's origin.
+
+    Only points within `reach_m` can ever land on the grid (see `reach_m`): farther ones score
+    0 under every candidate. Real scans do have such points (returns past everything the target
+    saw: up to 4.7 x the reach on the next-scan pairs of intel, aces and freiburg-079), so the
+    step stays Cartographer's for them; only a point farther still, a glitch, is not allowed
+    to shrink the step: one return at 20 km made it ~2.5 urad and the search take 17-21 s, and
+    a source ~1e6 m off asked for 75 GiB of angles. The angle count is thereby bounded by the
+    target's extent.
+    """
+    far_m = min(float(np.max(np.hypot(source[:, 0], source[:, 1]))), REACH_FACTOR * reach_m)
+    far_m = max(far_m, resolution_m)
     return math.acos(max(1.0 - resolution_m**2 / (2.0 * far_m**2), -1.0))
+
+
+# Source points up to this many times the reach count towards the angular step (see
+# `default_angular_step_rad`); measured on real next-scan pairs: at most 4.7.
+REACH_FACTOR = 8.0
+
+
+def reach_m(spec: GridSpec, centre: Pose2D, half_m: float) -> float:
+    """The largest distance from a candidate's translation (within +-half_m of `centre` in x
+    and y) to any point of the grid `spec` covers: a source point farther than that from the
+    source's origin lands off the grid, and scores 0, under every candidate."""
+    x0, x1 = spec.origin_x_m, spec.origin_x_m + spec.width_m
+    y0, y1 = spec.origin_y_m, spec.origin_y_m + spec.height_m
+    dx = max(x1 - (centre.x - half_m), (centre.x + half_m) - x0)
+    dy = max(y1 - (centre.y - half_m), (centre.y + half_m) - y0)
+    return math.hypot(dx, dy)
+
+
+def _finite(name: str, value: float, low: float, inclusive: bool) -> None:
+    """MatchInputError unless `value` is finite and > low (>= low if inclusive)."""
+    ok = math.isfinite(value) and (value >= low if inclusive else value > low)
+    if not ok:
+        bound = ">=" if inclusive else ">"
+        raise MatchInputError(f"{name} must be finite and {bound} {low}, got {value}")
+
+
+def check_window_options(
+    linear_m: float,
+    angular_rad: float,
+    resolution_m: float,
+    angular_resolution_rad: float | None,
+    sigma_m: float | None,
+    candidates: int,
+    suppress_m: float,
+    suppress_rad: float,
+    candidate_min_ratio: float,
+) -> None:
+    """MatchInputError naming the first option of `csm` that is non-finite or out of range."""
+    for name, value in (
+        ("linear_m", linear_m), ("angular_rad", angular_rad), ("resolution_m", resolution_m),
+        ("angular_resolution_rad", angular_resolution_rad), ("sigma_m", sigma_m),
+    ):
+        if value is not None:
+            _finite(name, float(value), 0.0, inclusive=False)
+    _finite("suppress_m", float(suppress_m), 0.0, inclusive=True)
+    _finite("suppress_rad", float(suppress_rad), 0.0, inclusive=True)
+    if not 0.0 <= candidate_min_ratio <= 1.0:
+        raise MatchInputError(f"candidate_min_ratio must be in [0, 1], got {candidate_min_ratio}")
+    if not (isinstance(candidates, int | np.integer) and 1 <= candidates <= MAX_TOP_CANDIDATES):
+        raise MatchInputError(
+            f"candidates must be a count in 1..{MAX_TOP_CANDIDATES}, got {candidates!r}"
+        )
 
 
 def correlative_match(
@@ -304,21 +438,28 @@ def correlative_match(
     candidate_min_ratio: float = 0.0,
 ) -> MatchResult:
     """Shared body of `csm` and `csm_exhaustive`; extra["candidates"] lists the distinct optima."""
+    check_window_options(
+        linear_m, angular_rad, resolution_m, angular_resolution_rad, sigma_m, candidates,
+        suppress_m, suppress_rad, candidate_min_ratio,
+    )
     bad = check_inputs(method, source, target, guess)
     if bad is not None:
         return bad
-    if not (linear_m >= 0 and angular_rad >= 0 and resolution_m > 0):
-        raise ValueError(
-            f"window must be >= 0 and resolution > 0, got linear_m={linear_m}, "
-            f"angular_rad={angular_rad}, resolution_m={resolution_m}"
-        )
     field = (
         target.likelihood_field(0)
         if hasattr(target, "likelihood_field")
         else points_field(np.asarray(target), resolution_m, sigma_m or resolution_m)
     )
-    step_rad = angular_resolution_rad or default_angular_step_rad(source, field.spec.resolution_m)
-    depth = stack_depth(math.floor(linear_m / field.spec.resolution_m + 1e-9))
+    res = field.spec.resolution_m
+    step_rad = angular_resolution_rad or default_angular_step_rad(
+        source, res, reach_m(field.spec, guess, linear_m)
+    )
+    half_cells, half_steps = window_steps(res, linear_m, angular_rad, step_rad)
+    check_search_size(
+        half_cells, half_steps, len(source), "linear_m",
+        "angular_rad / angular_resolution_rad" if angular_resolution_rad else "angular_rad",
+    )
+    depth = stack_depth(half_cells)
     # A map keeps its stack current incrementally (the same levels as a rebuild from its field).
     stack = (
         target.maxpool_stack(depth)
@@ -326,7 +467,6 @@ def correlative_match(
         else MaxPoolStack.from_values(field.spec, field.values, depth)
     )
     cand = build_candidates(source, stack, guess, linear_m, angular_rad, step_rad)
-    res = field.spec.resolution_m
     found = search_top(
         cand, exhaustive, candidates, math.floor(suppress_m / res + 1e-9),
         math.floor(suppress_rad / step_rad + 1e-9), candidate_min_ratio,
@@ -350,6 +490,7 @@ def correlative_match(
             "cell_offset": (ix, iy),
             "angle_step": k - cand.half_steps,
             "angular_step_rad": step_rad,
+            "angles": len(cand.angles_rad),
             "candidates": poses,
             "candidate_scores": [c[3] / (SCORE_SCALE * len(source)) for c in found],
         },

@@ -33,10 +33,14 @@ from scanflow.matching.api import (
     register_method,
 )
 from scanflow.matching.csm import (
+    MAX_TOP_CANDIDATES,
     build_candidates,
+    check_search_size,
     default_angular_step_rad,
+    reach_m,
     search_top,
     stack_depth,
+    window_steps,
 )
 from scanflow.scan import LaserScan
 
@@ -63,12 +67,21 @@ def localise_globally(
     headings (see the module docstring). OK: the best refined candidate; AMBIGUOUS: a distinct
     candidate scores >= ambiguity_ratio x the best (pose is the best, not to be trusted);
     otherwise the status says why (too few points, empty map, no candidate refined).
-    extra["candidates"] / ["candidate_scores"]: the distinct refined optima, best first."""
+    extra["candidates"] / ["candidate_scores"]: the distinct refined optima, best first.
+    A search larger than the caps of `scanflow.matching.csm` (a map too large for `level`)
+    raises MatchInputError naming them."""
     if level < 0 or candidates < 1 or not 0.0 < ambiguity_ratio <= 1.0:
         raise ValueError(
             f"level must be >= 0, candidates >= 1 and ambiguity_ratio in (0, 1], got "
             f"level={level}, candidates={candidates}, ambiguity_ratio={ambiguity_ratio}"
         )
+    if candidates > MAX_TOP_CANDIDATES:
+        raise MatchInputError(
+            f"candidates must be a count in 1..{MAX_TOP_CANDIDATES}, got {candidates!r}"
+        )
+    for name, value in (("suppress_m", suppress_m), ("suppress_rad", suppress_rad)):
+        if not (math.isfinite(value) and value >= 0.0):
+            raise MatchInputError(f"{name} must be finite and >= 0, got {value}")
     t0 = time.perf_counter()
     source = as_points(points, "points")
     method = f"{GLOBAL_METHOD}+{refine}"
@@ -81,8 +94,13 @@ def localise_globally(
     width_m, height_m = spec.cols * res, spec.rows * res
     centre = Pose2D(spec.origin_x_m + width_m / 2, spec.origin_y_m + height_m / 2, 0.0)
     half_m = max(width_m, height_m) / 2
-    step_rad = default_angular_step_rad(source, res)
-    stack = target.maxpool_stack(stack_depth(math.floor(half_m / res + 1e-9)), level)
+    step_rad = default_angular_step_rad(source, res, reach_m(spec, centre, half_m))
+    half_cells, half_steps = window_steps(res, half_m, math.pi, step_rad)
+    check_search_size(
+        half_cells, half_steps, len(source), f"the map's extent at level={level}",
+        "every heading",
+    )
+    stack = target.maxpool_stack(stack_depth(half_cells), level)
     cand = build_candidates(source, stack, centre, half_m, math.pi, step_rad)
     found = search_top(
         cand, False, candidates, math.floor(suppress_m / res + 1e-9),

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scanflow.geometry import Pose2D
-from scanflow.matching import MatchStatus, match
+from scanflow.matching import MatchInputError, MatchStatus, match
 
 
 def random_world(rng: np.random.Generator) -> np.ndarray:
@@ -150,3 +150,58 @@ def test_top_k_rejects_bad_counts(room, caster) -> None:
     scan = caster(room, Pose2D())
     with pytest.raises(ValueError, match="count"):
         match(scan, scan, method="csm", candidates=0)
+
+
+def angle_count(result) -> int:
+    """Angles the search scored."""
+    return result.extra["angles"]
+
+
+def test_a_far_glitch_point_does_not_shrink_the_angular_step(room, caster) -> None:
+    """The step is sized for points that can land on the target: one return at 20 km used to
+    make it ~2.5 urad (~400k angles, 17-21 s); now the same order as the scan's own."""
+    scan = caster(room, Pose2D(0.3, -0.2, 0.1), noise_m=0.01, rng=np.random.default_rng(3))
+    target = caster(room, Pose2D(), noise_m=0.01, rng=np.random.default_rng(4))
+    guess = Pose2D(0.3, -0.2, 0.1)
+    plain = match(scan, target, guess, method="csm")
+    glitch = match(np.vstack([scan, [[2e4, 0.0]]]), target, guess, method="csm")
+    assert plain.ok and glitch.ok
+    assert glitch.extra["angular_step_rad"] >= plain.extra["angular_step_rad"] / 20
+    assert angle_count(glitch) <= 20 * angle_count(plain) < 20_000
+    assert glitch.pose.relative_to(plain.pose).translation_norm() < 0.11
+
+
+def test_a_source_far_off_the_target_is_no_overlap_not_a_huge_allocation(room, caster) -> None:
+    scan = caster(room, Pose2D())
+    far = match(scan + 1e6, scan, method="csm")
+    assert far.status is MatchStatus.NO_OVERLAP
+
+
+def test_the_angular_window_is_at_most_a_full_turn(room, caster) -> None:
+    scan = caster(room, Pose2D(), beams=90)
+    r = match(scan, scan, method="csm", angular_rad=1e7, linear_m=0.1)
+    assert r.ok and angle_count(r) <= 2 * math.pi / r.extra["angular_step_rad"] + 1
+
+
+@pytest.mark.parametrize(
+    ("options", "named"),
+    [
+        ({"linear_m": 1e4}, "linear_m"),
+        ({"angular_resolution_rad": 1e-9}, "angular_resolution_rad"),
+        ({"linear_m": 20.0, "angular_rad": 3.0, "angular_resolution_rad": 1e-4},
+         "candidate count"),
+        ({"linear_m": math.inf}, "linear_m"),
+        ({"angular_rad": math.nan}, "angular_rad"),
+        ({"resolution_m": 0.0}, "resolution_m"),
+        ({"angular_resolution_rad": -1.0}, "angular_resolution_rad"),
+        ({"suppress_m": math.inf}, "suppress_m"),
+        ({"candidates": 10**7}, "candidates"),
+    ],
+)
+def test_a_search_too_large_or_non_finite_is_refused_by_name(
+    room, caster, options, named
+) -> None:
+    scan = caster(room, Pose2D())
+    for method in ("csm", "csm_exhaustive"):
+        with pytest.raises(MatchInputError, match=named):
+            match(scan, scan, method=method, **options)

@@ -107,6 +107,18 @@ def test_bad_input_gets_a_status_or_a_named_error(rooms_map):
         localise_globally(scan, rooms_map, ambiguity_ratio=1.5)
     with pytest.raises(ValueError, match="level"):
         localise_globally(scan, rooms_map, level=-1)
+    with pytest.raises(MatchInputError, match="candidates"):  # used to hang
+        localise_globally(scan, rooms_map, candidates=10**7)
+    with pytest.raises(MatchInputError, match="suppress_m"):  # used to raise OverflowError
+        localise_globally(scan, rooms_map, suppress_m=math.inf)
+
+
+def test_a_far_source_or_a_glitch_point_keeps_the_search_bounded(rooms_map):
+    """Coordinates ~1e6 m used to ask for 230 GiB of angles; one return at 20 km for ~400k."""
+    scan = cast(get_world("rooms").segments, Pose2D(2.5, 2.0, 0.0))
+    assert localise_globally(scan + 1e6, rooms_map).status is MatchStatus.NO_OVERLAP
+    found = localise_globally(np.vstack([scan, [[2e4, 0.0]]]), rooms_map)
+    assert is_near(found.pose, Pose2D(2.5, 2.0, 0.0))
 
 
 def test_match_runs_the_search_by_name_and_refuses_a_point_target(room):
