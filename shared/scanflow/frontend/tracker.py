@@ -49,7 +49,7 @@ from scanflow.frontend.trajectory import TrajectoryStore
 from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.occupancy import InsertResult, OccupancyGrid, OccupancyParams
-from scanflow.matching import MatchResult, match
+from scanflow.matching import MatchResult, MatchStatus, match
 from scanflow.matching.api import as_points
 from scanflow.matching.global_search import localise_globally
 
@@ -327,7 +327,9 @@ class Frontend:
             linear_m=s.fallback_linear_m, angular_rad=math.radians(s.fallback_angular_deg),
             resolution_m=s.map_resolution_m,
         )
-        if not coarse.ok:
+        # A degenerate search (a corridor) is as good as the acceptance limits allow it to be.
+        degenerate = coarse.status is MatchStatus.DEGENERATE and self._limits.accept_degenerate
+        if not (coarse.ok or degenerate):
             return coarse, FrontendStatus.REJECTED, f"fallback: {coarse.message}"
         refined = match(points, self.map, coarse.pose, method=s.method)
         if not rejection_reason(refined, guess, self._limits):

@@ -22,6 +22,7 @@ from scipy.spatial import cKDTree
 from scanflow.geometry import Pose2D
 from scanflow.matching.api import (
     MatchResult,
+    MatchStatus,
     register_method,
     require_at_least,
     require_in,
@@ -99,7 +100,9 @@ def match_csm_plicp(
         resolution_m=resolution_m, candidates=hypotheses, suppress_m=suppress_m,
         suppress_rad=suppress_rad, candidate_min_ratio=hypothesis_min_ratio,
     )
-    if not coarse.ok:
+    # A degenerate search (a corridor) still gives the basin across the corridor, its pose
+    # kept at the guess along it: plicp refines it and reports its own conditioning.
+    if not (coarse.ok or coarse.status is MatchStatus.DEGENERATE):
         return replace(coarse, method="csm+plicp")
     starts: list[Pose2D] = coarse.extra["candidates"]
     fines = [match_plicp(source, target, start, **plicp_options) for start in starts]
