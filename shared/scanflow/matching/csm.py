@@ -29,7 +29,14 @@ from scanflow.matching.api import (
     match,
     register_method,
 )
-from scanflow.matching.field_cost import check_inputs, points_field
+from scanflow.matching.checks import (
+    DEGENERATE_RATIO,
+    analyse_hessian,
+    characteristic_length_m,
+    line_hessian,
+)
+from scanflow.matching.correspondence import GridIndex, target_lines
+from scanflow.matching.field_cost import MIN_POINTS, check_inputs, points_field
 
 # Bounds on one search, checked before anything is allocated (`check_search_size`); a larger
 # search is refused with MatchInputError naming the options. Measured for scale: the default
@@ -420,6 +427,72 @@ def check_window_options(
         )
 
 
+# Neighbours of each matched point its normal is fitted to (see `matched_conditioning`).
+NORMAL_NEIGHBOURS = 16
+
+
+def matched_conditioning(
+    source: NDArray[np.float64], matched: NDArray[np.bool_], pose: Pose2D
+) -> tuple[MatchStatus, tuple[float, float, float] | None, str]:
+    """OK, DEGENERATE (with the weak direction) or ILL_CONDITIONED for a csm optimum, from the
+    geometry of the source points that score there (`matched`).
+
+    A point on a surface pins the pose only across that surface: the score under it changes
+    when it moves along the normal, not along the surface. So the points' information is the
+    point-to-line Hessian sum J^T J, J = [n, p x n] (n: the normal of the line fitted through
+    the point's neighbours in the source, turned into the target frame), analysed as plicp and
+    ndt analyse theirs (`analyse_hessian`, DEGENERATE_RATIO, rotation scaled by the points'
+    spread). Why not the score distribution: Olson's covariance samples +-3 cells and steps, so
+    a flat direction tops out at ~2 cells of std, and real corridor scans reach 1.8 (intel),
+    no margin; a quadratic fit of the scores had negative curvature on most real scans (the
+    peak is not quadratic over +-3 cells). Measured on the next-scan pairs of intel, aces and
+    freiburg-079: 6 of 6138 flagged, all intel corridor scans, 5 of them where csm's optimum had
+    slid 0.3-0.95 m along the corridor."""
+    points = source[matched]
+    hessian = np.zeros((3, 3))
+    if len(points) >= 2:
+        # Patches up to 0.5 m: over plicp's 0.2 m, range noise tilts the normals of a wall's
+        # sparse far points enough to fake a constraint along a corridor (ratio 2.5e-3 with 1 cm
+        # noise at 6 m range; 2.8e-4 over 0.5 m). Corners fail the flatness test either way.
+        lines = target_lines(GridIndex.build(points), k=NORMAL_NEIGHBOURS, radius_m=0.5,
+                             fit_radius_m=0.5)
+        c, s = math.cos(pose.theta), math.sin(pose.theta)
+        turn = np.array([[c, s], [-s, c]])  # row vectors times R^T: into the target frame
+        hessian = line_hessian(points[lines.ok] @ turn, lines.normals[lines.ok] @ turn)
+    # Rotation scaled by the spread of the points that carry the information (a glitch point
+    # far off the target would otherwise make every rotation look unconstrained).
+    cond = analyse_hessian(hessian, characteristic_length_m(points))
+    top = float(cond.eigenvalues[-1])
+    weak = int(np.count_nonzero(cond.eigenvalues <= DEGENERATE_RATIO * top)) if top > 0 else 3
+    if weak >= 2:
+        return (
+            MatchStatus.ILL_CONDITIONED, None,
+            f"the {len(points)} matched points constrain fewer than two directions "
+            f"(too few line-like patches among them: e.g. all at one spot)",
+        )
+    if weak == 1:
+        return (
+            MatchStatus.DEGENERATE, cond.weak_direction,
+            f"unconstrained along {np.round(cond.weak_direction, 3).tolist()} (eigenvalue "
+            f"ratio {cond.ratio:.1e}, e.g. a corridor); kept at the guess along it",
+        )
+    return MatchStatus.OK, None, ""
+
+
+def keep_guess_along(
+    pose: Pose2D, guess: Pose2D, weak: tuple[float, float, float], length_m: float
+) -> Pose2D:
+    """`pose` moved back to `guess` along the weak direction (rotation scaled by `length_m`, as
+    `analyse_hessian` scales it): the search knows nothing there, so, as gn's steps are, the
+    pose keeps the guess along it instead of wherever the flat score's tie-break landed."""
+    scale = np.array([1.0, 1.0, length_m])
+    d = np.array([pose.x - guess.x, pose.y - guess.y, pose.theta - guess.theta]) * scale
+    v = np.asarray(weak) * scale
+    v /= np.linalg.norm(v)
+    d = (d - (d @ v) * v) / scale
+    return Pose2D(guess.x + d[0], guess.y + d[1], guess.theta + d[2])
+
+
 def correlative_match(
     method: str,
     source: NDArray[np.float64],
@@ -445,6 +518,11 @@ def correlative_match(
     bad = check_inputs(method, source, target, guess)
     if bad is not None:
         return bad
+    if not hasattr(target, "likelihood_field") and len(target) < MIN_POINTS:
+        return failed(
+            method, MatchStatus.TOO_FEW_POINTS, guess,
+            f"target has {len(target)} points, need >= {MIN_POINTS}",
+        )
     field = (
         target.likelihood_field(0)
         if hasattr(target, "likelihood_field")
@@ -476,6 +554,12 @@ def correlative_match(
         return failed(method, MatchStatus.NO_OVERLAP, guess, "no candidate puts a point on the map")
     poses = [Pose2D(guess.x + c[1] * res, guess.y + c[2] * res, float(cand.angles_rad[c[0]]))
              for c in found]
+    matched = stack.lookup(0, cand.rows[k] + iy, cand.cols[k] + ix) > 0
+    status, weak, message = matched_conditioning(source, matched, poses[0])
+    if weak is not None:
+        # The first candidate is the pose, as for an OK result.
+        length_m = characteristic_length_m(source[matched])
+        poses[0] = keep_guess_along(poses[0], guess, weak, length_m)
     pose = poses[0]
     result = MatchResult(
         pose=pose,
@@ -483,9 +567,11 @@ def correlative_match(
         score=score / (SCORE_SCALE * len(source)),
         iterations=1,
         converged=True,
-        status=MatchStatus.OK,
+        status=status,
         method=method,
-        inliers=int(np.count_nonzero(stack.lookup(0, cand.rows[k] + iy, cand.cols[k] + ix))),
+        message=message,
+        weak_direction=weak,
+        inliers=int(np.count_nonzero(matched)),
         extra={
             "cell_offset": (ix, iy),
             "angle_step": k - cand.half_steps,
@@ -493,6 +579,8 @@ def correlative_match(
             "angles": len(cand.angles_rad),
             "candidates": poses,
             "candidate_scores": [c[3] / (SCORE_SCALE * len(source)) for c in found],
+            "lattice_pose": Pose2D(guess.x + ix * res, guess.y + iy * res,
+                                   float(cand.angles_rad[k])),
         },
     )
     if refine is None:

@@ -205,3 +205,56 @@ def test_a_search_too_large_or_non_finite_is_refused_by_name(
     for method in ("csm", "csm_exhaustive"):
         with pytest.raises(MatchInputError, match=named):
             match(scan, scan, method=method, **options)
+
+
+def line(x0: float, x1: float, n: int) -> np.ndarray:
+    return np.column_stack((np.linspace(x0, x1, n), np.zeros(n)))
+
+
+def test_a_line_on_a_line_is_degenerate_along_it_and_keeps_the_guess_there() -> None:
+    """Used to be OK with the pose slid 1 m to the window's edge."""
+    guess = Pose2D(0.25, 0.02, 0.0)
+    r = match(line(-1.0, 1.0, 100), line(-5.0, 5.0, 500), guess, method="csm")
+    assert r.status is MatchStatus.DEGENERATE
+    weak = np.asarray(r.weak_direction)
+    assert abs(weak[0]) > 0.99, weak  # along the line (x)
+    assert abs(r.pose.x - guess.x) < 1e-9 and abs(r.pose.y) < 0.03 and abs(r.pose.theta) < 0.01
+    assert r.extra["candidates"][0] == r.pose
+
+
+def test_a_corridor_scan_is_degenerate_across_nothing_else(corridor, caster) -> None:
+    rng = np.random.default_rng(5)
+    target = caster(corridor, Pose2D(), max_range_m=6.0, noise_m=0.01, rng=rng)
+    source = caster(corridor, Pose2D(0.4, 0.1, 0.05), max_range_m=6.0, noise_m=0.01, rng=rng)
+    r = match(source, target, Pose2D(0.3, 0.0, 0.0), method="csm")
+    assert r.status is MatchStatus.DEGENERATE and abs(r.weak_direction[0]) > 0.95
+    assert abs(r.pose.y - 0.1) < 0.06 and abs(r.pose.theta - 0.05) < math.radians(1.5)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 9])
+def test_a_target_of_few_points_is_too_few_points(room, caster, n) -> None:
+    scan = caster(room, Pose2D())
+    for method in ("csm", "csm_exhaustive"):
+        r = match(scan, scan[:n], method=method)
+        assert r.status is MatchStatus.TOO_FEW_POINTS, (n, method, r.status)
+
+
+def test_unobservable_sources_are_not_ok(room, caster, room_map_points) -> None:
+    scan = caster(room, Pose2D())
+    spot = np.tile([[1.0, 2.0]], (100, 1))
+    assert match(spot, scan, method="csm").status is MatchStatus.ILL_CONDITIONED
+    wall = line(-3.0, 3.0, 200) + np.array([0.0, -3.0])  # the room's bottom wall
+    r = match(wall, room_map_points, Pose2D(0.2, 0.0, 0.0), method="csm")
+    assert r.status is MatchStatus.DEGENERATE and abs(r.weak_direction[0]) > 0.95
+    assert abs(r.pose.x - 0.2) < 0.01  # not slid along the wall (lattice: 0.1)
+
+
+def test_an_ordinary_scan_is_still_ok(room, caster, room_map_points) -> None:
+    rng = np.random.default_rng(8)
+    for _ in range(10):
+        truth = Pose2D(rng.uniform(-2, 2), rng.uniform(-2, 1.5), rng.uniform(-3, 3))
+        scan = caster(room, truth, beams=180, noise_m=0.02, rng=rng)
+        guess = truth * Pose2D(rng.normal(0, 0.2), rng.normal(0, 0.2), rng.normal(0, 0.1))
+        for target in (room_map_points, caster(room, Pose2D(), noise_m=0.01, rng=rng)):
+            r = match(scan, target, guess if target is room_map_points else truth, method="csm")
+            assert r.ok and r.weak_direction is None, r.message
