@@ -28,6 +28,9 @@ def _split_csv(value: object) -> object:
     return value
 
 
+MAX_GLOBAL_LEVEL = 4  # the whole-map search's coarsest map pyramid level
+
+
 class SettingsError(ValueError):
     """Environment values a settings section cannot take; the message names each variable."""
 
@@ -378,7 +381,9 @@ class FrontendSettings(Section):
         True, description="insert accepted scans; false = localise only (needs a prior map)"
     )
     global_level: int = Field(
-        1, ge=0, le=4, description="map pyramid level of the whole-map search (cells x 2**level)"
+        1, ge=0, le=MAX_GLOBAL_LEVEL,
+        description="map pyramid level of the whole-map search (cells x 2**level); a map too "
+        "large for it is searched at the next coarser level that fits",
     )
     global_after_rejections: int = Field(
         3, ge=0, description="search the whole map after every this many rejected scans in a "

@@ -40,7 +40,7 @@ from enum import StrEnum
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scanflow.config import FrontendSettings
+from scanflow.config import MAX_GLOBAL_LEVEL, FrontendSettings
 from scanflow.frontend.acceptance import AcceptanceLimits, rejection_reason
 from scanflow.frontend.motion_filter import MotionFilter
 from scanflow.frontend.prediction import MotionPredictor, Prediction
@@ -50,7 +50,7 @@ from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.occupancy import InsertResult, OccupancyGrid, OccupancyParams
 from scanflow.matching import MatchResult, MatchStatus, match
-from scanflow.matching.api import as_points
+from scanflow.matching.api import MatchInputError, as_points, failed
 from scanflow.matching.global_search import localise_globally
 
 
@@ -302,7 +302,17 @@ class Frontend:
         """The whole-map search, refined with settings.method: LOCALISED if it passes the
         match checks (all but the correction from a prediction, which it has none of)."""
         s = self.settings
-        found = localise_globally(points, self.map, refine=s.method, level=s.global_level)
+        found, too_large = None, ""
+        for level in range(s.global_level, MAX_GLOBAL_LEVEL + 1):  # coarser if the map is large
+            try:
+                found = localise_globally(points, self.map, refine=s.method, level=level)
+                break
+            except MatchInputError as exc:  # over the search's caps at this level
+                too_large = str(exc)
+        if found is None:
+            note = f"whole-map search: the map is too large even at level {MAX_GLOBAL_LEVEL}: "
+            return (failed(s.method, MatchStatus.STEP_LIMIT, IDENTITY, too_large),
+                    FrontendStatus.REJECTED, note + too_large)
         reason = rejection_reason(found, found.pose, self._limits)
         if reason:
             return found, FrontendStatus.REJECTED, f"whole-map search: {reason}"

@@ -158,3 +158,43 @@ def test_an_operators_pose_replaces_the_search_and_puts_a_lost_robot_back(
     assert back.prediction_source == "hold"  # the decreed pose, not a velocity from the jump
     with pytest.raises(ValueError, match="finite"):
         lost.set_pose(Pose2D(math.inf, 0.0, 0.0))
+
+
+def _over_the_caps_below(level_that_fits: int, monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """The whole-map search refuses levels finer than `level_that_fits`, as it does a map
+    too large for them (its caps); returns the levels tried."""
+    from scanflow.frontend import tracker
+    from scanflow.matching import MatchInputError
+
+    tried: list[int] = []
+    real = tracker.localise_globally
+
+    def search(points, target, *, level: int, **options):
+        tried.append(level)
+        if level < level_that_fits:
+            raise MatchInputError(f"a search of 2e9 candidates at level {level} is over the cap")
+        return real(points, target, level=level, **options)
+
+    monkeypatch.setattr(tracker, "localise_globally", search)
+    return tried
+
+
+def test_a_map_too_large_for_the_search_level_is_searched_coarser(
+    settings: FrontendSettings, scan_at: Scanner, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    tried = _over_the_caps_below(2, monkeypatch)
+    frontend = Frontend(settings, grid=prior_grid(scan_at))
+    out = frontend.process(scan_at(START), 0.0)
+    assert tried == [1, 2]
+    assert out.status is FrontendStatus.LOCALISED and near(out.pose, START)
+
+
+def test_a_map_too_large_for_every_level_rejects_the_scan_saying_why(
+    settings: FrontendSettings, scan_at: Scanner, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    tried = _over_the_caps_below(99, monkeypatch)
+    frontend = Frontend(settings, grid=prior_grid(scan_at))
+    out = frontend.process(scan_at(START), 0.0)
+    assert tried == [1, 2, 3, 4]
+    assert out.status is FrontendStatus.REJECTED
+    assert "too large even at level 4" in out.message and "over the cap" in out.message
