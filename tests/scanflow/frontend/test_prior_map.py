@@ -179,22 +179,16 @@ def _over_the_caps_below(level_that_fits: int, monkeypatch: pytest.MonkeyPatch) 
     return tried
 
 
-def test_a_map_too_large_for_the_search_level_is_searched_coarser(
-    settings: FrontendSettings, scan_at: Scanner, monkeypatch: pytest.MonkeyPatch
+@pytest.mark.parametrize(("fits_at", "tried"), [(2, [1, 2]), (99, [1, 2, 3, 4])])
+def test_a_map_too_large_for_the_search_level_is_searched_coarser_or_the_scan_rejected(
+    settings: FrontendSettings, scan_at: Scanner, monkeypatch: pytest.MonkeyPatch,
+    fits_at: int, tried: list[int],
 ) -> None:
-    tried = _over_the_caps_below(2, monkeypatch)
-    frontend = Frontend(settings, grid=prior_grid(scan_at))
-    out = frontend.process(scan_at(START), 0.0)
-    assert tried == [1, 2]
-    assert out.status is FrontendStatus.LOCALISED and near(out.pose, START)
-
-
-def test_a_map_too_large_for_every_level_rejects_the_scan_saying_why(
-    settings: FrontendSettings, scan_at: Scanner, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    tried = _over_the_caps_below(99, monkeypatch)
-    frontend = Frontend(settings, grid=prior_grid(scan_at))
-    out = frontend.process(scan_at(START), 0.0)
-    assert tried == [1, 2, 3, 4]
-    assert out.status is FrontendStatus.REJECTED
-    assert "too large even at level 4" in out.message and "over the cap" in out.message
+    levels = _over_the_caps_below(fits_at, monkeypatch)
+    out = Frontend(settings, grid=prior_grid(scan_at)).process(scan_at(START), 0.0)
+    assert levels == tried
+    if fits_at <= 4:
+        assert out.status is FrontendStatus.LOCALISED and near(out.pose, START)
+    else:
+        assert out.status is FrontendStatus.REJECTED
+        assert "too large even at level 4" in out.message and "over the cap" in out.message
