@@ -27,7 +27,8 @@ from scanflow.frontend.acceptance import AcceptanceLimits, rejection_reason
 from scanflow.geometry import Pose2D, compose_arrays
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams, RayBatch
-from scanflow.matching import MatchStatus, match
+from scanflow.matching import match
+from scanflow.matching.csm import found_a_pose
 
 SUBMAPS_KEPT = 64  # candidate submaps cached between keyframes (a few MB)
 
@@ -174,9 +175,9 @@ class LoopDetector:
             candidates=2, suppress_m=s.rival_distance_m,
             suppress_rad=math.radians(s.rival_angle_deg), candidate_min_ratio=s.ambiguity_ratio,
         )
-        # A degenerate search (a corridor) goes on: its rivals along the corridor make it
-        # ambiguous, and the fine match must pass without accept_degenerate.
-        if not (coarse.ok or coarse.status is MatchStatus.DEGENERATE):
+        # A corridor's search goes on: its rivals along the corridor make it ambiguous, and
+        # the fine match must pass without accept_degenerate.
+        if not found_a_pose(coarse):
             return f"search: {coarse.message}"
         scores = coarse.extra["candidate_scores"]
         rival = scores[1] / scores[0] if len(scores) > 1 and scores[0] > 0 else 0.0

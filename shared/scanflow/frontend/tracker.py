@@ -51,6 +51,7 @@ from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.occupancy import InsertResult, OccupancyGrid, OccupancyParams
 from scanflow.matching import MatchResult, MatchStatus, match
 from scanflow.matching.api import MatchInputError, as_points, failed
+from scanflow.matching.csm import found_a_pose
 from scanflow.matching.global_search import localise_globally
 
 
@@ -337,9 +338,7 @@ class Frontend:
             linear_m=s.fallback_linear_m, angular_rad=math.radians(s.fallback_angular_deg),
             resolution_m=s.map_resolution_m,
         )
-        # A degenerate search (a corridor) is as good as the acceptance limits allow it to be.
-        degenerate = coarse.status is MatchStatus.DEGENERATE and self._limits.accept_degenerate
-        if not (coarse.ok or degenerate):
+        if not found_a_pose(coarse):  # a corridor's search still gives gn its start
             return coarse, FrontendStatus.REJECTED, f"fallback: {coarse.message}"
         refined = match(points, self.map, coarse.pose, method=s.method)
         if not rejection_reason(refined, guess, self._limits):

@@ -474,23 +474,20 @@ def matched_conditioning(
         return (
             MatchStatus.DEGENERATE, cond.weak_direction,
             f"unconstrained along {np.round(cond.weak_direction, 3).tolist()} (eigenvalue "
-            f"ratio {cond.ratio:.1e}, e.g. a corridor); kept at the guess along it",
+            f"ratio {cond.ratio:.1e}, e.g. a corridor): the pose along it is the flat score's "
+            "tie-break",
         )
     return MatchStatus.OK, None, ""
 
 
-def keep_guess_along(
-    pose: Pose2D, guess: Pose2D, weak: tuple[float, float, float], length_m: float
-) -> Pose2D:
-    """`pose` moved back to `guess` along the weak direction (rotation scaled by `length_m`, as
-    `analyse_hessian` scales it): the search knows nothing there, so, as gn's steps are, the
-    pose keeps the guess along it instead of wherever the flat score's tie-break landed."""
-    scale = np.array([1.0, 1.0, length_m])
-    d = np.array([pose.x - guess.x, pose.y - guess.y, pose.theta - guess.theta]) * scale
-    v = np.asarray(weak) * scale
-    v /= np.linalg.norm(v)
-    d = (d - (d @ v) * v) / scale
-    return Pose2D(guess.x + d[0], guess.y + d[1], guess.theta + d[2])
+SEARCHED = frozenset({MatchStatus.OK, MatchStatus.DEGENERATE, MatchStatus.ILL_CONDITIONED})
+
+
+def found_a_pose(result: MatchResult) -> bool:
+    """Whether a search found a best pose, however well its points constrain it (OK, or the
+    conditioning it reports): a refinement may start there, and its own checks judge the end.
+    One that found nothing (no overlap, too few points, an empty map) gives no start."""
+    return result.status in SEARCHED
 
 
 def correlative_match(
@@ -556,10 +553,6 @@ def correlative_match(
              for c in found]
     matched = stack.lookup(0, cand.rows[k] + iy, cand.cols[k] + ix) > 0
     status, weak, message = matched_conditioning(source, matched, poses[0])
-    if weak is not None:
-        # The first candidate is the pose, as for an OK result.
-        length_m = characteristic_length_m(source[matched])
-        poses[0] = keep_guess_along(poses[0], guess, weak, length_m)
     pose = poses[0]
     result = MatchResult(
         pose=pose,

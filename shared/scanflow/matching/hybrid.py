@@ -22,7 +22,6 @@ from scipy.spatial import cKDTree
 from scanflow.geometry import Pose2D
 from scanflow.matching.api import (
     MatchResult,
-    MatchStatus,
     register_method,
     require_at_least,
     require_in,
@@ -30,7 +29,7 @@ from scanflow.matching.api import (
     require_positive,
     target_points,
 )
-from scanflow.matching.csm import match_csm
+from scanflow.matching.csm import found_a_pose, match_csm
 from scanflow.matching.field_cost import densify_scan
 from scanflow.matching.plicp import match_plicp
 
@@ -100,9 +99,9 @@ def match_csm_plicp(
         resolution_m=resolution_m, candidates=hypotheses, suppress_m=suppress_m,
         suppress_rad=suppress_rad, candidate_min_ratio=hypothesis_min_ratio,
     )
-    # A degenerate search (a corridor) still gives the basin across the corridor, its pose
-    # kept at the guess along it: plicp refines it and reports its own conditioning.
-    if not (coarse.ok or coarse.status is MatchStatus.DEGENERATE):
+    # A corridor's search still gives the basin across the corridor: plicp refines it and
+    # reports its own conditioning.
+    if not found_a_pose(coarse):
         return replace(coarse, method="csm+plicp")
     starts: list[Pose2D] = coarse.extra["candidates"]
     fines = [match_plicp(source, target, start, **plicp_options) for start in starts]
