@@ -23,6 +23,7 @@ Conventions (the same as ROS sensor_msgs/LaserScan):
 from __future__ import annotations
 
 import math
+import operator
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -38,8 +39,32 @@ class ScanError(ValueError):
     """A scan or odometry sample whose fields are inconsistent; the message names the field."""
 
 
+def _numbers(name: str, value: ArrayLike, dtype: type) -> NDArray:
+    """`value` as an array of `dtype`; ScanError naming `name` when it holds no numbers."""
+    try:
+        return np.asarray(value, dtype=dtype)
+    except (TypeError, ValueError) as exc:
+        raise ScanError(f"{name} must be numbers: {exc}") from None
+
+
+def _count(name: str, value: int) -> int:
+    """A non-negative integer (numpy integers welcome; 1.7 or True refused)."""
+    try:
+        if isinstance(value, bool):
+            raise TypeError
+        value = operator.index(value)
+    except TypeError:
+        raise ScanError(f"{name} must be an integer, got {value!r}") from None
+    if value < 0:
+        raise ScanError(f"{name} must be >= 0, got {value}")
+    return value
+
+
 def _finite(name: str, value: float) -> float:
-    value = float(value)
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise ScanError(f"{name} must be a number, got {value!r}") from None
     if not math.isfinite(value):
         raise ScanError(f"{name} must be finite, got {value!r}")
     return value
@@ -66,7 +91,7 @@ class LaserScan:
     def __post_init__(self) -> None:
         # C-contiguous and writable (a read-only array, as decoded from the wire, is copied):
         # numba compiles each array type apart, so one type keeps a service's warm-up complete.
-        ranges = np.require(np.asarray(self.ranges_m, dtype=np.float32), None, ["C", "W"])
+        ranges = np.require(_numbers("ranges_m", self.ranges_m, np.float32), None, ["C", "W"])
         if ranges.ndim != 1:
             raise ScanError(f"ranges_m must be 1-D, got shape {ranges.shape}")
         if ranges.size > MAX_BEAMS:
@@ -74,7 +99,10 @@ class LaserScan:
         object.__setattr__(self, "ranges_m", ranges)
         for name in ("angle_min_rad", "angle_increment_rad", "range_min_m", "stamp_s"):
             object.__setattr__(self, name, _finite(name, getattr(self, name)))
-        rmax = float(self.range_max_m)
+        if abs(self.angle_increment_rad) > 2 * math.pi:  # 0: a fixed beam sampled in time
+            raise ScanError(f"angle_increment_rad must be at most a turn, got "
+                            f"{self.angle_increment_rad}")
+        rmax = _numbers("range_max_m", self.range_max_m, np.float64).item()
         if math.isnan(rmax):
             raise ScanError("range_max_m must not be NaN")
         object.__setattr__(self, "range_max_m", rmax)
@@ -87,7 +115,7 @@ class LaserScan:
             raise ScanError(f"scan_duration_s must be >= 0, got {duration}")
         object.__setattr__(self, "scan_duration_s", duration)
         if self.beam_time_offsets_s is not None:
-            offsets = np.asarray(self.beam_time_offsets_s, dtype=np.float64)
+            offsets = _numbers("beam_time_offsets_s", self.beam_time_offsets_s, np.float64)
             if offsets.shape != ranges.shape:
                 raise ScanError(
                     f"beam_time_offsets_s has shape {offsets.shape}, ranges_m has {ranges.shape}"
@@ -98,14 +126,13 @@ class LaserScan:
                 raise ScanError("beam_time_offsets_s must be non-decreasing")
             object.__setattr__(self, "beam_time_offsets_s", offsets)
         if self.intensities is not None:
-            inten = np.asarray(self.intensities, dtype=np.float32)
+            inten = _numbers("intensities", self.intensities, np.float32)
             if inten.shape != ranges.shape:
                 raise ScanError(f"intensities has shape {inten.shape}, ranges_m has {ranges.shape}")
             object.__setattr__(self, "intensities", inten)
         if not self.robot_id or not isinstance(self.robot_id, str):
             raise ScanError(f"robot_id must be a non-empty string, got {self.robot_id!r}")
-        if int(self.seq) < 0:
-            raise ScanError(f"seq must be >= 0, got {self.seq}")
+        object.__setattr__(self, "seq", _count("seq", self.seq))
         if not isinstance(self.mount, Pose2D):
             raise ScanError(f"mount must be a Pose2D, got {type(self.mount).__name__}")
 
@@ -223,9 +250,11 @@ class Odometry:
         if not isinstance(self.pose, Pose2D):
             raise ScanError(f"pose must be a Pose2D, got {type(self.pose).__name__}")
         if self.velocity is not None:
-            if len(self.velocity) != 3:
-                raise ScanError(f"velocity must have 3 values, got {len(self.velocity)}")
+            if not isinstance(self.velocity, tuple | list | np.ndarray) or len(self.velocity) != 3:
+                raise ScanError(f"velocity must be 3 numbers (vx, vy, omega), got "
+                                f"{self.velocity!r}")
             vel = tuple(_finite(f"velocity[{i}]", v) for i, v in enumerate(self.velocity))
             object.__setattr__(self, "velocity", vel)
         if not self.robot_id or not isinstance(self.robot_id, str):
             raise ScanError(f"robot_id must be a non-empty string, got {self.robot_id!r}")
+        object.__setattr__(self, "seq", _count("seq", self.seq))

@@ -81,11 +81,24 @@ def test_every_beam_is_valid_no_return_or_error(ranges: np.ndarray, range_max_m:
         ({"seq": -1}, "seq"),
         ({"beam_time_offsets_s": [0.0, 0.2, 0.1, 0.3]}, "beam_time_offsets_s"),
         ({"beam_time_offsets_s": [0.0, math.nan, 0.1, 0.3]}, "beam_time_offsets_s"),
+        # Not numbers at all: named, not numpy's bare "could not convert".
+        ({"intensities": ["x"] * 4}, "intensities must be numbers"),
+        ({"beam_time_offsets_s": ["t"] * 4}, "beam_time_offsets_s must be numbers"),
+        ({"angle_min_rad": "left"}, "angle_min_rad must be a number"),
+        ({"range_max_m": "far"}, "range_max_m must be numbers"),
+        ({"angle_increment_rad": 1e300}, "angle_increment_rad must be at most a turn"),
+        ({"seq": 1.7}, "seq must be an integer"),
+        ({"seq": True}, "seq must be an integer"),
     ],
 )
 def test_inconsistent_fields_raise_naming_the_field(fields: dict, field_name: str) -> None:
     with pytest.raises(ScanError, match=field_name):
         make_scan([1.0, 2.0, 3.0, 4.0], **fields)
+
+
+def test_ranges_must_be_numbers() -> None:
+    with pytest.raises(ScanError, match="ranges_m must be numbers"):
+        LaserScan(["a", "b"], 0.0, 0.1)  # type: ignore[arg-type]
 
 
 def test_ranges_must_be_one_dimensional() -> None:
@@ -149,6 +162,13 @@ def test_odometry_validation() -> None:
         Odometry(0.0, Pose2D(), velocity=(1.0, 2.0, math.inf))
     with pytest.raises(ScanError, match="robot_id"):
         Odometry(0.0, Pose2D(), robot_id="")
+    with pytest.raises(ScanError, match="velocity must be 3 numbers"):
+        Odometry(0.0, Pose2D(), velocity=5)  # type: ignore[arg-type]
+    with pytest.raises(ScanError, match=r"velocity\[0\] must be a number"):
+        Odometry(0.0, Pose2D(), velocity=("a", 0.0, 0.0))  # type: ignore[arg-type]
+    for seq in (-1, 2.5):
+        with pytest.raises(ScanError, match="seq must be"):
+            Odometry(0.0, Pose2D(), seq=seq)  # type: ignore[arg-type]
 
 
 def test_ranges_are_held_contiguous_and_writable_whatever_comes_in() -> None:
