@@ -14,18 +14,15 @@ a wrong basin (matching/trust.py). For a point set that is not one scan, pass
 Each method lives in its own module and registers itself with `register_method`; this module
 validates inputs once so methods can assume clean (N, 2) finite arrays (a `paired` method, svd,
 gets the rows as given and drops a pair when either of its points is not finite), and options
-whose names, types and finiteness fit the method's keyword parameters (`check_options`); the
-ranges that need a method's meaning it checks itself, with `require_positive` and its kin.
+whose names, types and finiteness fit the method's keyword parameters (`check_options`, from
+scanflow.matching.inputs); the ranges that need a method's meaning it checks itself, with
+`require_positive` and its kin.
 """
 
 from __future__ import annotations
 
-import inspect
 import math
-import numbers
 import time
-import types
-import typing
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
@@ -35,7 +32,49 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from scanflow.geometry import IDENTITY, Pose2D
+from scanflow.matching.inputs import (
+    MAX_ITERATIONS,
+    MatchInputError,
+    OptionSpec,
+    check_named,
+    function_options,
+    require_at_least,
+    require_at_most,
+    require_in,
+    require_iterations,
+    require_non_negative,
+    require_positive,
+)
 from scanflow.scan import LaserScan
+
+__all__ = [  # what methods and callers import from here, the inputs' checks included
+    "DEFAULT_METHOD",
+    "MAX_ITERATIONS",
+    "MapTarget",
+    "MatchInputError",
+    "MatchResult",
+    "MatchStatus",
+    "OptionSpec",
+    "Target",
+    "as_points",
+    "as_pose",
+    "available_methods",
+    "check_options",
+    "check_point_inputs",
+    "failed",
+    "forward_options",
+    "in_frame",
+    "match",
+    "method_options",
+    "register_method",
+    "require_at_least",
+    "require_at_most",
+    "require_in",
+    "require_iterations",
+    "require_non_negative",
+    "require_positive",
+    "target_points",
+]
 
 
 class MatchStatus(StrEnum):
@@ -55,11 +94,6 @@ class MatchStatus(StrEnum):
     POOR_FIT = "poor_fit"
     # A global search found distinct poses that explain the scan about equally well.
     AMBIGUOUS = "ambiguous"
-
-
-class MatchInputError(ValueError):
-    """Inputs that cannot be matched at all (wrong shapes, NaN guess, unknown method, an
-    option unknown to the method, of the wrong type, not finite or out of its range)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -141,86 +175,6 @@ def _load_methods() -> None:
     import scanflow.matching  # noqa: F401
 
 
-_SCALARS = (bool, int, float, str, type(None))
-_KIND_NAMES = {bool: "true or false", int: "an integer", float: "a number", str: "a string",
-               type(None): "None"}
-
-
-@dataclass(frozen=True)
-class OptionSpec:
-    """One keyword option of a method: the scalar types it takes (None: not checked here,
-    e.g. an array, which the method checks itself)."""
-
-    name: str
-    kinds: tuple[type, ...] | None
-
-    @property
-    def expected(self) -> str:
-        return " or ".join(_KIND_NAMES[k] for k in self.kinds or ())
-
-    def check(self, method: str, value: Any) -> Any:
-        """`value` as a plain bool/int/float/str (numpy scalars unwrapped, an int for a float
-        made a float), or MatchInputError naming the option."""
-        if isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_)):
-            try:
-                finite = math.isfinite(value)
-            except OverflowError:  # an int too large for a float
-                finite = False
-            if not finite:
-                raise MatchInputError(
-                    f"option {self.name} of method {method!r} must be finite, got {value!r}"
-                )
-        kinds = self.kinds
-        if kinds is None:
-            return value
-        if value is None and type(None) in kinds:
-            return None
-        if isinstance(value, (bool, np.bool_)):
-            if bool in kinds:
-                return bool(value)
-        elif isinstance(value, numbers.Integral) and int in kinds:
-            return int(value)
-        elif isinstance(value, numbers.Real) and float in kinds:
-            return float(value)
-        elif isinstance(value, str) and str in kinds:
-            return value
-        raise MatchInputError(
-            f"option {self.name} of method {method!r} must be {self.expected}, "
-            f"got {type(value).__name__} {value!r}"
-        )
-
-
-def _option_kinds(parameter: inspect.Parameter, hints: dict[str, Any]) -> tuple[type, ...] | None:
-    """The scalar types a parameter takes: from its annotation, else from its default's type;
-    None when it takes anything else too (an array, an object)."""
-    annotation = hints.get(parameter.name, parameter.annotation)
-    if annotation is inspect.Parameter.empty or isinstance(annotation, str):
-        default = parameter.default
-        return None if default is None else (type(default),)
-    union = isinstance(annotation, types.UnionType) or typing.get_origin(annotation) is typing.Union
-    members = typing.get_args(annotation) if union else (annotation,)
-    if not all(m in _SCALARS for m in members):
-        return None
-    return tuple(members)
-
-
-def _function_options(fn: Callable[..., Any]) -> tuple[dict[str, OptionSpec], bool]:
-    """The keyword parameters with defaults of `fn` (through its `__signature__`, else its
-    wrapped function's), and whether it also takes `**options`."""
-    try:
-        hints = typing.get_type_hints(inspect.unwrap(fn))
-    except Exception:  # an annotation that does not evaluate: fall back to the defaults' types
-        hints = {}
-    specs: dict[str, OptionSpec] = {}
-    var_keyword = False
-    for p in inspect.signature(fn).parameters.values():
-        if p.kind is p.VAR_KEYWORD:
-            var_keyword = True
-        elif p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD) and p.default is not p.empty:
-            specs[p.name] = OptionSpec(p.name, _option_kinds(p, hints))
-    return specs, var_keyword
-
-
 def method_options(method: str) -> dict[str, OptionSpec] | None:
     """The options `method` takes, by name; None when it takes any name (`**options` passed
     on to functions nobody declared)."""
@@ -229,12 +183,12 @@ def method_options(method: str) -> dict[str, OptionSpec] | None:
     cached = _OPTIONS.get(method)
     if cached is not None and cached[0] is fn:
         return cached[1]
-    specs, open_ended = _function_options(fn)
+    specs, open_ended = function_options(fn)
     forwards = _FORWARDS.get(method, ())
     if forwards:  # its **options are theirs
         open_ended = False
         for receiver in forwards:
-            more, more_open = _function_options(receiver)
+            more, more_open = function_options(receiver)
             specs = {**more, **specs}  # the method's own parameter wins
             open_ended = open_ended or more_open
     known = None if open_ended else specs  # None: nothing says which names it takes
@@ -243,68 +197,10 @@ def method_options(method: str) -> dict[str, OptionSpec] | None:
 
 
 def check_options(method: str, options: dict[str, Any]) -> dict[str, Any]:
-    """`options` of `method` as the method gets them (see `OptionSpec.check`), or
-    MatchInputError naming the first one unknown to it (listing its options), of the wrong
-    type or not finite. Ranges are the method's own (`require_positive` and its kin)."""
-    specs = method_options(method)
-    checked: dict[str, Any] = {}
-    for name, value in options.items():
-        if specs is None:
-            spec = OptionSpec(name, None)  # any name: only its finiteness is checked
-        elif name in specs:
-            spec = specs[name]
-        else:
-            known = ", ".join(sorted(specs)) or "none"
-            raise MatchInputError(
-                f"unknown option {name!r} for method {method!r}; its options: {known}"
-            )
-        checked[name] = spec.check(method, value)
-    return checked
+    """`options` checked against `method`'s options (`scanflow.matching.inputs.check_named`)."""
+    return check_named(method, method_options(method), options)
 
 
-def _require(test: Callable[[Any], bool], allowed: str, options: dict[str, Any]) -> None:
-    for name, value in options.items():
-        try:
-            ok = value is None or bool(test(value))
-        except (TypeError, ValueError):  # not comparable: a caller that bypassed check_options
-            ok = False
-        if not ok:
-            raise MatchInputError(f"option {name} must be {allowed}, got {value!r}")
-
-
-def require_positive(**options: Any) -> None:
-    """MatchInputError naming the first option not > 0 (None: not set, skipped; NaN fails)."""
-    _require(lambda v: v > 0, "> 0", options)
-
-
-def require_non_negative(**options: Any) -> None:
-    """MatchInputError naming the first option not >= 0."""
-    _require(lambda v: v >= 0, ">= 0", options)
-
-
-def require_at_least(minimum: int, **options: Any) -> None:
-    """MatchInputError naming the first option below `minimum`."""
-    _require(lambda v: v >= minimum, f">= {minimum}", options)
-
-
-def require_at_most(maximum: float, **options: Any) -> None:
-    """MatchInputError naming the first option above `maximum`."""
-    _require(lambda v: v <= maximum, f"<= {maximum:g}", options)
-
-
-MAX_ITERATIONS = 1000  # no method here gains past a few dozen; a bound keeps a request's cost
-
-
-def require_iterations(max_iterations: int) -> None:
-    """MatchInputError unless 1 <= max_iterations <= MAX_ITERATIONS (600,000 icp iterations
-    held a matcher for 22 s)."""
-    require_at_least(1, max_iterations=max_iterations)
-    require_at_most(MAX_ITERATIONS, max_iterations=max_iterations)
-
-
-def require_in(low: float, high: float, **options: Any) -> None:
-    """MatchInputError naming the first option outside [low, high]."""
-    _require(lambda v: low <= v <= high, f"in [{low:g}, {high:g}]", options)
 
 
 def as_points(
