@@ -21,14 +21,8 @@ from scanflow.matching.api import (
     MatchResult,
     MatchStatus,
     available_methods,
-    forward_options,
     match,
 )
-
-# These two pass their **options on; what they take is what those functions take.
-# (Better as `register_method(..., forwards_to=[...])` in their own modules.)
-forward_options("csm_exhaustive", csm.match_csm)
-forward_options(global_search.GLOBAL_METHOD, global_search.localise_globally)
 
 __all__ = [
     "DEFAULT_METHOD",

@@ -62,7 +62,6 @@ __all__ = [  # what methods and callers import from here, the inputs' checks inc
     "check_options",
     "check_point_inputs",
     "failed",
-    "forward_options",
     "in_frame",
     "match",
     "method_options",
@@ -148,7 +147,8 @@ def register_method(
 
     def deco(fn: MethodFn) -> MethodFn:
         _METHODS[name] = fn
-        forward_options(name, *forwards_to)
+        _FORWARDS[name] = tuple(forwards_to)
+        _OPTIONS.pop(name, None)  # a method registered again (a test's) is read afresh
         if paired:
             _PAIRED.add(name)
         else:
@@ -156,13 +156,6 @@ def register_method(
         return fn
 
     return deco
-
-
-def forward_options(name: str, *functions: Callable[..., Any]) -> None:
-    """Declare that method `name` passes its `**options` on to `functions`: their keyword
-    parameters are its options too (for methods registered without `forwards_to`)."""
-    _FORWARDS[name] = tuple(functions)
-    _OPTIONS.pop(name, None)
 
 
 def available_methods() -> list[str]:

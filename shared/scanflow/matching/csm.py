@@ -630,7 +630,7 @@ def match_csm(
     )
 
 
-@register_method("csm_exhaustive")
+@register_method("csm_exhaustive", forwards_to=[match_csm])
 def match_csm_exhaustive(
     source: NDArray[np.float64], target: object, guess: Pose2D, **options: object
 ) -> MatchResult:

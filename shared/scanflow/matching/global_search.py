@@ -141,7 +141,7 @@ def localise_globally(
     return result
 
 
-@register_method(GLOBAL_METHOD)
+@register_method(GLOBAL_METHOD, forwards_to=[localise_globally])
 def match_global(
     source: NDArray[np.float64], target: object, guess: Pose2D, **options: Any
 ) -> MatchResult:
