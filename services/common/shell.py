@@ -36,6 +36,7 @@ from services.common.counters import Counters, SeqTracker
 from services.common.inbox import Inbox
 from services.common.outbox import Outbox
 from services.common.process import io_threads
+from services.common.robots import Known, RobotLimit
 from services.common.zsession import open_session
 
 QueryHandler = Callable[[zenoh.Query], None]
@@ -59,6 +60,7 @@ class ServiceShell:
         self.stop_event = threading.Event()
         self.counters = Counters()
         self.seqs = SeqTracker()
+        self._robots = RobotLimit(settings.max_robots, self._refused_robot)
         self.inbox = Inbox(queue_size, self.stop_event)
         self.outbox = Outbox(queue_size, self.stop_event, f"{service}-sender")
         self._io_cpus = settings.io_cpus
@@ -86,6 +88,20 @@ class ServiceShell:
             return open_session(self._zenoh_settings)
 
     # -- declarations -------------------------------------------------------------------
+    def admits(self, robot_id: str, known: Known) -> bool:
+        """Whether to keep state for `robot_id`, `known` being the robots held (a refused one
+        is counted as `robots_refused` and named in the log once)."""
+        return self._robots.admits(robot_id, known)
+
+    def _refused_robot(self, robot_id: str, first: bool) -> None:
+        self.counters.add("robots_refused")
+        if first:
+            self.log.warning(
+                "robot %s refused: this %s keeps %d robots already "
+                "(SCANFLOW_%s_MAX_ROBOTS); its messages are dropped", robot_id, self.service,
+                self._robots.max_robots, self.service.upper(),
+            )
+
     def publisher(self, key: str) -> zenoh.Publisher:
         """A reliable publisher that blocks rather than drops when the network is slow."""
         pub = self.session.declare_publisher(

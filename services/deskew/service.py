@@ -99,6 +99,8 @@ class DeskewService:
                     robot.stage.observe_pose(message.stamp_s, message.pose)
                 self._flush(robot_id, robot, force=False)
             return
+        if not self.shell.admits(robot_id, self.robots):
+            return
         stream = f"{robot_id}/{kind}"
         restarted = self.shell.seqs.is_restart(stream, message.seq)
         self.shell.seqs.observe(stream, message.seq)

@@ -107,6 +107,8 @@ class MapServer:
         robot_id = message.robot_id
         robot = self.robots.get(robot_id)
         if robot is None:
+            if not self.shell.admits(robot_id, self.robots):
+                return
             robot = self.robots[robot_id] = RobotMap(
                 robot_id, self.new_grid, keep_keyframes=self.keep_keyframes
             )

@@ -110,6 +110,8 @@ class MatcherService:
         if not self.owns(robot_id):
             self.shell.counters.add(f"other_shard.{kind}")
             return
+        if not self.shell.admits(robot_id, self.frontends):
+            return
         stream = f"{robot_id}/{kind}"
         restarted = self.shell.seqs.is_restart(stream, message.seq)
         self.shell.seqs.observe(stream, message.seq)

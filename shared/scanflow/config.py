@@ -152,6 +152,10 @@ class ServiceSettings(ProcessSettings):
     slow_message_s: float = Field(
         1.0, gt=0.0, description="a message handled for longer is logged and counted as slow"
     )
+    max_robots: int = Field(
+        100, ge=1, description="robots this service keeps state for; messages naming more are "
+        "dropped (counted as robots_refused, each id logged once)",
+    )
 
 
 class KernelServiceSettings(ServiceSettings):

@@ -18,6 +18,7 @@ from services.common.counters import Counters, SeqTracker
 from services.common.inbox import Inbox
 from services.common.launch import Launcher
 from services.common.resend import resend_range, resend_selector
+from services.common.robots import RobotLimit
 from services.common.shell import robots_only
 from services.ingest.flow import CreditWindow, Pacer
 
@@ -203,3 +204,16 @@ def test_a_query_for_the_services_keys_passes_robot_queryables_by():
                 "site/sf/statsbot/initial_pose"):
         handler(SimpleNamespace(key_expr=key))
     assert [q.key_expr for q in seen] == ["site/sf/r1/map/resend", "site/sf/statsbot/initial_pose"]
+
+
+def test_a_robot_limit_admits_the_known_and_the_first_n_and_reports_each_refused_once():
+    refused: list[tuple[str, bool]] = []
+    limit = RobotLimit(2, lambda robot_id, first: refused.append((robot_id, first)))
+    held: dict[str, object] = {}
+    for robot_id in ("a", "b", "c", "a", "c", "d"):
+        if limit.admits(robot_id, held):
+            held.setdefault(robot_id, object())
+    assert sorted(held) == ["a", "b"]
+    assert refused == [("c", True), ("c", False), ("d", True)]
+    with pytest.raises(ValueError, match="max_robots"):
+        RobotLimit(0, lambda *_: None)

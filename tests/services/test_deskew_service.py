@@ -34,7 +34,7 @@ def reference_deskew(events) -> dict[int, np.ndarray]:
 
 def test_every_scan_is_deskewed_like_the_library_and_junk_is_counted(launcher, bus, start):
     deskewed = bus.record(keys.deskewed_scan())
-    start("deskew")
+    start("deskew", SCANFLOW_DESKEW_MAX_ROBOTS="1")
     junk = [b"", b"\x00garbage", ScanMessage.__name__.encode()]
     for payload in junk:
         bus.put(keys.raw_scan("robot"), payload)
@@ -59,6 +59,12 @@ def test_every_scan_is_deskewed_like_the_library_and_junk_is_counted(launcher, b
     assert stats.counters["malformed.odom"] == len(junk)
     assert stats.counters["received.scan"] == len(expected)
     assert stats.counters["seq.robot/scan.missed"] == 0
+    # A second robot, over SCANFLOW_DESKEW_MAX_ROBOTS=1: dropped, counted, the first unharmed.
+    bus.put(keys.raw_scan("second"), ScanMessage(LaserScan(
+        np.ones(8), 0.0, 0.1, robot_id="second", seq=0)).encode())
+    bus.wait_until(lambda: bus.stats("deskew").counters.get("robots_refused") == 1, 30.0,
+                   "the second robot refused")
+    assert {m.robot_id for m in deskewed} == {"robot"}
     assert launcher.processes["deskew"].poll() is None
 
 
