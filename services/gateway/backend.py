@@ -20,6 +20,7 @@ from scanflow import keys
 from scanflow.config import GatewaySettings, ZenohSettings
 from scanflow.wire import DecodeError, MapChangedMessage, PoseEstimateMessage
 
+from services.common.robots import RobotLimit
 from services.common.zsession import open_session
 from services.gateway.events import EventHub
 from services.gateway.metrics import Metrics
@@ -75,9 +76,11 @@ class ZenohBackend:
         self.settings = settings
         self.mode = zenoh_settings.mode
         self.prefix = keys.check_prefix(zenoh_settings.prefix)
-        self.tracks = TrackStore(settings.trajectory_cache_len)
-        self.events = EventHub(settings.stream_queue_len)
         self.metrics = Metrics()
+        self.tracks = TrackStore(
+            settings.trajectory_cache_len, RobotLimit(settings.max_robots, self._refused_robot)
+        )
+        self.events = EventHub(settings.stream_queue_len)
         self._lock = threading.Lock()
         self._alive: set[tuple[str, str]] = set()
         self._seqs: dict[tuple[str, str], int] = defaultdict(lambda: -1)
@@ -116,6 +119,12 @@ class ZenohBackend:
         self.session.close()
 
     # -- subscriptions (Zenoh threads) ----------------------------------------------------
+    def _refused_robot(self, robot_id: str, first: bool) -> None:
+        self.metrics.count("scanflow_gateway_robots_refused_total")
+        if first:
+            log.warning("robot %s refused: the gateway tracks %d robots already "
+                        "(SCANFLOW_GATEWAY_MAX_ROBOTS)", robot_id, self.settings.max_robots)
+
     def _robot_of(self, sample: zenoh.Sample) -> str | None:
         try:
             return keys.robot_of(str(sample.key_expr), self.prefix)
@@ -137,7 +146,8 @@ class ZenohBackend:
         estimate = self._decoded(sample, PoseEstimateMessage.decode, "pose")
         if estimate is None:
             return
-        self.tracks.add_pose(estimate)
+        if not self.tracks.add_pose(estimate):
+            return
         self.metrics.count("scanflow_gateway_poses_received_total")
         self.events.publish(estimate.robot_id, "pose", PoseOut.from_estimate(estimate).model_dump())
 

@@ -12,6 +12,8 @@ from numpy.typing import NDArray
 from scanflow.geometry import Pose2D
 from scanflow.wire import PoseEstimateMessage
 
+from services.common.robots import RobotLimit
+
 
 def pose_at(
     stamps_s: NDArray[np.float64], poses: NDArray[np.float64], stamp_s: float
@@ -66,30 +68,41 @@ class RobotTrack:
 class TrackStore:
     """Thread-safe map robot id -> RobotTrack, fed from Zenoh callback threads."""
 
-    def __init__(self, maxlen: int) -> None:
+    def __init__(self, maxlen: int, limit: RobotLimit | None = None) -> None:
         self.maxlen = maxlen
         self._lock = threading.Lock()
         self._tracks: dict[str, RobotTrack] = {}
+        self._limit = limit  # None: any number of robots
 
-    def _track(self, robot_id: str) -> RobotTrack:
+    def _track(self, robot_id: str) -> RobotTrack | None:
+        """The robot's track, made on first sight; None when the limit refuses a new one."""
         track = self._tracks.get(robot_id)
         if track is None:
+            if self._limit is not None and not self._limit.admits(robot_id, self._tracks):
+                return None
             track = self._tracks[robot_id] = RobotTrack(robot_id, self.maxlen)
         return track
 
-    def add_pose(self, estimate: PoseEstimateMessage) -> None:
+    def add_pose(self, estimate: PoseEstimateMessage) -> bool:
+        """Cache `estimate`; False when its robot is refused (over the limit)."""
         with self._lock:
-            self._track(estimate.robot_id).add(estimate, time.time())
+            track = self._track(estimate.robot_id)
+            if track is not None:
+                track.add(estimate, time.time())
+            return track is not None
 
     def saw_scan(self, robot_id: str) -> None:
         with self._lock:
             track = self._track(robot_id)
-            track.last_scan_received_s = time.time()
-            track.scans_seen += 1
+            if track is not None:
+                track.last_scan_received_s = time.time()
+                track.scans_seen += 1
 
     def saw_map(self, robot_id: str, revision: int) -> None:
         with self._lock:
-            self._track(robot_id).map_revision = revision
+            track = self._track(robot_id)
+            if track is not None:
+                track.map_revision = revision
 
     def latest(self, robot_id: str) -> PoseEstimateMessage | None:
         with self._lock:

@@ -308,6 +308,10 @@ class GatewaySettings(ProcessSettings):
     query_timeout_s: float = Field(5.0, gt=0.0, le=120.0, description="Zenoh query deadline")
     trajectory_cache_len: int = Field(20_000, ge=2, description="poses kept per robot")
     stream_queue_len: int = Field(256, ge=1, description="events buffered per stream client")
+    max_robots: int = Field(
+        100, ge=1, description="robots whose poses the gateway caches; poses of more are "
+        "dropped (scanflow_gateway_robots_refused_total, each id logged once)",
+    )
 
 
 class FrontendSettings(Section):

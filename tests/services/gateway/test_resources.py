@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from PIL import Image
 from scanflow import keys
+from scanflow.config import GatewaySettings
 from scanflow.maps.grid import GridSpec
 from scanflow.scan import LaserScan
 from scanflow.wire import (
@@ -101,6 +102,21 @@ def test_a_pose_on_another_robots_key_is_refused(client, peer, backend, publish_
     assert 'kind="pose"' in client.get("/metrics").text
     assert backend.tracks.latest("victim").seq == 31  # its cache kept, not reset by seq 0
     assert backend.tracks.latest("other") is None
+
+
+@pytest.mark.parametrize("settings", [GatewaySettings(api_key="k", max_robots=2)])
+def test_poses_of_more_robots_than_max_robots_are_dropped_and_counted(client, peer, backend,
+                                                                     publish_poses):
+    publish_poses("one", [(1.0, 0.0, 0.0, 0.0)])
+    publish_poses("two", [(1.0, 0.0, 0.0, 0.0)])
+    for seq in range(3):
+        peer.put(keys.pose("three"), estimate("three", seq, 1.0 + seq, 0.0, 0.0, 0.0).encode())
+    eventually(lambda: "scanflow_gateway_robots_refused_total 3" in client.get("/metrics").text,
+               "three refused poses counted")
+    assert not backend.tracks.known("three")
+    assert client.get("/api/v1/robots/three/pose").status_code == 404
+    publish_poses("one", [(2.0, 0.1, 0.0, 0.0)], seq0=1)  # the known ones go on
+    assert [r["robot_id"] for r in client.get("/api/v1/robots").json()["robots"]] == ["one", "two"]
 
 
 def test_ingest_msgpack_is_retagged_to_the_url_robot(client, peer, auth):
