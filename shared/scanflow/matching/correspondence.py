@@ -163,6 +163,72 @@ def grid_nearest_all(
     return out
 
 
+# Thinning of a dense point target (`thin_dense_target`): bearing bins of this width seen from
+# the target's origin, split along the range at a gap (an occlusion edge) or a depth (a surface
+# running away from the origin), both far above range noise: a cut through a wall's noise would
+# split its points into two parallel walls, each biased by half the noise.
+THIN_BELOW_DEG = 0.4
+THIN_GAP_M = 0.05
+THIN_DEPTH_M = 0.2
+
+
+@njit(cache=True)
+def _depth_chunks(
+    bins: NDArray[np.int64], ranges: NDArray[np.float64], gap_m: float, depth_m: float
+) -> NDArray[np.int64]:
+    """Cluster label of each point sorted by (bin, range): a new cluster starts at a new bin,
+    a range gap over gap_m, or a range depth_m beyond the cluster's first."""
+    labels = np.empty(len(bins), dtype=np.int64)
+    label = 0
+    first_m = ranges[0]
+    labels[0] = 0
+    for i in range(1, len(bins)):
+        if (bins[i] != bins[i - 1] or ranges[i] - ranges[i - 1] > gap_m
+                or ranges[i] - first_m > depth_m):
+            label += 1
+            first_m = ranges[i]
+        labels[i] = label
+    return labels
+
+
+def thin_dense_target(
+    points: NDArray[np.float64], below_deg: float = THIN_BELOW_DEG
+) -> NDArray[np.float64]:
+    """`points` as given, or, where two or more share a bearing bin `below_deg` wide seen from
+    the origin (and a range chunk: THIN_GAP_M, THIN_DEPTH_M), the centroid of each such cluster, in
+    bearing order.
+
+    Why: a target line is fitted over a point's k nearest neighbours, and an ICP pair is a
+    nearest point, both tuned on scans of 180-361 beams (>= 0.5 deg apart). On a denser target
+    (3,000+ beams: RPLidar S2/S3, an accumulated point set) the k nearest lie a few mm apart and
+    the range noise (~1 cm) dominates their scatter: the fit fails the flatness test, or points
+    anywhere, and nearest-point pairs sit inside a band of noise. A line's fit needs an extent
+    of ~15 noise sigmas to pass the flatness test; averaging the beams of each `below_deg` bin
+    gives the target the spacing the fits were tuned for and cuts the noise by the square root
+    of the beams merged (bins along the bearing, not a Cartesian voxel grid: range noise is
+    radial, and cells about as small as the noise split a wall's points by their noise into
+    two parallel walls). A scan whose beams are >= 0.5 deg apart has at most one point per bin,
+    so it comes back as it is, the very same array. Like the free-space check, this reads a
+    point target as seen from its origin.
+    """
+    if below_deg <= 0.0 or len(points) < 2:
+        return points
+    width = math.radians(below_deg)
+    bins = np.floor(np.arctan2(points[:, 1], points[:, 0]) / width).astype(np.int64)
+    sorted_bins = np.sort(bins)
+    if not np.any(sorted_bins[1:] == sorted_bins[:-1]):
+        return points
+    ranges = np.hypot(points[:, 0], points[:, 1])
+    order = np.lexsort((ranges, bins))
+    labels = _depth_chunks(bins[order], ranges[order], THIN_GAP_M, THIN_DEPTH_M)
+    count = int(labels[-1]) + 1
+    sizes = np.bincount(labels, minlength=count).astype(np.float64)
+    return np.column_stack((
+        np.bincount(labels, points[order, 0], count) / sizes,
+        np.bincount(labels, points[order, 1], count) / sizes,
+    ))
+
+
 @njit(cache=True)
 def _lines(
     grid: GridArrays, k: int, radius_m: float, fit_radius_m: float, max_flatness: float

@@ -34,6 +34,7 @@ from scanflow.matching.api import (
     target_points,
 )
 from scanflow.matching.checks import characteristic_length_m
+from scanflow.matching.correspondence import thin_dense_target
 from scanflow.matching.gn import match_gn
 from scanflow.matching.plicp import match_plicp
 
@@ -52,9 +53,10 @@ def without_weak_direction(
 
 def fine_target(target: object, moved: NDArray[np.float64], gate_m: float) -> NDArray[np.float64]:
     """The target points plicp refines on: a map's mean hits near the moved scan (within the
-    gate), else the points themselves."""
+    gate; one per cell, never dense), else the points themselves, thinned where dense in their
+    own frame (`thin_dense_target`; plicp would thin them as seen from gn's pose)."""
     near = getattr(target, "hit_means_near", None)
-    return near(moved, gate_m) if near is not None else target_points(target)
+    return near(moved, gate_m) if near is not None else thin_dense_target(target_points(target))
 
 
 @register_method("gn+plicp", forwards_to=[match_gn])
@@ -83,7 +85,7 @@ def match_gn_plicp(
         source, coarse.pose.inverse().transform_points(near), IDENTITY,
         max_correspondence_m=gate_m, min_correspondence_m=min_gate_m,
         # gn's pose passed the free-space test already; these are not one scan from its origin.
-        max_free_space_share=1.0,
+        max_free_space_share=1.0, thin_below_deg=0.0,
     )
     step, verdict = fine.pose, "kept"
     if fine.status is MatchStatus.DEGENERATE and fine.weak_direction is not None:

@@ -34,12 +34,14 @@ from scanflow.matching.api import (
 )
 from scanflow.matching.checks import line_hessian
 from scanflow.matching.correspondence import (
+    THIN_BELOW_DEG,
     GridArrays,
     GridIndex,
     adaptive_gate_m,
     grid_k_nearest,
     grid_nearest_all,
     target_lines,
+    thin_dense_target,
 )
 from scanflow.matching.covariance import pose_parameter_jacobian
 from scanflow.matching.field_cost import densify_scan
@@ -147,10 +149,12 @@ def match_icp(
     relative_error_change: float = 1e-6,
     line_radius_m: float = 0.5,
     min_inlier_fraction: float = 0.2,
+    thin_below_deg: float = THIN_BELOW_DEG,
 ) -> MatchResult:
-    """Method "icp": point-to-point ICP from `guess`. A target given as points is a scan,
-    densified every `surface_step_m` along its surfaces (None: its samples only); a map's
-    occupied cells are used as they are."""
+    """Method "icp": point-to-point ICP from `guess`. A target given as points is a scan:
+    thinned where denser than `thin_below_deg` between neighbours (`thin_dense_target`; 0:
+    never), then densified every `surface_step_m` along its surfaces (None: its samples only);
+    a map's occupied cells are used as they are."""
     require_positive(
         max_correspondence_m=max_correspondence_m, min_correspondence_m=min_correspondence_m,
         keep_fraction=keep_fraction, grid_cell_m=grid_cell_m, surface_step_m=surface_step_m,
@@ -160,12 +164,14 @@ def match_icp(
     require_iterations(max_iterations)
     require_non_negative(
         tolerance_m=tolerance_m, tolerance_rad=tolerance_rad,
-        relative_error_change=relative_error_change,
+        relative_error_change=relative_error_change, thin_below_deg=thin_below_deg,
     )
     tgt = target_points(target)
     bad = check_point_inputs("icp", source, tgt, guess, MIN_PAIRS)
     if bad is not None:
         return bad
+    if isinstance(target, np.ndarray):
+        tgt = thin_dense_target(tgt, thin_below_deg)
     surface = (
         densify_scan(tgt, surface_step_m)
         if surface_step_m is not None and isinstance(target, np.ndarray)

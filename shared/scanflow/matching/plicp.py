@@ -34,12 +34,14 @@ from scanflow.matching.api import (
 from scanflow.matching.checks import analyse_hessian, characteristic_length_m
 from scanflow.matching.correspondence import (
     MAD_TO_SIGMA,
+    THIN_BELOW_DEG,
     GridArrays,
     GridIndex,
     TargetLines,
     adaptive_gate_m,
     grid_k_nearest,
     target_lines,
+    thin_dense_target,
 )
 from scanflow.matching.covariance import line_fit_covariance, unknown_covariance
 from scanflow.matching.trust import fit_checked
@@ -156,8 +158,11 @@ def match_plicp(
     max_step_m: float = 0.5,
     max_step_rad: float = 0.3,
     min_inlier_fraction: float = 0.2,
+    thin_below_deg: float = THIN_BELOW_DEG,
 ) -> MatchResult:
-    """Method "plicp": point-to-line ICP from `guess`; the accurate local 2D matcher."""
+    """Method "plicp": point-to-line ICP from `guess`; the accurate local 2D matcher. A target
+    given as points denser than `thin_below_deg` between neighbours, seen from its origin, is
+    thinned to that first (`thin_dense_target`; 0: never); a map's occupied cells are not."""
     require_positive(
         max_correspondence_m=max_correspondence_m, min_correspondence_m=min_correspondence_m,
         cauchy_min_m=cauchy_min_m, normal_radius_m=normal_radius_m,
@@ -167,12 +172,16 @@ def match_plicp(
     require_at_most(normal_radius_m, normal_fit_radius_m=normal_fit_radius_m)
     require_at_least(2, normal_neighbours=normal_neighbours)
     require_iterations(max_iterations)
-    require_non_negative(tolerance_m=tolerance_m, tolerance_rad=tolerance_rad)
+    require_non_negative(
+        tolerance_m=tolerance_m, tolerance_rad=tolerance_rad, thin_below_deg=thin_below_deg
+    )
     require_in(0.0, 1.0, min_inlier_fraction=min_inlier_fraction)
     tgt = target_points(target)
     bad = check_point_inputs("plicp", source, tgt, guess, MIN_PAIRS)
     if bad is not None:
         return bad
+    if isinstance(target, np.ndarray):
+        tgt = thin_dense_target(tgt, thin_below_deg)
     grid = GridIndex.build(tgt, grid_cell_m)
     lines = target_lines(grid, normal_neighbours, normal_radius_m, normal_fit_radius_m)
     if lines.ok.sum() < MIN_PAIRS:
