@@ -1,0 +1,53 @@
+"""Dense point targets (3,600 and 20,000 beams, an RPLidar S2/S3 or an accumulated point set)
+against a 360-beam source: the line fits over a point's nearest neighbours and point-to-point
+pairs must not drown in the range noise (`thin_dense_target`)."""
+
+import math
+
+import numpy as np
+import pytest
+from scanflow.geometry import Pose2D
+from scanflow.matching import match
+from scanflow.matching.correspondence import GridIndex, target_lines, thin_dense_target
+from scanflow.sim import get_world, static_scan
+
+SOURCE_POSE = Pose2D(2.5, 2.0, 0.2)
+TARGET_POSE = SOURCE_POSE * Pose2D(0.05, 0.0, 0.01)
+TRUTH = SOURCE_POSE.relative_to(TARGET_POSE)
+
+
+def scan_points(pose: Pose2D, seed: int, beams: int = 360) -> np.ndarray:
+    """A still 360-deg sweep of `beams` in the "rooms" world, 1 cm range noise (the sim's lidar
+    model stops at 1,440 beams)."""
+    angles = np.arange(beams) * (2 * math.pi / beams)
+    rng = np.random.default_rng(seed)
+    return static_scan(get_world("rooms").segments, pose, angles, 12.0, 0.01, rng)
+
+
+@pytest.mark.parametrize("beams", [3600, 20_000])
+@pytest.mark.parametrize("method", ["plicp", "icp", "csm+plicp", "gn+plicp"])
+def test_dense_target_matches_like_a_sparse_one(method: str, beams: int) -> None:
+    source = scan_points(SOURCE_POSE, 1)
+    target = scan_points(TARGET_POSE, 2, beams=beams)
+    r = match(source, target, Pose2D(), method=method)
+    err = r.pose.relative_to(TRUTH)
+    assert r.ok, r.message
+    assert err.translation_norm() < 0.005 and abs(err.theta) < math.radians(0.3)
+    assert np.all(np.isfinite(r.covariance))
+
+
+@pytest.mark.parametrize("beams", [180, 360, 720])
+def test_scans_with_beams_half_a_degree_apart_or_more_are_not_thinned(beams: int) -> None:
+    target = scan_points(TARGET_POSE, 2, beams=beams)
+    assert thin_dense_target(target) is target
+
+
+def test_a_dense_scan_is_averaged_to_line_like_fits() -> None:
+    dense = scan_points(TARGET_POSE, 2, beams=20_000)
+    thinned = thin_dense_target(dense)
+    # 0.4 deg bins: ~900 points around, each the mean of ~20 beams.
+    assert 800 < len(thinned) < 1000
+    raw_ok = target_lines(GridIndex.build(dense)).ok.mean()
+    thinned_ok = target_lines(GridIndex.build(thinned)).ok.mean()
+    assert raw_ok < 0.1 and thinned_ok > 0.9
+    assert thin_dense_target(dense, below_deg=0.0) is dense
