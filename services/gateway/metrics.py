@@ -117,10 +117,6 @@ class Metrics:
                 hist = family[key] = Histogram(LATENCY_BUCKETS_S)
             hist.observe(value_s)
 
-    def counter_value(self, name: str, **labels: str) -> int:
-        with self._lock:
-            return self._counters.get(name, {}).get(_labels(**labels), 0)
-
     def render(self) -> str:
         with self._lock:
             lines: list[str] = []

@@ -51,7 +51,7 @@ class DeskewResult:
     no_return_points: NDArray[np.float64]
     reference: Reference
     reference_stamp_s: float
-    source_used: str
+    source_used: SourceUsed
     times_assumed: bool
     message: str
     beam_count: int
@@ -144,7 +144,7 @@ def _result(
     moved: Moved,
     reference: Reference,
     reference_s: float,
-    source_used: str,
+    source_used: SourceUsed,
     message: str,
 ) -> DeskewResult:
     points, no_return_points = moved

@@ -65,9 +65,6 @@ class TrajectoryStore:
     def nbytes(self) -> int:
         return self._rows.nbytes
 
-    def to_tum(self) -> str:
-        return tum_text(self.stamps_s, self.poses)
-
     def save_tum(self, path: Path | str) -> Path:
         return save_tum(path, self.stamps_s, self.poses)
 

@@ -214,9 +214,6 @@ class Fields:
     def array(self, name: str, dtype: str) -> NDArray[Any]:
         return decode_array(self.get(name), f"{self.where}.{name}", dtype)
 
-    def optional_array(self, name: str, dtype: str) -> NDArray[Any] | None:
-        return None if self.is_nil(name) else self.array(name, dtype)
-
     def nested(self, name: str) -> Fields:
         return Fields(self.get(name), f"{self.where}.{name}")
 
@@ -235,9 +232,6 @@ class Fields:
             return Pose2D(x, y, theta)
         except ValueError as exc:
             raise SchemaError(f"{self.where}.{name}: {exc}") from exc
-
-    def optional_pose(self, name: str) -> Pose2D | None:
-        return None if self.is_nil(name) else self.pose(name)
 
     def mapping(self, name: str, types: tuple[type, ...], what: str) -> dict[str, Any]:
         """A str-keyed map whose values have one of `types` exactly (bool is not an int here)."""
