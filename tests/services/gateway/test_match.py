@@ -91,6 +91,14 @@ def test_scan_to_map_for_an_unknown_robot_is_404_for_a_known_one_503(client, aut
     assert r.status_code == 503  # known, but its matcher does not answer: not the client's fault
 
 
+@pytest.mark.parametrize("robot_id", ["*", "**", "a/b", "$*", ".."])
+def test_a_msgpack_map_target_that_is_no_robot_id_is_422_not_500(client, auth, robot_id):
+    fields = msgpack.unpackb(MatchRequest("gn", np.zeros((5, 2)), MapRef("r1")).encode())
+    fields["target"]["robot_id"] = robot_id
+    r = client.post("/api/v1/match", content=msgpack.packb(fields), headers={**auth, **MSGPACK})
+    assert r.status_code == 422 and "robot id" in r.text, r.text
+
+
 def test_msgpack_body_and_answer(client, peer, auth):
     peer.answer(keys.scan_match(), echo_matcher([]))
     points = np.random.default_rng(0).normal(size=(20, 2))
