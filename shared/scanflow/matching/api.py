@@ -32,48 +32,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from scanflow.geometry import IDENTITY, Pose2D
-from scanflow.matching.inputs import (
-    MAX_ITERATIONS,
-    MatchInputError,
-    OptionSpec,
-    check_named,
-    function_options,
-    require_at_least,
-    require_at_most,
-    require_in,
-    require_iterations,
-    require_non_negative,
-    require_positive,
-)
+from scanflow.matching.inputs import MatchInputError, OptionSpec, check_named, function_options
 from scanflow.scan import LaserScan
-
-__all__ = [  # what methods and callers import from here, the inputs' checks included
-    "DEFAULT_METHOD",
-    "MAX_ITERATIONS",
-    "MapTarget",
-    "MatchInputError",
-    "MatchResult",
-    "MatchStatus",
-    "OptionSpec",
-    "Target",
-    "as_points",
-    "as_pose",
-    "available_methods",
-    "check_options",
-    "check_point_inputs",
-    "failed",
-    "in_frame",
-    "match",
-    "method_options",
-    "register_method",
-    "require_at_least",
-    "require_at_most",
-    "require_in",
-    "require_iterations",
-    "require_non_negative",
-    "require_positive",
-    "target_points",
-]
 
 
 class MatchStatus(StrEnum):

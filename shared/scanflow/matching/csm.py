@@ -21,14 +21,7 @@ from numpy.typing import NDArray
 from scanflow.geometry import Pose2D
 from scanflow.maps.grid import GridSpec
 from scanflow.maps.maxpool import SCORE_SCALE, MaxPoolStack
-from scanflow.matching.api import (
-    MatchInputError,
-    MatchResult,
-    MatchStatus,
-    failed,
-    match,
-    register_method,
-)
+from scanflow.matching.api import MatchResult, MatchStatus, failed, match, register_method
 from scanflow.matching.checks import (
     DEGENERATE_RATIO,
     analyse_hessian,
@@ -37,6 +30,12 @@ from scanflow.matching.checks import (
 )
 from scanflow.matching.correspondence import GridIndex, target_lines
 from scanflow.matching.field_cost import MIN_POINTS, check_inputs, points_field
+from scanflow.matching.inputs import (
+    MatchInputError,
+    require_in,
+    require_non_negative,
+    require_positive,
+)
 
 # Bounds on one search, checked before anything is allocated (`check_search_size`); a larger
 # search is refused with MatchInputError naming the options. Measured for scale: the default
@@ -56,6 +55,11 @@ MAX_CANDIDATES = 2**34
 # Distinct optima one search may return (`candidates`): each is a further search that checks
 # every earlier one's suppression box.
 MAX_TOP_CANDIDATES = 100
+# Entries of the float temporaries `build_candidates` holds at once (16 MB each).
+ROTATION_BLOCK_ENTRIES = 2**21
+# Source points up to this many times the reach count towards the angular step (see
+# `default_angular_step_rad`); measured on real next-scan pairs: at most 4.7.
+REACH_FACTOR = 8.0
 
 
 @dataclass(frozen=True)
@@ -94,10 +98,6 @@ def build_candidates(
         cols[a0 : a0 + block] = np.floor((x - stack.spec.origin_x_m) / res)
         rows[a0 : a0 + block] = np.floor((y - stack.spec.origin_y_m) / res)
     return Candidates(stack, rows, cols, angles, half_cells, half_steps)
-
-
-# Entries of the float temporaries `build_candidates` holds at once (16 MB each).
-ROTATION_BLOCK_ENTRIES = 2**21
 
 
 def window_steps(
@@ -375,11 +375,6 @@ def default_angular_step_rad(
     return math.acos(max(1.0 - resolution_m**2 / (2.0 * far_m**2), -1.0))
 
 
-# Source points up to this many times the reach count towards the angular step (see
-# `default_angular_step_rad`); measured on real next-scan pairs: at most 4.7.
-REACH_FACTOR = 8.0
-
-
 def reach_m(spec: GridSpec, centre: Pose2D, half_m: float) -> float:
     """The largest distance from a candidate's translation (within +-half_m of `centre` in x
     and y) to any point of the grid `spec` covers: a source point farther than that from the
@@ -389,14 +384,6 @@ def reach_m(spec: GridSpec, centre: Pose2D, half_m: float) -> float:
     dx = max(x1 - (centre.x - half_m), (centre.x + half_m) - x0)
     dy = max(y1 - (centre.y - half_m), (centre.y + half_m) - y0)
     return math.hypot(dx, dy)
-
-
-def _finite(name: str, value: float, low: float, inclusive: bool) -> None:
-    """MatchInputError unless `value` is finite and > low (>= low if inclusive)."""
-    ok = math.isfinite(value) and (value >= low if inclusive else value > low)
-    if not ok:
-        bound = ">=" if inclusive else ">"
-        raise MatchInputError(f"{name} must be finite and {bound} {low}, got {value}")
 
 
 def check_window_options(
@@ -411,16 +398,12 @@ def check_window_options(
     candidate_min_ratio: float,
 ) -> None:
     """MatchInputError naming the first option of `csm` that is non-finite or out of range."""
-    for name, value in (
-        ("linear_m", linear_m), ("angular_rad", angular_rad), ("resolution_m", resolution_m),
-        ("angular_resolution_rad", angular_resolution_rad), ("sigma_m", sigma_m),
-    ):
-        if value is not None:
-            _finite(name, float(value), 0.0, inclusive=False)
-    _finite("suppress_m", float(suppress_m), 0.0, inclusive=True)
-    _finite("suppress_rad", float(suppress_rad), 0.0, inclusive=True)
-    if not 0.0 <= candidate_min_ratio <= 1.0:
-        raise MatchInputError(f"candidate_min_ratio must be in [0, 1], got {candidate_min_ratio}")
+    require_positive(
+        linear_m=linear_m, angular_rad=angular_rad, resolution_m=resolution_m,
+        angular_resolution_rad=angular_resolution_rad, sigma_m=sigma_m,
+    )
+    require_non_negative(suppress_m=suppress_m, suppress_rad=suppress_rad)
+    require_in(0.0, 1.0, candidate_min_ratio=candidate_min_ratio)
     if not (isinstance(candidates, int | np.integer) and 1 <= candidates <= MAX_TOP_CANDIDATES):
         raise MatchInputError(
             f"candidates must be a count in 1..{MAX_TOP_CANDIDATES}, got {candidates!r}"

@@ -15,15 +15,7 @@ from numpy.typing import NDArray
 
 from scanflow.geometry import Pose2D
 from scanflow.maps.field import LikelihoodField
-from scanflow.matching.api import (
-    MatchResult,
-    MatchStatus,
-    register_method,
-    require_in,
-    require_iterations,
-    require_non_negative,
-    require_positive,
-)
+from scanflow.matching.api import MatchResult, MatchStatus, register_method
 from scanflow.matching.checks import characteristic_length_m
 from scanflow.matching.field_cost import (
     MAX_LEVELS,
@@ -34,6 +26,12 @@ from scanflow.matching.field_cost import (
     out_of_iterations,
     run_coarse_to_fine,
     solve_well_determined,
+)
+from scanflow.matching.inputs import (
+    require_in,
+    require_iterations,
+    require_non_negative,
+    require_positive,
 )
 from scanflow.matching.trust import fit_checked
 

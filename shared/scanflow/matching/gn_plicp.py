@@ -25,17 +25,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanflow.geometry import IDENTITY, Pose2D
-from scanflow.matching.api import (
-    MatchResult,
-    MatchStatus,
-    register_method,
-    require_at_most,
-    require_positive,
-    target_points,
-)
+from scanflow.matching.api import MatchResult, MatchStatus, register_method, target_points
 from scanflow.matching.checks import characteristic_length_m
 from scanflow.matching.correspondence import thin_dense_target
 from scanflow.matching.gn import match_gn
+from scanflow.matching.inputs import require_at_most, require_positive
 from scanflow.matching.plicp import match_plicp
 
 

@@ -20,17 +20,15 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from scanflow.geometry import Pose2D
-from scanflow.matching.api import (
-    MatchResult,
-    register_method,
+from scanflow.matching.api import MatchResult, register_method, target_points
+from scanflow.matching.csm import found_a_pose, match_csm
+from scanflow.matching.field_cost import densify_scan
+from scanflow.matching.inputs import (
     require_at_least,
     require_in,
     require_non_negative,
     require_positive,
-    target_points,
 )
-from scanflow.matching.csm import found_a_pose, match_csm
-from scanflow.matching.field_cost import densify_scan
 from scanflow.matching.plicp import match_plicp
 
 # Densification step of the overlap test: point-to-surface distances to ~1 cm.

@@ -22,16 +22,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 from scanflow.geometry import Pose2D
-from scanflow.matching.api import (
-    MatchResult,
-    check_point_inputs,
-    register_method,
-    require_in,
-    require_iterations,
-    require_non_negative,
-    require_positive,
-    target_points,
-)
+from scanflow.matching.api import MatchResult, check_point_inputs, register_method, target_points
 from scanflow.matching.checks import line_hessian
 from scanflow.matching.correspondence import (
     THIN_BELOW_DEG,
@@ -45,6 +36,12 @@ from scanflow.matching.correspondence import (
 )
 from scanflow.matching.covariance import pose_parameter_jacobian
 from scanflow.matching.field_cost import densify_scan
+from scanflow.matching.inputs import (
+    require_in,
+    require_iterations,
+    require_non_negative,
+    require_positive,
+)
 from scanflow.matching.plicp import CONVERGED, MAX_ITER, MIN_PAIRS, TOO_FEW, line_match_result
 from scanflow.matching.trust import fit_checked
 

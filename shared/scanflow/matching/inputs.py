@@ -135,13 +135,15 @@ def _require(test: Callable[[Any], bool], allowed: str, options: dict[str, Any])
 
 
 def require_positive(**options: Any) -> None:
-    """MatchInputError naming the first option not > 0 (None: not set, skipped; NaN fails)."""
+    """MatchInputError naming the first option not finite and > 0 (None: not set, skipped)."""
     _require(lambda v: v > 0, "> 0", options)
+    _require(lambda v: not math.isinf(v), "finite", options)
 
 
 def require_non_negative(**options: Any) -> None:
-    """MatchInputError naming the first option not >= 0."""
+    """MatchInputError naming the first option not finite and >= 0."""
     _require(lambda v: v >= 0, ">= 0", options)
+    _require(lambda v: not math.isinf(v), "finite", options)
 
 
 def require_at_least(minimum: int, **options: Any) -> None:

@@ -19,17 +19,7 @@ from numpy.typing import NDArray
 
 from scanflow.geometry import Pose2D
 from scanflow.maps.ndt_cells import OverlappingCells
-from scanflow.matching.api import (
-    MatchResult,
-    MatchStatus,
-    failed,
-    register_method,
-    require_in,
-    require_iterations,
-    require_non_negative,
-    require_positive,
-    target_points,
-)
+from scanflow.matching.api import MatchResult, MatchStatus, failed, register_method, target_points
 from scanflow.matching.checks import analyse_hessian, characteristic_length_m, line_hessian
 from scanflow.matching.covariance import unknown_covariance
 from scanflow.matching.field_cost import (
@@ -39,6 +29,12 @@ from scanflow.matching.field_cost import (
     check_inputs,
     converged_step,
     moved_points,
+)
+from scanflow.matching.inputs import (
+    require_in,
+    require_iterations,
+    require_non_negative,
+    require_positive,
 )
 from scanflow.matching.trust import fit_checked
 

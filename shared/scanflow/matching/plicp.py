@@ -23,12 +23,6 @@ from scanflow.matching.api import (
     check_point_inputs,
     failed,
     register_method,
-    require_at_least,
-    require_at_most,
-    require_in,
-    require_iterations,
-    require_non_negative,
-    require_positive,
     target_points,
 )
 from scanflow.matching.checks import analyse_hessian, characteristic_length_m
@@ -44,6 +38,14 @@ from scanflow.matching.correspondence import (
     thin_dense_target,
 )
 from scanflow.matching.covariance import line_fit_covariance, unknown_covariance
+from scanflow.matching.inputs import (
+    require_at_least,
+    require_at_most,
+    require_in,
+    require_iterations,
+    require_non_negative,
+    require_positive,
+)
 from scanflow.matching.trust import fit_checked
 
 MIN_PAIRS = 6

@@ -30,14 +30,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanflow.geometry import Pose2D
-from scanflow.matching.api import (
-    MatchResult,
-    MatchStatus,
-    MethodFn,
-    require_in,
-    require_non_negative,
-)
+from scanflow.matching.api import MatchResult, MatchStatus, MethodFn
 from scanflow.matching.free_space import free_space_test
+from scanflow.matching.inputs import require_in, require_non_negative
 
 FREE_SPACE_MARGIN_M = 0.2
 MAX_FREE_SPACE_SHARE = 0.1

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from scanflow.geometry import Pose2D
 from scanflow.matching import MatchInputError, available_methods, match
-from scanflow.matching.api import MAX_ITERATIONS, method_options, require_positive
+from scanflow.matching.api import method_options
+from scanflow.matching.inputs import MAX_ITERATIONS, require_positive
 from scanflow.matching.plicp import match_plicp
 
 METHODS = available_methods()
