@@ -58,17 +58,19 @@ def load_settings(section: type[S]) -> S:
         )) from None
 
 
-def check_environment(*sections: type[Section]) -> None:
-    """Read each section from the environment; `SettingsError` names every bad variable of
-    all of them (a deployment checked before anything starts)."""
+def check_environment(*sections: type[Section]) -> dict[type[Section], Section]:
+    """Each section read from the environment, by class; `SettingsError` names every bad
+    variable of all of them (a deployment checked before anything starts)."""
+    loaded: dict[type[Section], Section] = {}
     errors = []
     for section in sections:
         try:
-            load_settings(section)
+            loaded[section] = load_settings(section)
         except SettingsError as error:
             errors.append(str(error))
     if errors:
         raise SettingsError("; ".join(errors))
+    return loaded
 
 
 def _shown(value: object) -> str:

@@ -21,7 +21,7 @@ from pydantic_settings import BaseSettings
 
 from scanflow import config
 from scanflow.cli import app
-from scanflow.config import SECTIONS, SettingsError, check_environment, load_settings
+from scanflow.config import SECTIONS, SettingsError, check_environment
 
 # Bases whose fields every service section repeats under its own prefix: listed once.
 SHARED_BASES: tuple[type[BaseSettings], ...] = (
@@ -163,8 +163,7 @@ def _row(name: str, s: Setting, note: str = "") -> str:
 def current_values() -> list[dict[str, str]]:
     """Every variable with its default and the value the environment gives it; raises
     `SettingsError` naming each variable whose value is not valid."""
-    check_environment(*SECTIONS)
-    loaded = {section: load_settings(section) for section in SECTIONS}
+    loaded = check_environment(*SECTIONS)
     return [
         {"name": s.name, "kind": type_text(s.info), "default": default_text(s.info),
          "value": value_text(getattr(loaded[s.section], s.field)),
