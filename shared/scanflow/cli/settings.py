@@ -13,7 +13,6 @@ import typing
 from dataclasses import dataclass
 from typing import Annotated, Any
 
-import annotated_types
 import typer
 from pydantic import SecretStr
 from pydantic.fields import FieldInfo
@@ -29,8 +28,8 @@ SHARED_BASES: tuple[type[BaseSettings], ...] = (
     config.ServiceSettings,
     config.KernelServiceSettings,
 )
-BOUNDS = ((annotated_types.Gt, "gt", ">"), (annotated_types.Ge, "ge", ">="),
-          (annotated_types.Lt, "lt", "<"), (annotated_types.Le, "le", "<="))
+# A field's bounds, as pydantic keeps them in its metadata (annotated_types.Gt and kin).
+BOUNDS = (("gt", ">"), ("ge", ">="), ("lt", "<"), ("le", "<="))
 
 
 @dataclass(frozen=True)
@@ -88,7 +87,7 @@ def type_text(info: FieldInfo) -> str:
         names = [a.__name__ for a in (args or (annotation,)) if a is not type(None)]
         text = " or ".join(names)
     bounds = [f"{sign} {getattr(m, attr)}"
-              for m in info.metadata for kind, attr, sign in BOUNDS if isinstance(m, kind)]
+              for m in info.metadata for attr, sign in BOUNDS if hasattr(m, attr)]
     return ", ".join([text, *bounds])
 
 
