@@ -74,7 +74,8 @@ def check_environment(*sections: type[Section]) -> dict[type[Section], Section]:
 
 
 def _shown(value: object) -> str:
-    """An offending value as the error shows it: short, and never a whole secret."""
+    """An offending value as the error shows it: at most 40 characters (no secret setting can
+    be invalid: any text is one)."""
     text = repr(value) if isinstance(value, str) else str(value)
     return text if len(text) <= 40 else text[:37] + "..."
 
