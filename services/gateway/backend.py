@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections import defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TypeVar
@@ -18,16 +17,22 @@ import anyio.to_thread
 import zenoh
 from scanflow import keys
 from scanflow.config import GatewaySettings, ZenohSettings
-from scanflow.wire import DecodeError, MapChangedMessage, PoseEstimateMessage
+from scanflow.wire import (
+    DecodeError,
+    MapChangedMessage,
+    OdometryMessage,
+    PoseEstimateMessage,
+    ScanMessage,
+)
 
 from services.common.robots import RobotLimit
 from services.common.zsession import open_session
 from services.gateway.events import EventHub
 from services.gateway.metrics import Metrics
 from services.gateway.models import PoseOut
-from services.gateway.tracks import TrackStore
+from services.gateway.tracks import StaleSeqError, TrackStore
 
-M = TypeVar("M", PoseEstimateMessage, MapChangedMessage)
+M = TypeVar("M", PoseEstimateMessage, MapChangedMessage, ScanMessage, OdometryMessage)
 
 log = logging.getLogger("scanflow.gateway")
 EXPECTED_SERVICES = ("router", "deskew", "matcher", "mapserver")
@@ -83,7 +88,6 @@ class ZenohBackend:
         self.events = EventHub(settings.stream_queue_len)
         self._lock = threading.Lock()
         self._alive: set[tuple[str, str]] = set()
-        self._seqs: dict[tuple[str, str], int] = defaultdict(lambda: -1)
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._declared: list[object] = []
         self._closed = False
@@ -101,6 +105,7 @@ class ZenohBackend:
         self._declared += [
             sub(keys.pose("*", p), self._on_pose),
             sub(keys.raw_scan("*", p), self._on_scan),
+            sub(keys.odom("*", p), self._on_odometry),
             sub(keys.map_key("*", "changed", p), self._on_map_changed),
             self.session.liveliness().declare_subscriber(
                 keys.health("*", "*", p), self._on_liveliness, history=True
@@ -125,12 +130,6 @@ class ZenohBackend:
             log.warning("robot %s refused: the gateway tracks %d robots already "
                         "(SCANFLOW_GATEWAY_MAX_ROBOTS)", robot_id, self.settings.max_robots)
 
-    def _robot_of(self, sample: zenoh.Sample) -> str | None:
-        try:
-            return keys.robot_of(str(sample.key_expr), self.prefix)
-        except keys.KeyExprError:
-            return None
-
     def _decoded(self, sample: zenoh.Sample, decode: Callable[[bytes], M], kind: str) -> M | None:
         """The sample's message, None when malformed or on another robot's key (counted)."""
         try:
@@ -152,9 +151,14 @@ class ZenohBackend:
         self.events.publish(estimate.robot_id, "pose", PoseOut.from_estimate(estimate).model_dump())
 
     def _on_scan(self, sample: zenoh.Sample) -> None:
-        robot = self._robot_of(sample)
-        if robot is not None:
-            self.tracks.saw_scan(robot)
+        message = self._decoded(sample, ScanMessage.decode, "scan")
+        if message is not None:
+            self.tracks.saw_scan(message.robot_id, message.seq)
+
+    def _on_odometry(self, sample: zenoh.Sample) -> None:
+        message = self._decoded(sample, OdometryMessage.decode, "odom")
+        if message is not None:
+            self.tracks.saw_odometry(message.robot_id, message.seq)
 
     def _on_map_changed(self, sample: zenoh.Sample) -> None:
         notice = self._decoded(sample, MapChangedMessage.decode, "map_changed")
@@ -223,16 +227,20 @@ class ZenohBackend:
 
     # -- writes ---------------------------------------------------------------------------
     def next_seq(self, robot_id: str, stream: str, given: int | None) -> int:
-        """The seq to publish: the client's, or one past the last one on this stream, and for
-        scans past the robot's last pose too: a scan numbered behind a robot that another
-        source feeds would read as a restart of its stream, and reset its map."""
-        with self._lock:
-            if given is None:
-                latest = self.tracks.latest(robot_id) if stream == "scan" else None
-                given = max(self._seqs[(robot_id, stream)], -1 if latest is None else latest.seq)
-                given += 1
-            self._seqs[(robot_id, stream)] = given
-            return given
+        """The seq to publish on the robot's input `stream`: the client's, or one past the last
+        one on the bus (from any source; for scans, before one is seen, past the robot's last
+        pose). 409 for a client's seq that would restart the robot's map (TrackStore.next_seq),
+        503 for a robot over SCANFLOW_GATEWAY_MAX_ROBOTS."""
+        try:
+            seq = self.tracks.next_seq(robot_id, stream, given)
+        except StaleSeqError as exc:
+            raise BackendError(409, str(exc)) from exc
+        if seq is None:
+            raise BackendError(
+                503, f"robot {robot_id!r} refused: the gateway tracks "
+                f"{self.settings.max_robots} robots already (SCANFLOW_GATEWAY_MAX_ROBOTS)"
+            )
+        return seq
 
     def publish(self, key: str, payload: bytes) -> None:
         """Reliable put through a cached publisher that blocks rather than drops."""

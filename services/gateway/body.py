@@ -17,6 +17,14 @@ MSGPACK = "application/x-msgpack"
 JSON = "application/json"
 M = TypeVar("M", bound=BaseModel)
 W = TypeVar("W", bound=Message)
+# The answers of every endpoint that takes a body behind the API key (OpenAPI `responses`).
+BODY_ANSWERS: dict[int | str, dict[str, Any]] = {
+    401: {"description": "API key missing"},
+    403: {"description": "API key wrong"},
+    413: {"description": "body over max_body_bytes"},
+    415: {"description": "body neither JSON nor msgpack"},
+    422: {"description": "invalid body; the message names the field"},
+}
 
 
 def content_type(request: Request) -> str:

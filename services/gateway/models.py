@@ -84,7 +84,9 @@ class ScanIn(BaseModel):
     mount: PoseIn | None = Field(
         None, description="the lidar's pose on the robot (T_base_laser); omit: at its origin"
     )
-    seq: Seq | None = Field(None, description="omit to let the gateway number the scans")
+    seq: Seq | None = Field(None, description=(
+        "omit to let the gateway number the scans; one at or below the robot's last is "
+        "refused (409) except 0, which starts a new run (its map afresh)"))
 
     @model_validator(mode="after")
     def _check_layout(self) -> ScanIn:
@@ -139,7 +141,9 @@ class OdometryIn(BaseModel):
     stamp_s: Stamp
     pose: PoseIn
     velocity: VelocityIn | None = None
-    seq: Seq | None = Field(None, description="omit to let the gateway number the samples")
+    seq: Seq | None = Field(None, description=(
+        "omit to let the gateway number the samples; one at or below the robot's last is "
+        "refused (409) except 0, which starts a new run (its map afresh)"))
 
     def to_odometry(self, robot_id: str, seq: int) -> Odometry:
         v = self.velocity

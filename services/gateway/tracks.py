@@ -1,4 +1,5 @@
-"""Bounded per-robot caches of the pose estimates seen on the bus, and pose lookup by time."""
+"""Bounded per-robot caches of the pose estimates seen on the bus, pose lookup by time, and the
+seqs of each robot's input streams (so that what the gateway publishes moves them forward)."""
 
 from __future__ import annotations
 
@@ -31,6 +32,11 @@ def pose_at(
     return a.interpolate(b, fraction), i
 
 
+class StaleSeqError(ValueError):
+    """A client's seq (not 0) at or below its stream's last: the services would read it as a
+    replay and start the robot's map afresh, so it is refused instead."""
+
+
 @dataclass
 class RobotTrack:
     """What the gateway knows of one robot: recent estimates and when data last arrived."""
@@ -43,6 +49,7 @@ class RobotTrack:
     scans_seen: int = 0
     map_revision: int | None = None
     restarts: int = 0
+    seqs: dict[str, int] = field(default_factory=dict)  # input stream -> its last seq
 
     def __post_init__(self) -> None:
         self.estimates = deque(maxlen=self.maxlen)
@@ -63,6 +70,19 @@ class RobotTrack:
             self.estimates.clear()
         self.estimates.append(estimate)
         self.last_pose_received_s = received_s
+
+    def saw_seq(self, stream: str, seq: int) -> None:
+        """`seq` went out on `stream` (from here or another source): seq 0 starts a new run,
+        any other keeps the highest so far (a late copy of an earlier one does not lower it)."""
+        self.seqs[stream] = seq if seq == 0 else max(seq, self.seqs.get(stream, -1))
+
+    def last_seq(self, stream: str) -> int:
+        """The stream's last seq, -1 for none. Until a scan is seen (the gateway started
+        mid-run) the scans' is the last pose's: the tracker sends one per scan, with its seq."""
+        if stream in self.seqs:
+            return self.seqs[stream]
+        latest = self.latest
+        return latest.seq if stream == "scan" and latest is not None else -1
 
 
 class TrackStore:
@@ -91,12 +111,42 @@ class TrackStore:
                 track.add(estimate, time.time())
             return track is not None
 
-    def saw_scan(self, robot_id: str) -> None:
+    def saw_scan(self, robot_id: str, seq: int) -> None:
         with self._lock:
             track = self._track(robot_id)
             if track is not None:
                 track.last_scan_received_s = time.time()
                 track.scans_seen += 1
+                track.saw_seq("scan", seq)
+
+    def saw_odometry(self, robot_id: str, seq: int) -> None:
+        with self._lock:
+            track = self._track(robot_id)
+            if track is not None:
+                track.saw_seq("odom", seq)
+
+    def next_seq(self, robot_id: str, stream: str, given: int | None) -> int | None:
+        """The seq to publish on the robot's input `stream` ("scan", "odom"): `given`, or one
+        past the stream's last when it is None; None when the robot is refused (over the
+        limit). A `given` seq other than 0 at or below the last raises StaleSeqError: a retried or
+        reordered request would otherwise restart the robot's map in every service. Seq 0
+        starts a new run (a replay) on purpose."""
+        with self._lock:
+            track = self._track(robot_id)
+            if track is None:
+                return None
+            last = track.last_seq(stream)
+            if given is None:
+                given = last + 1
+            elif 0 < given <= last:
+                raise StaleSeqError(
+                    f"seq {given} does not move robot {robot_id!r}'s {stream} stream forward "
+                    f"(its last is {last}): the services would take it for a replay and start "
+                    f"the robot's map afresh; leave seq out to have it numbered, or send seq 0 "
+                    f"to start a new run"
+                )
+            track.saw_seq(stream, given)
+            return given
 
     def saw_map(self, robot_id: str, revision: int) -> None:
         with self._lock:

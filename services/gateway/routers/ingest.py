@@ -6,15 +6,19 @@ from dataclasses import replace
 
 from fastapi import APIRouter, Depends, Request
 from scanflow import keys
-from scanflow.scan import LaserScan, Odometry, ScanError
+from scanflow.scan import ScanError
 from scanflow.wire import MessageError, OdometryMessage, ScanMessage
 
-from services.gateway.body import body_doc, invalid, read_body
+from services.gateway.body import BODY_ANSWERS, body_doc, invalid, read_body
 from services.gateway.deps import API_PREFIX, Backend, Robot, Settings, require_key
 from services.gateway.models import IngestAck, OdometryIn, ScanIn
-from services.gateway.routers.match import ANSWERS
 
 router = APIRouter(prefix=API_PREFIX, tags=["ingest"], dependencies=[Depends(require_key)])
+ANSWERS = {
+    **BODY_ANSWERS,
+    409: {"description": "the seq does not move the robot's stream forward (0 starts a run)"},
+    503: {"description": "the gateway tracks max_robots robots already"},
+}
 
 
 @router.post(
@@ -27,15 +31,10 @@ async def post_scan(
 ) -> IngestAck:
     body = await read_body(request, ScanIn, ScanMessage)
     given = body.scan.seq if isinstance(body, ScanMessage) else body.seq
+    # Checked before it takes a seq: a corrected request may send the same seq again.
+    _scan_message(body, robot, given or 0, settings.max_beams)
     seq = backend.next_seq(robot, "scan", given)
-    try:
-        scan = body.scan if isinstance(body, ScanMessage) else body.to_scan(robot, seq)
-        if scan.beam_count > settings.max_beams:
-            raise invalid(("body", "ranges_m"),
-                          f"{scan.beam_count} beams, over max_beams={settings.max_beams}")
-        message = ScanMessage(_retag_scan(scan, robot, seq))
-    except (ScanError, MessageError) as exc:
-        raise invalid(("body",), str(exc)) from exc
+    message = _scan_message(body, robot, seq, settings.max_beams)
     key = keys.raw_scan(robot, backend.prefix)
     await backend.apublish(key, message.encode())
     backend.metrics.count("scanflow_gateway_ingested_total", kind="scan")
@@ -50,20 +49,38 @@ async def post_scan(
 async def post_odometry(request: Request, robot: Robot, backend: Backend) -> IngestAck:
     body = await read_body(request, OdometryIn, OdometryMessage)
     given = body.odom.seq if isinstance(body, OdometryMessage) else body.seq
+    _odometry_message(body, robot, given or 0)  # checked before it takes a seq, as a scan
     seq = backend.next_seq(robot, "odom", given)
-    try:
-        odom = body.odom if isinstance(body, OdometryMessage) else body.to_odometry(robot, seq)
-        message = OdometryMessage(Odometry(odom.stamp_s, odom.pose, odom.velocity, robot, seq))
-    except (ScanError, MessageError) as exc:
-        raise invalid(("body",), str(exc)) from exc
+    message = _odometry_message(body, robot, seq)
     key = keys.odom(robot, backend.prefix)
     await backend.apublish(key, message.encode())
     backend.metrics.count("scanflow_gateway_ingested_total", kind="odom")
     return IngestAck(robot_id=robot, seq=seq, key=key)
 
 
-def _retag_scan(scan: LaserScan, robot: str, seq: int) -> LaserScan:
-    """The scan under the path's robot id and the published seq (the URL is authoritative)."""
-    if scan.robot_id == robot and scan.seq == seq:
-        return scan
-    return replace(scan, robot_id=robot, seq=seq)
+def _scan_message(
+    body: ScanIn | ScanMessage, robot: str, seq: int, max_beams: int
+) -> ScanMessage:
+    """The scan to publish, under the path's robot id (the URL is authoritative) and `seq`;
+    a 422 naming what is wrong with it."""
+    try:
+        scan = body.scan if isinstance(body, ScanMessage) else body.to_scan(robot, seq)
+        if scan.beam_count > max_beams:
+            raise invalid(
+                ("body", "ranges_m"), f"{scan.beam_count} beams, over max_beams={max_beams}"
+            )
+        if scan.robot_id != robot or scan.seq != seq:
+            scan = replace(scan, robot_id=robot, seq=seq)
+        return ScanMessage(scan)
+    except (ScanError, MessageError) as exc:
+        raise invalid(("body",), str(exc)) from exc
+
+
+def _odometry_message(body: OdometryIn | OdometryMessage, robot: str, seq: int) -> OdometryMessage:
+    """The odometry sample to publish, under the path's robot id and `seq`; a 422 naming what
+    is wrong with it."""
+    try:
+        odom = body.odom if isinstance(body, OdometryMessage) else body.to_odometry(robot, seq)
+        return OdometryMessage(replace(odom, robot_id=robot, seq=seq))
+    except (ScanError, MessageError) as exc:
+        raise invalid(("body",), str(exc)) from exc

@@ -13,18 +13,14 @@ from scanflow.scan import LaserScan, ScanError
 from scanflow.wire import MapRef, MatchRequest, MatchResponse, MessageError
 
 from services.gateway.backend import BackendError
-from services.gateway.body import MSGPACK, body_doc, invalid, read_body
+from services.gateway.body import BODY_ANSWERS, MSGPACK, body_doc, invalid, read_body
 from services.gateway.deps import API_PREFIX, Backend, Settings, require_key
 from services.gateway.models import MatchIn, MatchOut, MethodsOut, ScanIn
 
 router = APIRouter(prefix=API_PREFIX, tags=["match"])
 ANSWERS = {
-    401: {"description": "API key missing"},
-    403: {"description": "API key wrong"},
-    413: {"description": "body over max_body_bytes"},
-    415: {"description": "body neither JSON nor msgpack"},
+    **BODY_ANSWERS,
     404: {"description": "scan-to-map: the robot is unknown (no matcher, no pose of it)"},
-    422: {"description": "invalid request; the message names the field"},
     503: {"description": "no matcher answers"},
     504: {"description": "the matcher did not answer in time"},
 }

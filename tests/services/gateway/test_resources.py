@@ -10,8 +10,9 @@ import pytest
 from PIL import Image
 from scanflow import keys
 from scanflow.config import GatewaySettings
+from scanflow.geometry import Pose2D
 from scanflow.maps.grid import GridSpec
-from scanflow.scan import LaserScan
+from scanflow.scan import LaserScan, Odometry
 from scanflow.wire import (
     MapImageMessage,
     MapMetaMessage,
@@ -92,6 +93,64 @@ def test_a_scan_without_seq_follows_the_robots_last_pose(client, peer, auth, pub
     scan = {"ranges_m": [1.0, 2.0], "angle_min_rad": 0.0, "angle_increment_rad": 0.1}
     acks = [client.post("/api/v1/robots/fed/scans", json=scan, headers=auth) for _ in range(2)]
     assert [a.json()["seq"] for a in acks] == [42, 43]
+
+
+SCAN = {"ranges_m": [1.0, 2.0], "angle_min_rad": 0.0, "angle_increment_rad": 0.1}
+
+
+def test_a_seq_that_would_restart_the_map_is_refused(client, peer, auth):
+    """A retried or reordered request with a seq at or below the stream's last would read, in
+    every service, as a replay and start the robot's map afresh: 409, and nothing published.
+    Seq 0 starts a new run on purpose; a request refused for its body takes no seq."""
+    scans = peer.subscribe(keys.raw_scan("r5"))
+    post = lambda seq, **extra: client.post(  # noqa: E731
+        "/api/v1/robots/r5/scans", json={**SCAN, **extra, "seq": seq}, headers=auth)
+    assert [post(s).status_code for s in (3, 4)] == [202, 202]
+    for stale in (4, 2):
+        r = post(stale)
+        assert r.status_code == 409, r.text
+        assert f"seq {stale} does not move robot 'r5'" in r.json()["detail"]
+        assert "its last is 4" in r.json()["detail"]
+    assert post(5, range_min_m=9.0, range_max_m=1.0).status_code == 422
+    assert post(5).status_code == 202  # the corrected request keeps its seq
+    assert post(0).status_code == 202  # a new run, then numbered from it
+    assert client.post("/api/v1/robots/r5/scans", json=SCAN, headers=auth).json()["seq"] == 1
+    eventually(lambda: len(scans) == 5, "the accepted scans on the bus")
+    assert [ScanMessage.decode(b).seq for b in scans] == [3, 4, 5, 0, 1]
+    odom = {"stamp_s": 1.0, "pose": {"x_m": 1.0}, "seq": 7}
+    url = "/api/v1/robots/r5/odometry"
+    assert client.post(url, json=odom, headers=auth).status_code == 202
+    r = client.post(url, json=odom, headers=auth)
+    assert r.status_code == 409 and "odom stream" in r.json()["detail"]
+
+
+def test_numbering_follows_the_scans_and_odometry_other_sources_put(client, peer, auth,
+                                                                    backend):
+    """Another source (a robot's own Zenoh client) feeds the robot: the gateway numbers past
+    what it sees on the bus, and refuses a seq behind it."""
+    for seq in range(4):
+        scan = LaserScan(np.ones(3, np.float32), 0.0, 0.1, robot_id="fed2", seq=seq)
+        peer.put(keys.raw_scan("fed2"), ScanMessage(scan).encode())
+        odom = Odometry(float(seq), Pose2D(), None, "fed2", 10 + seq)
+        peer.put(keys.odom("fed2"), OdometryMessage(odom).encode())
+    eventually(lambda: backend.tracks.next_seq("fed2", "odom", None) == 14, "the odometry seen")
+    eventually(lambda: [r["scans_seen"] for r in client.get("/api/v1/robots").json()["robots"]
+                        if r["robot_id"] == "fed2"] == [4], "the scans seen")
+    assert client.post("/api/v1/robots/fed2/scans", json=SCAN, headers=auth).json()["seq"] == 4
+    r = client.post("/api/v1/robots/fed2/scans", json={**SCAN, "seq": 2}, headers=auth)
+    assert r.status_code == 409 and "its last is 4" in r.json()["detail"]
+    odom = {"stamp_s": 9.0, "pose": {"x_m": 1.0}}
+    assert client.post("/api/v1/robots/fed2/odometry", json=odom, headers=auth).json()["seq"] == 15
+
+
+@pytest.mark.parametrize("settings", [GatewaySettings(api_key="test-key", max_robots=1)])
+def test_ingest_for_a_robot_over_max_robots_is_refused(client, peer, auth):
+    scans = peer.subscribe(keys.raw_scan("*"))
+    assert client.post("/api/v1/robots/one/scans", json=SCAN, headers=auth).status_code == 202
+    r = client.post("/api/v1/robots/two/scans", json=SCAN, headers=auth)
+    assert r.status_code == 503 and "SCANFLOW_GATEWAY_MAX_ROBOTS" in r.json()["detail"]
+    eventually(lambda: scans, "robot one's scan on the bus")
+    assert [ScanMessage.decode(b).robot_id for b in scans] == ["one"]
 
 
 def test_a_pose_on_another_robots_key_is_refused(client, peer, backend, publish_poses):

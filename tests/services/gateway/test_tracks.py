@@ -1,0 +1,60 @@
+"""TrackStore's input-stream seqs: what the gateway numbers never reads as a restart."""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from services.common.robots import RobotLimit
+from services.gateway.tracks import StaleSeqError, TrackStore
+
+from .conftest import estimate
+
+seqs = st.lists(st.integers(0, 50), max_size=30)
+
+
+@given(seen=seqs, posted=st.lists(st.booleans(), max_size=10))
+def test_a_numbered_seq_is_past_every_seq_since_the_last_run_began(seen, posted):
+    """Scans seen on the bus (any order, 0 starting a run) interleaved with numbered posts: a
+    service reads a seq at or below its last as a replay, so each number must pass them all."""
+    store = TrackStore(10)
+    run: list[int] = []
+    for i, seq in enumerate(seen):
+        store.saw_scan("r", seq)
+        run = [seq] if seq == 0 else [*run, seq]
+        if i < len(posted) and posted[i]:
+            number = store.next_seq("r", "scan", None)
+            assert number > max(run)
+            run.append(number)
+
+
+@given(seen=st.lists(st.integers(1, 50), min_size=1, max_size=10), stale=st.integers(1, 50))
+def test_a_given_seq_behind_the_stream_is_refused_and_changes_nothing(seen, stale):
+    store = TrackStore(10)
+    for seq in seen:
+        store.saw_odometry("r", seq)
+    if stale > max(seen):
+        assert store.next_seq("r", "odom", stale) == stale
+        return
+    with pytest.raises(StaleSeqError, match=f"seq {stale} does not move robot 'r'"):
+        store.next_seq("r", "odom", stale)
+    assert store.next_seq("r", "odom", None) == max(seen) + 1
+    assert store.next_seq("r", "odom", 0) == 0  # a new run, on purpose
+
+
+def test_scans_follow_the_last_pose_until_a_scan_is_seen():
+    store = TrackStore(10)
+    store.add_pose(estimate("r", 40, 1.0, 0.0, 0.0))
+    assert store.next_seq("r", "scan", None) == 41
+    assert store.next_seq("r", "odom", None) == 0  # odometry has no pose to follow
+    store.saw_scan("r", 3)  # a late copy of an earlier scan lowers nothing
+    assert store.next_seq("r", "scan", None) == 42
+
+
+def test_a_robot_over_the_limit_gets_no_seq():
+    refused: list[str] = []
+    store = TrackStore(10, RobotLimit(1, lambda robot, _first: refused.append(robot)))
+    assert store.next_seq("a", "scan", None) == 0
+    assert store.next_seq("b", "scan", 5) is None
+    assert refused == ["b"] and not store.known("b")
