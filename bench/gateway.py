@@ -1,11 +1,14 @@
-"""Gateway load on loopback: latest-pose queries/s (p50/p99) and 360-beam match requests/s.
+"""Gateway load on loopback: latest-pose queries/s (p50/p99), 360-beam match requests/s and
+scans posted/s, with the gateway's CPU time in each scenario.
 
 The gateway runs as its real process (`python -m services.gateway`, uvicorn) in Zenoh peer mode;
 this process is the other peer: it publishes pose estimates and answers match queries with the
 matcher's own request handler (`services.matcher.requests.answer`, the library's `match`), so
 match figures include real ICP/GN work on simulated 360-beam scans. An httpx asyncio client
-keeps `--concurrency` requests in flight for `--seconds` per scenario.
-Run: `python -m bench.gateway [--seconds 5] [--concurrency 8] [--json]`.
+keeps `--concurrency` requests in flight for `--seconds` per scenario. One scenario queries
+the latest pose while this peer puts `--bus-scans` 360-beam raw scans a second (other robots'
+sources) that the gateway reads.
+Run: `python -m bench.gateway [--seconds 5] [--concurrency 8] [--bus-scans 400] [--json]`.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -33,7 +37,7 @@ from scanflow.geometry import Pose2D
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.scan import LaserScan
 from scanflow.sim import SimConfig, SimFrame, simulate
-from scanflow.wire import MatchRequest, PoseEstimateMessage
+from scanflow.wire import MatchRequest, PoseEstimateMessage, ScanMessage
 
 from services.common.launch import free_port, wait_for_port
 from services.common.zsession import open_session
@@ -102,7 +106,7 @@ async def load(
             t0 = time.perf_counter()
             response = await send()
             latencies.append(time.perf_counter() - t0)
-            errors += response.status_code != 200
+            errors += not response.is_success
 
     t_start = time.perf_counter()
     await asyncio.gather(*(worker() for _ in range(concurrency)))
@@ -117,8 +121,43 @@ async def load(
     }
 
 
+def cpu_s(pid: int) -> float:
+    """A process's user + system CPU time so far (Linux /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+class BusScans:
+    """Puts 360-beam raw scans of 10 robots, `per_s` a second in all, while in a `with`."""
+
+    def __init__(self, session: zenoh.Session, scan: LaserScan, per_s: float) -> None:
+        self.session, self.scan, self.per_s = session, scan, per_s
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._put, daemon=True)
+
+    def _put(self) -> None:
+        period_s, seq, start = 1.0 / self.per_s, 0, time.perf_counter()
+        while not self.stop.is_set():
+            robot = f"bus{seq % 10}"
+            scan = ScanMessage(LaserScan(self.scan.ranges_m, self.scan.angle_min_rad,
+                                         self.scan.angle_increment_rad, robot_id=robot,
+                                         seq=seq // 10))
+            self.session.put(keys.raw_scan(robot), scan.encode())
+            seq += 1
+            time.sleep(max(0.0, start + seq * period_s - time.perf_counter()))
+
+    def __enter__(self) -> BusScans:
+        self.thread.start()
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.stop.set()
+        self.thread.join()
+
+
 async def run(
-    frames: list[SimFrame], seconds: float, concurrency: int, http_port: int
+    frames: list[SimFrame], seconds: float, concurrency: int, http_port: int,
+    gateway_pid: int, bus: BusScans,
 ) -> dict[str, dict[str, float]]:
     first, second = frames[0], frames[1]
     body_s2s = {"method": "icp", "source": scan_json(second.scan), "target": scan_json(first.scan)}
@@ -132,20 +171,33 @@ async def run(
                                  timeout=30.0) as client:
         for body in (body_s2s, body_s2m):  # warm up (numba compiles, caches fill)
             (await client.post("/api/v1/match", json=body)).raise_for_status()
-        return {
-            "latest_pose": await load(
-                client, lambda: client.get("/api/v1/robots/bench/pose"), seconds, concurrency),
-            "match_scan_to_scan": await load(
-                client, lambda: client.post("/api/v1/match", json=body_s2s), seconds, concurrency),
-            "match_scan_to_map": await load(
-                client, lambda: client.post("/api/v1/match", json=body_s2m), seconds, concurrency),
+
+        async def measured(send: Callable[[], Any]) -> dict[str, float]:
+            cpu0 = cpu_s(gateway_pid)
+            result = await load(client, send, seconds, concurrency)
+            return {**result, "gateway_cpu_s": cpu_s(gateway_pid) - cpu0}
+
+        results = {
+            "latest_pose": await measured(lambda: client.get("/api/v1/robots/bench/pose")),
+            "match_scan_to_scan": await measured(
+                lambda: client.post("/api/v1/match", json=body_s2s)),
+            "match_scan_to_map": await measured(
+                lambda: client.post("/api/v1/match", json=body_s2m)),
+            "post_scan": await measured(
+                lambda: client.post("/api/v1/robots/posted/scans", json=body_s2m["source"])),
         }
+        with bus:
+            results["latest_pose_bus_scans"] = await measured(
+                lambda: client.get("/api/v1/robots/bench/pose"))
+        return results
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=5.0, help="per scenario")
     parser.add_argument("--concurrency", type=int, default=8)
+    parser.add_argument("--bus-scans", type=float, default=400.0,
+                        help="raw scans a second on the bus in the last scenario")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
 
@@ -167,7 +219,9 @@ def main() -> None:
         time.sleep(1.0)  # the peers find each other
         publish_poses(peer, 200)
         time.sleep(0.5)
-        results = asyncio.run(run(frames, args.seconds, args.concurrency, http_port))
+        bus = BusScans(peer, frames[0].scan, args.bus_scans)
+        results = asyncio.run(
+            run(frames, args.seconds, args.concurrency, http_port, gateway.pid, bus))
     finally:
         gateway.terminate()
         gateway.wait(15)
@@ -175,6 +229,7 @@ def main() -> None:
             entity.undeclare()
         peer.close()
     report = {"seconds": args.seconds, "concurrency": args.concurrency, "beams": 360,
+              "bus_scans_per_s": args.bus_scans,
               "python": platform.python_version(), "cpus": os.cpu_count(),
               "gateway_log": str(log_path), **results}
     if args.json:
@@ -182,8 +237,9 @@ def main() -> None:
         return
     print(f"gateway on loopback, {args.concurrency} in flight, {args.seconds} s per scenario")
     for name, r in results.items():
-        print(f"{name:20s} {r['per_s']:8.1f} req/s  p50 {r['p50_ms']:7.2f} ms  "
-              f"p99 {r['p99_ms']:7.2f} ms  ({r['requests']} requests, {r['errors']} errors)")
+        print(f"{name:22s} {r['per_s']:8.1f} req/s  p50 {r['p50_ms']:7.2f} ms  "
+              f"p99 {r['p99_ms']:7.2f} ms  gateway CPU {r['gateway_cpu_s']:5.2f} s  "
+              f"({r['requests']} requests, {r['errors']} errors)")
 
 
 if __name__ == "__main__":
