@@ -1,10 +1,20 @@
-"""Thread-safe counters and per-robot sequence-gap tracking, reported in service stats."""
+"""Thread-safe counters and per-robot sequence-gap tracking, reported in service stats, and
+how often a repeated warning is logged."""
 
 from __future__ import annotations
 
 import threading
 from collections import defaultdict
 from dataclasses import dataclass
+
+LOG_FIRST = 10  # a repeated warning: logged the first LOG_FIRST times, then every LOG_EVERY-th
+LOG_EVERY = 100
+
+
+def worth_logging(n: int) -> bool:
+    """Whether the n-th (from 1) occurrence of a repeated warning is logged: a faulty source
+    sending bad messages all day must not flood the log (the count goes in the stats)."""
+    return n <= LOG_FIRST or n % LOG_EVERY == 0
 
 
 class Counters:

@@ -32,7 +32,7 @@ from scanflow import keys
 from scanflow.config import ServiceSettings, ZenohSettings
 from scanflow.wire import ServiceStatsMessage
 
-from services.common.counters import Counters, SeqTracker
+from services.common.counters import Counters, SeqTracker, worth_logging
 from services.common.inbox import Inbox
 from services.common.outbox import Outbox
 from services.common.process import io_threads
@@ -40,8 +40,6 @@ from services.common.robots import Known, RobotLimit
 from services.common.zsession import open_session
 
 QueryHandler = Callable[[zenoh.Query], None]
-_LOG_FIRST = 10
-_LOG_EVERY = 100
 _WAKE = "_wake"  # an inbox item that only wakes the worker to take feedback
 
 
@@ -195,7 +193,7 @@ class ServiceShell:
             self._feedback.append((kind, message))
         if dropped is not None:
             n = self.counters.add(f"feedback_overflow.{dropped}")
-            if n <= _LOG_FIRST or n % _LOG_EVERY == 0:
+            if worth_logging(n):
                 self.log.warning("feedback queue full: dropped the oldest %s (#%d)", dropped, n)
         self.inbox.offer(_WAKE, None)  # a full inbox wakes the worker anyway
 
@@ -302,7 +300,7 @@ class ServiceShell:
             idle()
         except Exception:  # periodic work (snapshots, notices) must not stop the service
             n = self.counters.add("errors.idle")
-            if n <= _LOG_FIRST or n % _LOG_EVERY == 0:
+            if worth_logging(n):
                 self.log.exception("idle work failed (%d so far)", n)
 
     def _handle(self, handle: Callable[[str, Any], None], kind: str, message: Any) -> None:
@@ -400,7 +398,7 @@ class ServiceShell:
 
     def _count_malformed(self, kind: str, key: str, exc: Exception) -> None:
         n = self.counters.add(f"malformed.{kind}")
-        if n <= _LOG_FIRST or n % _LOG_EVERY == 0:
+        if worth_logging(n):
             self.log.warning("malformed %s message #%d on %s: %s", kind, n, key, exc)
 
     def _on_signal(self, signum: int, _frame: object) -> None:

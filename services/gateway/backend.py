@@ -25,6 +25,7 @@ from scanflow.wire import (
     ScanMessage,
 )
 
+from services.common.counters import worth_logging
 from services.common.robots import RobotLimit
 from services.common.zsession import open_session
 from services.gateway.events import EventHub
@@ -136,8 +137,9 @@ class ZenohBackend:
             message = decode(sample.payload.to_bytes())
             keys.check_sender(str(sample.key_expr), message.robot_id, self.prefix)
         except (DecodeError, keys.KeyExprError) as exc:
-            self.metrics.count("scanflow_gateway_malformed_total", kind=kind)
-            log.warning("malformed %s on %s: %s", kind, sample.key_expr, exc)
+            n = self.metrics.count("scanflow_gateway_malformed_total", kind=kind)
+            if worth_logging(n):  # scans and odometry come fast: a bad source would flood it
+                log.warning("malformed %s #%d on %s: %s", kind, n, sample.key_expr, exc)
             return None
         return message
 

@@ -102,11 +102,13 @@ class Metrics:
         self._counters: dict[str, dict[Labels, int]] = defaultdict(dict)
         self._histograms: dict[str, dict[Labels, Histogram]] = defaultdict(dict)
 
-    def count(self, name: str, amount: int = 1, **labels: str) -> None:
+    def count(self, name: str, amount: int = 1, **labels: str) -> int:
+        """Add `amount` to the labelled counter; its new value."""
         key = _labels(**labels)
         with self._lock:
             family = self._counters[name]
-            family[key] = family.get(key, 0) + amount
+            family[key] = value = family.get(key, 0) + amount
+            return value
 
     def observe(self, name: str, value_s: float, **labels: str) -> None:
         key = _labels(**labels)

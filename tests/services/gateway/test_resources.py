@@ -153,6 +153,19 @@ def test_ingest_for_a_robot_over_max_robots_is_refused(client, peer, auth):
     assert [ScanMessage.decode(b).robot_id for b in scans] == ["one"]
 
 
+def test_malformed_scans_on_the_bus_are_counted_and_logged_sparingly(client, peer, backend,
+                                                                     caplog):
+    """The gateway reads every raw scan: a faulty source's stream is counted in full but
+    logged only at first, then every 100th, as the services do."""
+    caplog.set_level("WARNING", logger="scanflow.gateway")
+    for _ in range(15):
+        peer.put(keys.raw_scan("bad"), b"not msgpack")
+    eventually(lambda: 'scanflow_gateway_malformed_total{kind="scan"} 15'
+               in client.get("/metrics").text, "15 malformed scans counted")
+    logged = [r.getMessage() for r in caplog.records if "malformed scan" in r.getMessage()]
+    assert len(logged) == 10 and logged[0].startswith("malformed scan #1 on ")
+
+
 def test_a_pose_on_another_robots_key_is_refused(client, peer, backend, publish_poses):
     publish_poses("victim", [(1.0, 0.0, 0.0, 0.0), (2.0, 0.1, 0.0, 0.0)], seq0=30)
     peer.put(keys.pose("other"), estimate("victim", 0, 3.0, 5.0, 5.0, 0.0).encode())
