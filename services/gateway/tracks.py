@@ -140,10 +140,10 @@ class TrackStore:
                 given = last + 1
             elif 0 < given <= last:
                 raise StaleSeqError(
-                    f"seq {given} does not move robot {robot_id!r}'s {stream} stream forward "
-                    f"(its last is {last}): the services would take it for a replay and start "
-                    f"the robot's map afresh; leave seq out to have it numbered, or send seq 0 "
-                    f"to start a new run"
+                    f"seq {given} does not move the {stream} stream of robot {robot_id!r} "
+                    f"forward (its last is {last}): the services would take it for a replay "
+                    f"and start the robot's map afresh; leave seq out to have it numbered, or "
+                    f"send seq 0 to start a new run"
                 )
             track.saw_seq(stream, given)
             return given

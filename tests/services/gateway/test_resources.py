@@ -109,7 +109,7 @@ def test_a_seq_that_would_restart_the_map_is_refused(client, peer, auth):
     for stale in (4, 2):
         r = post(stale)
         assert r.status_code == 409, r.text
-        assert f"seq {stale} does not move robot 'r5'" in r.json()["detail"]
+        assert f"seq {stale} does not move the scan stream of robot 'r5'" in r.json()["detail"]
         assert "its last is 4" in r.json()["detail"]
     assert post(5, range_min_m=9.0, range_max_m=1.0).status_code == 422
     assert post(5).status_code == 202  # the corrected request keeps its seq
@@ -121,7 +121,7 @@ def test_a_seq_that_would_restart_the_map_is_refused(client, peer, auth):
     url = "/api/v1/robots/r5/odometry"
     assert client.post(url, json=odom, headers=auth).status_code == 202
     r = client.post(url, json=odom, headers=auth)
-    assert r.status_code == 409 and "odom stream" in r.json()["detail"]
+    assert r.status_code == 409 and "the odom stream of robot 'r5'" in r.json()["detail"]
 
 
 def test_numbering_follows_the_scans_and_odometry_other_sources_put(client, peer, auth,

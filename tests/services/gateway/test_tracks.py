@@ -37,7 +37,8 @@ def test_a_given_seq_behind_the_stream_is_refused_and_changes_nothing(seen, stal
     if stale > max(seen):
         assert store.next_seq("r", "odom", stale) == stale
         return
-    with pytest.raises(StaleSeqError, match=f"seq {stale} does not move robot 'r'"):
+    stream = "the odom stream of robot 'r'"
+    with pytest.raises(StaleSeqError, match=f"seq {stale} does not move {stream}"):
         store.next_seq("r", "odom", stale)
     assert store.next_seq("r", "odom", None) == max(seen) + 1
     assert store.next_seq("r", "odom", 0) == 0  # a new run, on purpose
