@@ -10,6 +10,7 @@ import math
 import os
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 from scanflow import keys
@@ -21,8 +22,9 @@ from scanflow.maps.export import save_map
 from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.pipeline import Pipeline
 from scanflow.scan import LaserScan
-from scanflow.wire import InitialPoseMessage, PoseEstimateMessage
+from scanflow.wire import InitialPoseMessage, OdometryMessage, PoseEstimateMessage, ScanMessage
 
+from services.common.launch import free_port, wait_for_port
 from services.common.process import available_cpus
 from services.ingest.sources import source_events
 
@@ -225,6 +227,40 @@ def test_a_replay_restarts_every_service_and_comes_out_the_same(pipeline):
     assert_same_poses(poses[: len(expected)], expected)
     assert_same_poses(poses[len(expected) :], expected)
     assert_served_map(bus, grid, 2 * len(expected))
+
+
+def test_a_robot_fed_over_http_is_tracked_and_mapped_as_in_process(pipeline):
+    """A client without Zenoh posts a simulated run's odometry and scans to the gateway (msgpack,
+    as the wire has them): poses and the served map are the in-process pipeline's, bit for bit.
+    A retried scan (its seq taken) is a 409, and no service starts the robot afresh for it."""
+    launcher, bus = pipeline
+    port = free_port()
+    launcher.start("gateway", SCANFLOW_GATEWAY_PORT=str(port))
+    wait_for_port(port, 30.0)
+    poses = bus.record(keys.pose())
+    events = list(source_events(None, "robot", SIM_S, 7, None))
+    msgpack = {"Content-Type": "application/x-msgpack"}
+    with httpx.Client(base_url=f"http://127.0.0.1:{port}/api/v1", timeout=30.0) as http:
+        bus.wait_until(lambda: http.get("/health").json()["missing"] == [], 30.0,
+                       "the gateway to see every service")
+        for event in events:
+            scan = isinstance(event, LaserScan)
+            message = ScanMessage(event) if scan else OdometryMessage(event)
+            r = http.post(f"/robots/robot/{'scans' if scan else 'odometry'}",
+                          content=message.encode(), headers=msgpack)
+            assert r.status_code == 202 and r.json()["seq"] == event.seq, r.text
+        expected, grid = in_process(events)
+        bus.wait_until(lambda: len(poses) >= len(expected), 60.0, "every pose")
+        retried = http.post("/robots/robot/scans", content=message.encode(), headers=msgpack)
+        assert retried.status_code == 409, retried.text
+        latest = http.get("/robots/robot/pose").json()
+    assert_same_poses(poses, expected)
+    assert (latest["seq"], latest["x_m"], latest["y_m"], latest["theta_rad"]) == (
+        expected[-1].seq, *expected[-1].pose.to_array().tolist())
+    assert_served_map(bus, grid, len(expected))
+    for service in ("deskew", "matcher", "mapserver"):
+        seqs = bus.stats(service).counters
+        assert not any(v for k, v in seqs.items() if k.endswith(".restarts")), (service, seqs)
 
 
 def assert_map_queries(bus, grid: OccupancyGrid, notices: list) -> None:
