@@ -88,6 +88,7 @@ class ZenohBackend:
         )
         self.events = EventHub(settings.stream_queue_len)
         self._lock = threading.Lock()
+        self._ingest_lock = threading.Lock()  # posted messages: numbered and put in order
         self._alive: set[tuple[str, str]] = set()
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._declared: list[object] = []
@@ -228,7 +229,7 @@ class ZenohBackend:
         return await anyio.to_thread.run_sync(lambda: self.query(selector, payload, timeout_s))
 
     # -- writes ---------------------------------------------------------------------------
-    def next_seq(self, robot_id: str, stream: str, given: int | None) -> int:
+    def _next_seq(self, robot_id: str, stream: str, given: int | None) -> int:
         """The seq to publish on the robot's input `stream`: the client's, or one past the last
         one on the bus (from any source; for scans, before one is seen, past the robot's last
         pose). 409 for a client's seq that would restart the robot's map (TrackStore.next_seq),
@@ -256,5 +257,24 @@ class ZenohBackend:
                 )
         pub.put(payload)
 
-    async def apublish(self, key: str, payload: bytes) -> None:
-        await anyio.to_thread.run_sync(lambda: self.publish(key, payload))
+    def publish_numbered(
+        self, robot_id: str, stream: str, given: int | None, key: str,
+        encode: Callable[[int], bytes],
+    ) -> int:
+        """Number a posted message (`given`, or the next seq: `_next_seq`) and put
+        `encode(seq)` on `key`, one post at a time: posts numbered n and n + 1 must reach the
+        bus in that order, or every service takes n for a replay and starts the robot's map
+        afresh. Returns the seq."""
+        with self._ingest_lock:
+            seq = self._next_seq(robot_id, stream, given)
+            self.publish(key, encode(seq))
+            return seq
+
+    async def apublish_numbered(
+        self, robot_id: str, stream: str, given: int | None, key: str,
+        encode: Callable[[int], bytes],
+    ) -> int:
+        """`publish_numbered` in a worker thread (a put may block on a congested link)."""
+        return await anyio.to_thread.run_sync(
+            lambda: self.publish_numbered(robot_id, stream, given, key, encode)
+        )

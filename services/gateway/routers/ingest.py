@@ -33,10 +33,11 @@ async def post_scan(
     given = body.scan.seq if isinstance(body, ScanMessage) else body.seq
     # Checked before it takes a seq: a corrected request may send the same seq again.
     _scan_message(body, robot, given or 0, settings.max_beams)
-    seq = backend.next_seq(robot, "scan", given)
-    message = _scan_message(body, robot, seq, settings.max_beams)
     key = keys.raw_scan(robot, backend.prefix)
-    await backend.apublish(key, message.encode())
+    seq = await backend.apublish_numbered(
+        robot, "scan", given, key,
+        lambda seq: _scan_message(body, robot, seq, settings.max_beams).encode(),
+    )
     backend.metrics.count("scanflow_gateway_ingested_total", kind="scan")
     return IngestAck(robot_id=robot, seq=seq, key=key)
 
@@ -50,10 +51,10 @@ async def post_odometry(request: Request, robot: Robot, backend: Backend) -> Ing
     body = await read_body(request, OdometryIn, OdometryMessage)
     given = body.odom.seq if isinstance(body, OdometryMessage) else body.seq
     _odometry_message(body, robot, given or 0)  # checked before it takes a seq, as a scan
-    seq = backend.next_seq(robot, "odom", given)
-    message = _odometry_message(body, robot, seq)
     key = keys.odom(robot, backend.prefix)
-    await backend.apublish(key, message.encode())
+    seq = await backend.apublish_numbered(
+        robot, "odom", given, key, lambda seq: _odometry_message(body, robot, seq).encode()
+    )
     backend.metrics.count("scanflow_gateway_ingested_total", kind="odom")
     return IngestAck(robot_id=robot, seq=seq, key=key)
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import io
 import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -122,6 +124,32 @@ def test_a_seq_that_would_restart_the_map_is_refused(client, peer, auth):
     assert client.post(url, json=odom, headers=auth).status_code == 202
     r = client.post(url, json=odom, headers=auth)
     assert r.status_code == 409 and "the odom stream of robot 'r5'" in r.json()["detail"]
+
+
+def test_concurrent_posts_reach_the_bus_in_the_order_of_their_seqs(peer, backend):
+    """Posts on parallel connections: each is numbered and put before the next is numbered, so
+    seq n never reaches the bus after n + 1 (every service would take n for a replay and start
+    the robot's map afresh). Building the message takes a while here, as a body's check does."""
+    scans = peer.subscribe(keys.raw_scan("par"))
+    rng = np.random.default_rng(3)
+    delays = iter(rng.uniform(0.0, 0.004, 80).tolist())
+    lock = threading.Lock()
+
+    def encode(seq: int) -> bytes:
+        with lock:
+            delay = next(delays)
+        time.sleep(delay)
+        return ScanMessage(LaserScan(np.ones(3, np.float32), 0.0, 0.1, robot_id="par",
+                                     seq=seq)).encode()
+
+    def post() -> int:
+        return backend.publish_numbered("par", "scan", None, keys.raw_scan("par"), encode)
+
+    with ThreadPoolExecutor(8) as pool:
+        seqs = list(pool.map(lambda _: post(), range(80)))
+    assert sorted(seqs) == list(range(80))
+    eventually(lambda: len(scans) == 80, "every post on the bus")
+    assert [ScanMessage.decode(b).seq for b in scans] == list(range(80))
 
 
 def test_numbering_follows_the_scans_and_odometry_other_sources_put(client, peer, auth,
