@@ -106,8 +106,10 @@ class ZenohBackend:
         sub = self.session.declare_subscriber
         self._declared += [
             sub(keys.pose("*", p), self._on_pose),
-            sub(keys.raw_scan("*", p), self._on_scan),
-            sub(keys.odom("*", p), self._on_odometry),
+            # Other sources' input only: the echo of a post of this gateway's, coming late,
+            # would otherwise lower the seq it numbers from (publish_numbered records posts).
+            sub(keys.raw_scan("*", p), self._on_scan, allowed_origin=zenoh.Locality.REMOTE),
+            sub(keys.odom("*", p), self._on_odometry, allowed_origin=zenoh.Locality.REMOTE),
             sub(keys.map_key("*", "changed", p), self._on_map_changed),
             self.session.liveliness().declare_subscriber(
                 keys.health("*", "*", p), self._on_liveliness, history=True
@@ -268,6 +270,8 @@ class ZenohBackend:
         with self._ingest_lock:
             seq = self._next_seq(robot_id, stream, given)
             self.publish(key, encode(seq))
+            if stream == "scan":
+                self.tracks.saw_scan(robot_id, seq)
             return seq
 
     async def apublish_numbered(
