@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import functools
 import math
+import zipfile
+import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +30,10 @@ from scanflow.wire import KeyframesMessage
 
 from services.common.keyframes import scan_nodes
 from services.mapserver.keyframes import FIELDS, Keyframes
+
+# What a damaged file raises as it is read: a missing or cut one, a broken zip or deflate stream,
+# an array or key that is not there (a file cut short, a disk that filled, a foreign file).
+UNREADABLE = (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error)
 
 SUFFIX = ".snapshot.npz"
 _PER_FILE = "keyframes_per_file"
@@ -132,7 +138,7 @@ def load_snapshots(data_dir: Path) -> tuple[list[Snapshot], list[str]]:
                 # Older files: the inserts up to the last pose are likely in.
                 last_insert_seq = int(data.get("last_insert_seq", last_seq))
                 keyframes = _keyframes(data_dir, robot_id, data, skipped)
-        except (OSError, KeyError, ValueError) as exc:
+        except UNREADABLE as exc:
             skipped.append(f"robot {robot_id}: snapshot not loaded ({type(exc).__name__}: {exc})")
             continue
         snaps.append(Snapshot(
@@ -150,7 +156,7 @@ def _keyframes(
         per_file = int(data.get(_PER_FILE, 1))
         chunks = functools.partial(_load_chunks, data_dir, robot_id, per_file)
         return Keyframes.from_arrays(robot_id, data, chunks)
-    except (OSError, KeyError, ValueError) as exc:
+    except UNREADABLE as exc:
         skipped.append(
             f"robot {robot_id}: keyframes not loaded ({type(exc).__name__}: {exc}); its map and "
             "path are, but the map server cannot follow this run's redraws"

@@ -105,6 +105,29 @@ def test_an_unreadable_snapshot_is_skipped_and_named_not_a_crash(tmp_path):
     assert len(skipped) == 2 and "robot m" in skipped[0] and "robot s" in skipped[1]
 
 
+@pytest.mark.parametrize("cut", [0, 0.5, -10])
+def test_a_snapshot_cut_short_is_skipped_and_named_not_a_crash(tmp_path, cut):
+    """A disk that filled or a kill mid-copy: the map server starts without that robot (an
+    audit saw it exit 1 on a BadZipFile, a crash loop under `restart: unless-stopped`)."""
+    robot = kept_robot(range(5))
+    save_snapshot(tmp_path, robot.snapshot(), 2)
+    path = tmp_path / "r.snapshot.npz"
+    data = path.read_bytes()
+    path.write_bytes(data[: int(len(data) * cut) if cut >= 0 else cut])
+    snaps, skipped = load_snapshots(tmp_path)
+    assert snaps == [] and len(skipped) == 1 and "robot r: snapshot not loaded" in skipped[0]
+
+
+def test_a_chunk_cut_short_costs_the_keyframes_not_the_map(tmp_path):
+    robot = kept_robot(range(5))
+    save_snapshot(tmp_path, robot.snapshot(), 2)
+    chunk = next((tmp_path / "r.keyframes").iterdir())
+    chunk.write_bytes(chunk.read_bytes()[:100])
+    (snap,), skipped = load_snapshots(tmp_path)
+    assert snap.keyframes is None and snap.last_seq == 4
+    assert len(skipped) == 1 and "keyframes not loaded" in skipped[0], skipped
+
+
 def test_shards_split_robots_and_a_robot_list_wins():
     robots = [f"robot{i}" for i in range(40)]
     first = {r for r in robots if owns(r, "0/2", [])}

@@ -16,6 +16,7 @@ import os
 from collections.abc import Mapping
 from dataclasses import asdict, replace
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 from numpy.typing import NDArray
@@ -230,19 +231,27 @@ def grid_from_npz(data: Mapping[str, NDArray], source: Path | str) -> OccupancyG
 def grid_from_npz_bytes(data: bytes, source: str) -> OccupancyGrid:
     """The map in the bytes of a native .npz (a map sent over the bus); ValueError naming
     `source` when they are not one."""
-    try:
-        with np.load(io.BytesIO(data), allow_pickle=False) as arrays:
-            return grid_from_npz(arrays, source)
-    except Exception as exc:  # zipfile, zlib, npy and key errors of a truncated or foreign file
-        if str(exc).startswith(f"{source}:"):
-            raise
-        raise ValueError(f"{source}: not a readable .npz ({type(exc).__name__}: {exc})") from exc
+    return _read_npz(io.BytesIO(data), source)
 
 
 def load_npz(path: Path | str) -> OccupancyGrid:
-    """Read a map written by `save_npz` (or any file of `npz_arrays` plus other arrays)."""
-    with np.load(path, allow_pickle=False) as data:
-        return grid_from_npz(data, path)
+    """Read a map written by `save_npz` (or any file of `npz_arrays` plus other arrays);
+    ValueError naming `path` when it is no readable one (truncated, corrupt, foreign)."""
+    return _read_npz(path, str(path))
+
+
+def _read_npz(file: Path | str | IO[bytes], source: str) -> OccupancyGrid:
+    """The map in a native .npz; a file that cannot be read as one is a ValueError naming
+    `source`, whatever failed (zip, zlib, npy or a missing key), a missing file an OSError."""
+    try:
+        with np.load(file, allow_pickle=False) as arrays:
+            return grid_from_npz(arrays, source)
+    except OSError:
+        raise
+    except Exception as exc:
+        if str(exc).startswith(f"{source}:"):
+            raise
+        raise ValueError(f"{source}: not a readable .npz ({type(exc).__name__}: {exc})") from exc
 
 
 def save_map(grid: OccupancyGrid, path: Path | str) -> Path:

@@ -132,6 +132,23 @@ def test_npz_rejects_foreign_files(tmp_path: Path):
         load_map(path)
 
 
+@pytest.mark.parametrize("damage", ["empty", "half", "short", "flipped"])
+def test_a_damaged_npz_file_is_a_value_error_naming_it(tmp_path: Path, grid: OccupancyGrid,
+                                                       damage: str):
+    """A map file cut short or corrupted on disk (a prior map, a snapshot): one ValueError
+    naming the file, which the services catch, not a zipfile or zlib error from inside numpy."""
+    path = save_npz(grid, tmp_path / "map.npz")
+    data = path.read_bytes()
+    middle = len(data) // 2
+    path.write_bytes({
+        "empty": b"", "half": data[:middle], "short": data[:-10],
+        "flipped": data[:middle] + bytes(b ^ 0xFF for b in data[middle:middle + 64])
+        + data[middle + 64:],
+    }[damage])
+    with pytest.raises(ValueError, match=f"^{path}: "):
+        load_map(path)
+
+
 def test_npz_bytes_round_trip_and_unreadable_bytes_name_their_source(grid: OccupancyGrid):
     """A map sent over the bus: exact, or a ValueError naming where the bytes came from."""
     loaded = grid_from_npz_bytes(npz_bytes(npz_arrays(grid)), "the matcher's map")
