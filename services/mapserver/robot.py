@@ -60,7 +60,9 @@ class RobotMap:
         self.redrawn_seq = -1 if snap is None else snap.redrawn_seq
         self.last_seq = -1 if snap is None else snap.last_seq
         self.last_insert_seq = -1 if snap is None else snap.last_insert_seq
-        self.streams: set[str] = set()  # the kinds of message this run has had
+        # The kinds of message this run has had: a run resumed from a snapshot had both, so a
+        # replay (seqs back) replaces it rather than adding to its map and path.
+        self.streams: set[str] = set() if snap is None else {"insert", "pose"}
         self.dirty: CellBox | None = None
         self.held: tuple[int, int] | None = None  # inserts (after, through] in a taken state
         self.saved = self.state

@@ -405,6 +405,37 @@ def test_a_snapshot_that_cannot_be_written_is_named_and_the_others_still_are(tmp
         server.shell.close(flush_s=0.0)
 
 
+@pytest.mark.parametrize("first", ["insert", "pose"])
+def test_a_replay_after_a_restart_from_the_snapshot_replaces_the_resumed_run(tmp_path, first):
+    """The map server resumed a robot from its snapshot, then the source starts again from seq 0
+    (`scanflow up` run twice on one data dir): the new run replaces the old map and path,
+    whichever stream shows it first (an audit saw both runs' paths and maps merged)."""
+    settings = (MapServerSettings(data_dir=str(tmp_path)), ZenohSettings(mode="peer", connect=[]))
+    server = MapServer(*settings)
+    try:
+        for seq in range(3):
+            at = Pose2D(5.0 + seq, 0.0, 0.0)
+            server.handle("insert", insert(seq, at))
+            server.handle("pose", pose(seq, at))
+        server.snapshot()
+    finally:
+        server.shell.close(flush_s=0.0)
+    server = MapServer(*settings)
+    try:
+        robot = server.robots["r"]
+        assert robot.last_seq == 2 and len(robot.trajectory.poses) == 3
+        updates = {"insert": insert(0, Pose2D()), "pose": pose(0, Pose2D())}
+        server.handle(first, updates[first])
+        server.handle(*[(k, m) for k, m in updates.items() if k != first][0])
+        robot = server.robots["r"]
+        assert robot.trajectory.poses.tolist() == [[0.0, 0.0, 0.0]]
+        assert robot.last_seq == 0 and robot.last_insert_seq == 0
+        np.testing.assert_array_equal(robot.map.grid.log_odds,
+                                      tracker_map([0]).log_odds)
+    finally:
+        server.shell.close(flush_s=0.0)
+
+
 def test_inserts_missed_that_no_matcher_sends_again_are_counted_and_named(tmp_path, caplog):
     """No matcher answers the resend query (an isolated session): the gap is logged with its
     seqs and counted, and the insert that showed it still goes in."""
