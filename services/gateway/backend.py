@@ -23,6 +23,7 @@ from scanflow.wire import (
     OdometryMessage,
     PoseEstimateMessage,
     ScanMessage,
+    ServiceStatsMessage,
 )
 
 from services.common.counters import worth_logging
@@ -37,6 +38,10 @@ M = TypeVar("M", PoseEstimateMessage, MapChangedMessage, ScanMessage, OdometryMe
 
 log = logging.getLogger("scanflow.gateway")
 EXPECTED_SERVICES = ("router", "deskew", "matcher", "mapserver")
+STATS_TIMEOUT_S = 1.0
+# Where the services' stats keep a robot's last seq of each input stream (deskew and matcher
+# see the scans, the map server their poses, deskew the odometry).
+_SEQ_GAUGES = {"scan": ("scan", "pose"), "odom": ("odom",)}
 _ERROR_STATUS = {  # remote exception name -> HTTP status
     "LookupError": 404,
     "KeyError": 404,
@@ -224,6 +229,29 @@ class ZenohBackend:
             raise BackendError(status, reason)
         raise BackendError(503, f"no service answers {selector} (is it running?)")
 
+    def service_stats(self) -> list[ServiceStatsMessage]:
+        """Every service's stats that answer within STATS_TIMEOUT_S (none: an empty list);
+        malformed answers are counted."""
+        try:
+            replies = self.query(keys.stats("*", "*", self.prefix), None, STATS_TIMEOUT_S)
+        except BackendError:
+            return []
+        stats = []
+        for reply in replies:
+            try:
+                stats.append(ServiceStatsMessage.decode(reply.payload))
+            except DecodeError:
+                self.metrics.count("scanflow_gateway_malformed_total", kind="stats")
+        return stats
+
+    def _services_last_seq(self, robot_id: str, stream: str) -> int:
+        """The last seq any service saw on the robot's input `stream` (-1: none): a gateway that
+        (re)started knows nothing of the posts before it, and numbering them from 0 again
+        would restart the robot's map in every service."""
+        names = [f"seq.{robot_id}/{kind}.last" for kind in _SEQ_GAUGES[stream]]
+        lasts = [s.gauges[n] for s in self.service_stats() for n in names if n in s.gauges]
+        return int(max(lasts, default=-1))
+
     async def aquery(
         self, selector: str, payload: bytes | None = None, timeout_s: float | None = None
     ) -> list[Reply]:
@@ -268,6 +296,8 @@ class ZenohBackend:
         bus in that order, or every service takes n for a replay and starts the robot's map
         afresh. Returns the seq."""
         with self._ingest_lock:
+            if not self.tracks.knows_seq(robot_id, stream):
+                self.tracks.learn_seq(robot_id, stream, self._services_last_seq(robot_id, stream))
             seq = self._next_seq(robot_id, stream, given)
             self.publish(key, encode(seq))
             if stream == "scan":

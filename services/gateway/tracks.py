@@ -125,6 +125,20 @@ class TrackStore:
             if track is not None:
                 track.saw_seq("odom", seq)
 
+    def knows_seq(self, robot_id: str, stream: str) -> bool:
+        """Whether a seq of the robot's `stream` was seen or learnt since the gateway started."""
+        with self._lock:
+            track = self._tracks.get(robot_id)
+            return track is not None and stream in track.seqs
+
+    def learn_seq(self, robot_id: str, stream: str, last: int) -> None:
+        """The stream's last seq as the services saw it before this gateway started (-1: none),
+        unless one was seen since (it is newer); the scans' takes the last pose's when higher."""
+        with self._lock:
+            track = self._track(robot_id)
+            if track is not None and stream not in track.seqs:
+                track.seqs[stream] = max(last, track.last_seq(stream))
+
     def next_seq(self, robot_id: str, stream: str, given: int | None) -> int | None:
         """The seq to publish on the robot's input `stream` ("scan", "odom"): `given`, or one
         past the stream's last when it is None; None when the robot is refused (over the

@@ -171,6 +171,27 @@ def test_numbering_follows_the_scans_and_odometry_other_sources_put(client, peer
     assert client.post("/api/v1/robots/fed2/odometry", json=odom, headers=auth).json()["seq"] == 15
 
 
+def test_a_restarted_gateway_numbers_past_what_the_services_saw_before_it(client, peer, auth):
+    """The gateway restarted: it has seen none of the robot's scans, odometry or poses yet. It
+    asks the services' stats for the streams' last seqs rather than start from 0 again (an
+    audit saw acks 58, 59, then 0 after a restart, and the robot's map wiped everywhere)."""
+    gauges = {
+        "deskew": {"seq.r7/scan.last": 57.0, "seq.r7/odom.last": 299.0},
+        "mapserver": {"seq.r7/pose.last": 59.0, "seq.r8/pose.last": 4.0},
+    }
+    for service, values in gauges.items():
+        stats = ServiceStatsMessage(service, "0", 1.0, {}, values)
+        peer.answer(keys.stats(service, "0"), lambda q, stats=stats: stats.encode())
+    post = lambda what, body: client.post(  # noqa: E731
+        f"/api/v1/robots/r7/{what}", json=body, headers=auth)
+    odom = {"stamp_s": 1.0, "pose": {"x_m": 1.0}}
+    assert post("scans", SCAN).json()["seq"] == 60
+    assert post("odometry", odom).json()["seq"] == 300
+    r = post("scans", {**SCAN, "seq": 59})
+    assert r.status_code == 409 and "its last is 60" in r.json()["detail"]
+    assert client.post("/api/v1/robots/new/scans", json=SCAN, headers=auth).json()["seq"] == 0
+
+
 @pytest.mark.parametrize("settings", [GatewaySettings(api_key="test-key", max_robots=1)])
 def test_ingest_for_a_robot_over_max_robots_is_refused(client, peer, auth):
     scans = peer.subscribe(keys.raw_scan("*"))
