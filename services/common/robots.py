@@ -7,6 +7,11 @@ from collections.abc import Callable
 from typing import Protocol
 
 
+class RobotLimitError(RuntimeError):
+    """A request for a robot the service cannot keep state for (over its max_robots); the
+    gateway answers it with 503."""
+
+
 class Known(Protocol):
     """The robots a service holds (a dict of their state, keyed by id)."""
 

@@ -50,6 +50,7 @@ _ERROR_STATUS = {  # remote exception name -> HTTP status
     "KeyExprError": 422,
     "DecodeError": 422,
     "SchemaError": 422,
+    "RobotLimitError": 503,
 }
 
 

@@ -60,6 +60,7 @@ from scanflow.wire import (
 from services.common.keyframes import scan_nodes
 from services.common.process import init_process, require_settings
 from services.common.resend import resend_range
+from services.common.robots import RobotLimitError
 from services.common.shell import ServiceShell
 from services.matcher.recent import (
     RecentInserts,
@@ -110,7 +111,7 @@ class MatcherService:
         if not self.owns(robot_id):
             self.shell.counters.add(f"other_shard.{kind}")
             return
-        if not self.shell.admits(robot_id, self.frontends):
+        if not self.shell.admits(robot_id, _Held(self)):
             return
         stream = f"{robot_id}/{kind}"
         restarted = self.shell.seqs.is_restart(stream, message.seq)
@@ -334,18 +335,28 @@ class MatcherService:
             raise ValueError(f"initial pose for {robot_id!r} must be sent on {key}")
         if not self.owns(robot_id):
             return
+        self.place(robot_id, message.pose)
+        self.shell.log.info("robot %s: placed at %s by request", robot_id, message.pose)
+        query.reply(key, message.encode())
+
+    def place(self, robot_id: str, pose: Pose2D) -> None:
+        """Put the robot at an operator's `pose`, or keep it for the robot's first scan: it
+        takes one of the max_robots places then (RobotLimitError when none is left)."""
         with self.lock:
             frontend = self.frontends.get(robot_id)
             if frontend is None:
-                self.initial_poses[robot_id] = message.pose
+                if not self.shell.admits(robot_id, _Held(self)):
+                    raise RobotLimitError(
+                        f"robot {robot_id!r} refused: this matcher keeps "
+                        f"{self.settings.max_robots} robots already (SCANFLOW_MATCHER_MAX_ROBOTS)"
+                    )
+                self.initial_poses[robot_id] = pose
             else:
-                frontend.set_pose(message.pose)
+                frontend.set_pose(pose)
                 mapper = self.mappers.get(robot_id)
                 if mapper is not None:  # its graph links across the pose only weakly
                     mapper.relocated()
         self.shell.counters.add("initial_poses")
-        self.shell.log.info("robot %s: placed at %s by request", robot_id, message.pose)
-        query.reply(key, message.encode())
 
     # -- match requests -------------------------------------------------------------------
     def _map_of(self, robot_id: str) -> MatchingMap | None:
@@ -378,6 +389,20 @@ class MatcherService:
         self.shell.start()
         self.shell.run(self.handle)
         self.shell.close()
+
+
+class _Held:
+    """The robots a matcher holds a place for: those it tracks, and those whose operator's pose
+    waits for their first scan (the two never overlap)."""
+
+    def __init__(self, service: MatcherService) -> None:
+        self._service = service
+
+    def __contains__(self, robot_id: object) -> bool:
+        return robot_id in self._service.frontends or robot_id in self._service.initial_poses
+
+    def __len__(self) -> int:
+        return len(self._service.frontends) + len(self._service.initial_poses)
 
 
 def main() -> None:

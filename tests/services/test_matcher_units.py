@@ -30,6 +30,7 @@ from scanflow.wire import (
 
 from services.common.keyframes import keyframes_message
 from services.common.resend import FIRST, resend_selector
+from services.common.robots import RobotLimitError
 from services.matcher.recent import RecentInserts, keyframe_inserts, map_state
 from services.matcher.requests import answer
 from services.matcher.service import MatcherService
@@ -87,6 +88,31 @@ def test_an_operators_pose_before_a_resumed_robots_first_scan_is_a_weak_link() -
         frontend = service._frontend("r", seq=12)
         assert frontend is frontend_of["r"] and relocated == [True]
         assert "r" not in service.initial_poses
+    finally:
+        service.shell.close(flush_s=0.0)
+
+
+def test_operators_poses_for_robots_not_seen_yet_take_places_among_max_robots() -> None:
+    """Poses PUT for ever new robot ids are bounded as their scans are (an audit stored 1,500
+    and answered each 200 while the robot was refused): a kept pose holds one of the robot's
+    places, so its own first scan is still admitted."""
+    service = MatcherService(
+        MatcherSettings(max_robots=2), FrontendSettings(), ZenohSettings(mode="peer", connect=[]),
+        BackendSettings(),
+    )
+    try:
+        service.place("a", Pose2D(1.0, 0.0, 0.0))
+        service.place("b", Pose2D(2.0, 0.0, 0.0))
+        with pytest.raises(RobotLimitError, match="robot 'c' refused: this matcher keeps 2"):
+            service.place("c", Pose2D())
+        assert sorted(service.initial_poses) == ["a", "b"]
+        assert service.shell.counters.get("robots_refused") == 1
+        service.place("a", Pose2D(3.0, 0.0, 0.0))  # a robot with a place keeps it
+        assert service.initial_poses["a"] == Pose2D(3.0, 0.0, 0.0)
+        frontend = service._frontend("a", seq=0)
+        assert frontend.initial_pose == Pose2D(3.0, 0.0, 0.0) and "a" not in service.initial_poses
+        with pytest.raises(RobotLimitError):
+            service.place("c", Pose2D())  # a and b still hold the two places
     finally:
         service.shell.close(flush_s=0.0)
 

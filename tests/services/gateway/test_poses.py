@@ -12,6 +12,8 @@ from scanflow import keys
 from scanflow.geometry import Pose2D
 from scanflow.wire import InitialPoseMessage, TrajectoryMessage
 
+from services.common.robots import RobotLimitError
+
 from .conftest import estimate, eventually
 
 
@@ -111,6 +113,16 @@ def test_an_operators_pose_needs_the_key_a_tracker_and_a_valid_body(client, auth
     assert r.status_code == 503 and "initial_pose" in r.json()["detail"]
     r = client.put("/api/v1/robots/r1/pose", json={"x_m": "far"}, headers=auth)
     assert r.status_code == 422 and "x_m" in r.text
+
+
+def test_an_operators_pose_for_a_robot_over_the_matchers_limit_is_a_503(client, peer, auth):
+    def full(_query) -> bytes:
+        raise RobotLimitError("robot 'r2' refused: this matcher keeps 1 robots already")
+
+    peer.answer(keys.initial_pose("r2"), full)
+    r = client.put("/api/v1/robots/r2/pose", json={"x_m": 1.0, "y_m": 0.0, "theta_rad": 0.0},
+                   headers=auth)
+    assert r.status_code == 503 and "robot 'r2' refused" in r.json()["detail"]
 
 
 def test_a_map_redraw_drops_the_cached_poses_of_the_old_frame(client, peer, publish_poses):
