@@ -43,7 +43,6 @@ from scanflow.frontend.prior import FrontendStart
 from scanflow.geometry import Pose2D
 from scanflow.maps.export import grid_from_npz_bytes
 from scanflow.maps.matching_map import MatchingMap
-from scanflow.matching.global_search import GLOBAL_METHOD
 from scanflow.warmup import warm_up
 from scanflow.wire import (
     DeskewedScanMessage,
@@ -52,6 +51,7 @@ from scanflow.wire import (
     MapRedrawMessage,
     MapRef,
     MatchRequest,
+    MatchResponse,
     MessageError,
     PoseEstimateMessage,
     ResumeMessage,
@@ -70,6 +70,10 @@ from services.matcher.recent import (
 )
 from services.matcher.requests import answer
 from services.matcher.shard import owns
+
+# Scan-to-map methods that read the live map under the lock: quick, and bounded by their
+# max_iterations. Any other (csm, its exhaustive form, csm+plicp, global: searches) reads a copy.
+LOCAL_METHODS = frozenset({"gn", "lm", "ndt", "gn+plicp", "icp", "plicp"})
 
 
 class MatcherService:
@@ -367,21 +371,24 @@ class MatcherService:
         payload = query.payload
         if payload is None:
             raise ValueError("a match query needs a MatchRequest payload")
-        request = MatchRequest.decode(payload.to_bytes())
-        if request.method == GLOBAL_METHOD and isinstance(request.target, MapRef):
-            # A whole-map search takes seconds: it runs on a copy of the map (2 ms to take),
-            # so the robot's tracking goes on meanwhile instead of waiting for the lock.
+        response = self.respond(MatchRequest.decode(payload.to_bytes()))
+        self.shell.counters.add("match_requests")
+        query.reply(query.key_expr, response.encode())
+
+    def respond(self, request: MatchRequest) -> MatchResponse:
+        """The answer to a match request. A search against a robot's map (csm, its exhaustive
+        form, csm+plicp, global: seconds on a wide window) runs on a copy of the map (2 ms to
+        take), so no robot's tracking waits for it; the quick methods read the live map under
+        the lock; scan-to-scan needs no robot's state."""
+        if isinstance(request.target, MapRef) and request.method not in LOCAL_METHODS:
             with self.lock:
                 live = self._map_of(request.target.robot_id)
                 snapshot = None if live is None else MatchingMap(copy.deepcopy(live.grid))
-            response = answer(request, lambda _robot_id: snapshot)
-        elif isinstance(request.target, MapRef):
+            return answer(request, lambda _robot_id: snapshot)
+        if isinstance(request.target, MapRef):
             with self.lock:
-                response = answer(request, self._map_of)
-        else:  # two scans: nothing of the robots' state, no reason to hold their tracking up
-            response = answer(request, self._map_of)
-        self.shell.counters.add("match_requests")
-        query.reply(query.key_expr, response.encode())
+                return answer(request, self._map_of)
+        return answer(request, self._map_of)
 
     def run(self) -> None:
         if self.settings.warm_up:  # before the health token: the first scan at full speed

@@ -21,6 +21,7 @@ from scanflow.wire import (
     DeskewedScanMessage,
     MapInsertMessage,
     MapRedrawMessage,
+    MapRef,
     MapStateMessage,
     MatchRequest,
     ResumeMessage,
@@ -31,6 +32,7 @@ from scanflow.wire import (
 from services.common.keyframes import keyframes_message
 from services.common.resend import FIRST, resend_selector
 from services.common.robots import RobotLimitError
+from services.matcher import service as service_module
 from services.matcher.recent import RecentInserts, keyframe_inserts, map_state
 from services.matcher.requests import answer
 from services.matcher.service import MatcherService
@@ -412,3 +414,42 @@ def test_a_match_request_with_a_bad_option_is_answered_with_its_name(options, na
     points = np.random.default_rng(0).uniform(-3, 3, (40, 2))
     reply = answer(MatchRequest("plicp", points, points, options=options), lambda _r: None)
     assert reply.error.startswith("MatchInputError: ") and named in reply.error
+
+
+@pytest.mark.parametrize(
+    ("method", "under_lock"),
+    [("csm", False), ("csm_exhaustive", False), ("csm+plicp", False), ("global", False),
+     ("gn", True), ("ndt", True)],
+)
+def test_a_search_request_runs_on_a_copy_of_the_map_without_the_lock(
+    monkeypatch, method, under_lock
+) -> None:
+    """A csm search with a wide window takes seconds to minutes: holding the lock that every
+    robot's tracking takes would stall them all (an audit saw 11 s). Searches read a copy of
+    the map, with the same answer; the quick methods read the live map under the lock."""
+    service = matcher()
+    try:
+        frames = list(simulate(SimConfig(beams=180, duration_s=0.6, seed=2)))
+        stage = DeskewStage()
+        for frame in frames[:-1]:
+            deskewed = stage.process(frame.scan)
+            service._frontend("r", 0).process(deskewed.points, frame.scan.stamp_s, None, 0)
+        source = DeskewStage().process(frames[-1].scan).points
+        request = MatchRequest(method, source, MapRef("r"), frames[-1].true_pose)
+        seen: list[bool] = []
+        real_answer = service_module.answer
+
+        def spy(request, map_of):  # type: ignore[no-untyped-def]
+            free = service.lock.acquire(blocking=False)
+            if free:
+                service.lock.release()
+            seen.append(not free)
+            return real_answer(request, map_of)
+
+        monkeypatch.setattr(service_module, "answer", spy)
+        response = service.respond(request)
+        assert seen == [under_lock]
+        expected = real_answer(request, service._map_of)
+        assert (response.status, response.pose) == (expected.status, expected.pose)
+    finally:
+        service.shell.close(flush_s=0.0)

@@ -24,7 +24,7 @@ from scanflow.maps.grid import CellBox, GridSpec, clipped
 SCORE_SCALE = 1000  # probability 1.0 -> 1000 (int16 levels)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _quantise_into(out, values, boxes, pad):  # type: ignore[no-untyped-def]
     """out[r + pad, c + pad] = rint(values[r, c] * SCORE_SCALE) over each box (n, 4) of values'
     indices, in one pass; False if a value is not in [0, 1]."""
@@ -39,7 +39,7 @@ def _quantise_into(out, values, boxes, pad):  # type: ignore[no-untyped-def]
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _pool(levels, changed):  # type: ignore[no-untyped-def]
     """Recompute levels 1.. of `levels` where level 0 changed inside the `changed` boxes ((n, 4)
     rows of [row0, col0, row1, col1), array indices).

@@ -178,7 +178,7 @@ def _suppressed(k, ix0, ix1, iy0, iy1, picks, n_picks, r_cells, r_steps):  # typ
     return False
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)  # seconds on a wide window: other threads run on
 def _exhaustive(  # type: ignore[no-untyped-def]
     levels, rows, cols, pad, w, half_steps, picks, n_picks, r_cells, r_steps, floor
 ):
@@ -201,7 +201,7 @@ def _min_square(lo, hi):  # type: ignore[no-untyped-def]
     return 0 if lo <= 0 <= hi else min(lo * lo, hi * hi)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)  # seconds on a wide window: other threads run on
 def _branch_and_bound(  # type: ignore[no-untyped-def]
     levels, rows, cols, pad, w, top, half_steps, picks, n_picks, r_cells, r_steps, floor
 ):
