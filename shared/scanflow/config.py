@@ -362,6 +362,12 @@ class FrontendSettings(Section):
     )
     max_odom_step_m: float = Field(3.0, gt=0.0, description="larger odometry steps are jumps")
     max_odom_step_deg: float = Field(120.0, gt=0.0, description="same, heading")
+    max_odom_speed_mps: float = Field(
+        5.0, gt=0.0, description="after a longer gap, odometry steps faster than this are jumps"
+    )
+    max_odom_turn_rate_deg_s: float = Field(
+        180.0, gt=0.0, description="same, heading (degrees per second)"
+    )
     cv_horizon_s: float = Field(
         1.0, gt=0.0, description="constant-velocity prediction reach without odometry"
     )

@@ -48,23 +48,32 @@ class MotionPredictor:
     An odometry step longer than `max_odom_step_m` or turning more than `max_odom_step_rad` is
     taken as a jump (a reset or a glitch of the odometry source) and ignored for this scan; the
     next step is measured from the jumped-to odometry pose, so one glitch costs one prediction.
+    Over a longer gap since the last scan (a restarted service, a stalled link) the limits grow
+    with the time: a step is a jump only beyond `max_odom_speed_mps` / `max_odom_turn_rate_rads`
+    too, so the odometry still bridges the gap where nothing else could.
     """
 
     def __init__(
-        self, max_odom_step_m: float, max_odom_step_rad: float, cv_horizon_s: float
+        self, max_odom_step_m: float, max_odom_step_rad: float, cv_horizon_s: float,
+        max_odom_speed_mps: float = 5.0, max_odom_turn_rate_rads: float = math.pi,
     ) -> None:
         for name, value in (
             ("max_odom_step_m", max_odom_step_m),
             ("max_odom_step_rad", max_odom_step_rad),
+            ("max_odom_speed_mps", max_odom_speed_mps),
+            ("max_odom_turn_rate_rads", max_odom_turn_rate_rads),
         ):
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be finite and > 0, got {value!r}")
         self.max_odom_step_m = float(max_odom_step_m)
         self.max_odom_step_rad = float(max_odom_step_rad)
+        self.max_odom_speed_mps = float(max_odom_speed_mps)
+        self.max_odom_turn_rate_rads = float(max_odom_turn_rate_rads)
         self.cv_horizon_s = cv_horizon_s
         self._velocity = ConstantVelocityModel(max_horizon_s=cv_horizon_s)
         self._last_pose: Pose2D | None = None
         self._last_odom: Pose2D | None = None
+        self._last_stamp_s: float | None = None
 
     @property
     def last_pose(self) -> Pose2D | None:
@@ -78,16 +87,16 @@ class MotionPredictor:
         note = ""
         if odom_pose is not None and self._last_odom is not None:
             step = odom_pose.relative_to(self._last_odom)
-            if (
-                step.translation_norm() <= self.max_odom_step_m
-                and abs(step.theta) <= self.max_odom_step_rad
-            ):
+            gap_s = 0.0 if self._last_stamp_s is None else max(stamp_s - self._last_stamp_s, 0.0)
+            limit_m = max(self.max_odom_step_m, self.max_odom_speed_mps * gap_s)
+            limit_rad = max(self.max_odom_step_rad, self.max_odom_turn_rate_rads * gap_s)
+            if step.translation_norm() <= limit_m and abs(step.theta) <= limit_rad:
                 pose = compose_odometry_increment(last, self._last_odom, odom_pose)
                 return Prediction(pose, step, PredictionSource.ODOMETRY)
             note = (
                 f"odometry jumped {step.translation_norm():.2f} m / "
-                f"{math.degrees(step.theta):.1f} deg (limits {self.max_odom_step_m} m / "
-                f"{math.degrees(self.max_odom_step_rad):.1f} deg): ignored; "
+                f"{math.degrees(step.theta):.1f} deg in {gap_s:.2f} s (limits {limit_m:.2f} m / "
+                f"{math.degrees(limit_rad):.1f} deg): ignored; "
             )
         if self._velocity.coverage_gap(stamp_s, stamp_s) is None:
             x, y, theta = self._velocity.poses_at([stamp_s])
@@ -101,6 +110,7 @@ class MotionPredictor:
         """Record the pose estimated at `stamp_s` (matched or predicted) and its odometry pose."""
         self._velocity.update(stamp_s, pose)
         self._last_pose = pose
+        self._last_stamp_s = stamp_s
         # A scan without odometry breaks the chain: the next increment needs both ends.
         self._last_odom = odom_pose
 

@@ -181,7 +181,8 @@ class Frontend:
             accept_degenerate=s.accept_degenerate,
         )
         self._predictor = MotionPredictor(
-            s.max_odom_step_m, math.radians(s.max_odom_step_deg), s.cv_horizon_s
+            s.max_odom_step_m, math.radians(s.max_odom_step_deg), s.cv_horizon_s,
+            s.max_odom_speed_mps, math.radians(s.max_odom_turn_rate_deg_s),
         )
         self._filter = MotionFilter(
             s.insert_min_distance_m, math.radians(s.insert_min_angle_deg), s.insert_max_interval_s
