@@ -50,7 +50,9 @@ class MotionPredictor:
     next step is measured from the jumped-to odometry pose, so one glitch costs one prediction.
     Over a longer gap since the last scan (a restarted service, a stalled link) the limits grow
     with the time: a step is a jump only beyond `max_odom_speed_mps` / `max_odom_turn_rate_rads`
-    too, so the odometry still bridges the gap where nothing else could.
+    too, so the odometry still bridges the gap where nothing else could. A scan without
+    odometry (a restarted deskewer's first) leaves the chain where it was: the next increment is
+    measured from the last scan that had it.
     """
 
     def __init__(
@@ -72,8 +74,8 @@ class MotionPredictor:
         self.cv_horizon_s = cv_horizon_s
         self._velocity = ConstantVelocityModel(max_horizon_s=cv_horizon_s)
         self._last_pose: Pose2D | None = None
-        self._last_odom: Pose2D | None = None
-        self._last_stamp_s: float | None = None
+        # (stamp, map pose, odometry pose) of the last scan with odometry: where it continues.
+        self._chain: tuple[float, Pose2D, Pose2D] | None = None
 
     @property
     def last_pose(self) -> Pose2D | None:
@@ -85,13 +87,16 @@ class MotionPredictor:
         if last is None:
             return Prediction(Pose2D(), Pose2D(), PredictionSource.INITIAL)
         note = ""
-        if odom_pose is not None and self._last_odom is not None:
-            step = odom_pose.relative_to(self._last_odom)
-            gap_s = 0.0 if self._last_stamp_s is None else max(stamp_s - self._last_stamp_s, 0.0)
+        if odom_pose is not None and self._chain is not None:
+            chain_stamp_s, chain_pose, chain_odom = self._chain
+            step = odom_pose.relative_to(chain_odom)
+            gap_s = max(stamp_s - chain_stamp_s, 0.0)
             limit_m = max(self.max_odom_step_m, self.max_odom_speed_mps * gap_s)
             limit_rad = max(self.max_odom_step_rad, self.max_odom_turn_rate_rads * gap_s)
             if step.translation_norm() <= limit_m and abs(step.theta) <= limit_rad:
-                pose = compose_odometry_increment(last, self._last_odom, odom_pose)
+                pose = compose_odometry_increment(chain_pose, chain_odom, odom_pose)
+                # The motion is the odometry's since the chain's scan (the last one, unless
+                # scans without odometry came between: a little more, never less).
                 return Prediction(pose, step, PredictionSource.ODOMETRY)
             note = (
                 f"odometry jumped {step.translation_norm():.2f} m / "
@@ -110,26 +115,29 @@ class MotionPredictor:
         """Record the pose estimated at `stamp_s` (matched or predicted) and its odometry pose."""
         self._velocity.update(stamp_s, pose)
         self._last_pose = pose
-        self._last_stamp_s = stamp_s
-        # A scan without odometry breaks the chain: the next increment needs both ends.
-        self._last_odom = odom_pose
+        if odom_pose is not None:  # without it, the chain goes on from the last that had it
+            self._chain = (stamp_s, pose, odom_pose)
 
     def place(self, pose: Pose2D) -> None:
         """Put the robot at `pose` by decree (an operator's initial pose): velocity and the
         odometry chain are forgotten, so the next scan is predicted at `pose` itself."""
         self._velocity = ConstantVelocityModel(max_horizon_s=self.cv_horizon_s)
         self._last_pose = pose
-        self._last_odom = None
+        self._chain = None
 
     def move_frame(self, correction: Pose2D) -> None:
         """Re-express the estimates in another map frame (T_new_old = `correction`, a map
         redrawn after a pose-graph optimisation): the odometry chain and velocity carry on."""
         if self._last_pose is not None:
             self._last_pose = correction * self._last_pose
+        if self._chain is not None:
+            stamp_s, pose, odom = self._chain
+            self._chain = (stamp_s, correction * pose, odom)
         self._velocity.move_frame(correction)
 
     def restart(self, stamp_s: float, pose: Pose2D, odom_pose: Pose2D | None) -> None:
         """Record a pose that is not a motion from the last one (found by a whole-map search):
-        the velocity is forgotten, so the jump is not extrapolated."""
+        the velocity and the odometry chain are forgotten, so the jump is not extrapolated."""
         self._velocity = ConstantVelocityModel(max_horizon_s=self.cv_horizon_s)
+        self._chain = None
         self.update(stamp_s, pose, odom_pose)

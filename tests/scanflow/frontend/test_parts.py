@@ -62,11 +62,17 @@ def test_predictor_sources_and_jumps() -> None:
     jumped = p.predict(0.1, Pose2D(30.0, 0.0, 0.0))
     assert jumped.source is PredictionSource.HOLD and "odometry jumped" in jumped.message
     p.update(0.1, Pose2D(1.2, 0.0, 0.0), None)
-    cv = p.predict(0.2, Pose2D(10.0, 0.9, math.pi / 2))  # chain broken by the scan without odom
+    cv = p.predict(0.2, None)  # no odometry: the velocity of the last two estimates
     assert cv.source is PredictionSource.CONSTANT_VELOCITY
     assert close(cv.pose, Pose2D(1.4, 0.0, 0.0), 1e-9)
+    # The scan without odometry left the chain at the first: 0.9 m forward since then.
+    bridged = p.predict(0.2, Pose2D(10.0, 0.9, math.pi / 2))
+    assert bridged.source is PredictionSource.ODOMETRY
+    assert close(bridged.pose, Pose2D(1.9, 0.0, 0.0), 1e-9)
     far = p.predict(5.0, None)
     assert far.source is PredictionSource.HOLD and close(far.pose, Pose2D(1.2, 0.0, 0.0))
+    p.restart(5.0, Pose2D(7.0, 7.0, 0.0), None)  # a whole-map search: the chain is gone
+    assert p.predict(5.1, Pose2D(10.0, 1.0, math.pi / 2)).source is not PredictionSource.ODOMETRY
 
 
 def test_after_a_longer_gap_the_odometry_still_predicts() -> None:
