@@ -83,5 +83,5 @@ def resume(robot: RobotMap) -> ResumeMessage:
     kept = None if robot.keyframes is None else robot.keyframes.message(robot.robot_id)
     return ResumeMessage(
         robot.robot_id, robot.map.revision, image(robot, "npz").data,
-        robot.trajectory.stamps_s, robot.trajectory.poses, kept,
+        robot.trajectory.stamps_s, robot.trajectory.poses, kept, robot.odom_at_path_end(),
     )

@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 from scanflow.backend.loops import draw_keyframes
 from scanflow.frontend import insert_scan
 from scanflow.frontend.trajectory import TrajectoryStore
+from scanflow.geometry import Pose2D
 from scanflow.maps.grid import CellBox
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
@@ -60,6 +61,9 @@ class RobotMap:
         self.redrawn_seq = -1 if snap is None else snap.redrawn_seq
         self.last_seq = -1 if snap is None else snap.last_seq
         self.last_insert_seq = -1 if snap is None else snap.last_insert_seq
+        # (stamp, odometry pose) of the last estimate that had one: a restarted matcher
+        # predicts the next scan from the path's end with it (`odom_at_path_end`).
+        self.last_odom: tuple[float, Pose2D] | None = None if snap is None else snap.last_odom
         # The kinds of message this run has had: a run resumed from a snapshot had both, so a
         # replay (seqs back) replaces it rather than adding to its map and path.
         self.streams: set[str] = set() if snap is None else {"insert", "pose"}
@@ -80,6 +84,7 @@ class RobotMap:
         self.redrawn_seq = -1
         self.last_seq = -1
         self.last_insert_seq = -1
+        self.last_odom = None
         self.streams.clear()
         self.dirty = None
         self.held = None
@@ -87,8 +92,17 @@ class RobotMap:
     def apply(self, pose: PoseEstimateMessage) -> None:
         """Record the pose in the trajectory (unless a redraw's path already holds it)."""
         self.last_seq = pose.seq
+        self.last_odom = None if pose.odom_pose is None else (pose.stamp_s, pose.odom_pose)
         if pose.seq > self.redrawn_seq:
             self.trajectory.append(pose.stamp_s, pose.pose)
+
+    def odom_at_path_end(self) -> Pose2D | None:
+        """The odometry pose of the path's last pose, None unless the last estimate had one
+        and the path ends at its stamp (a taken map state may end elsewhere)."""
+        stamps = self.trajectory.stamps_s
+        if self.last_odom is None or len(stamps) == 0 or stamps[-1] != self.last_odom[0]:
+            return None
+        return self.last_odom[1]
 
     def insert(self, scan: MapInsertMessage) -> None:
         """The front end's own insertion of the scan (hits and no-return beams) at its pose;
@@ -186,4 +200,5 @@ class RobotMap:
             self.keyframes,
             self.redrawn_seq,
             self.last_insert_seq,
+            self.last_odom,
         )

@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from scanflow import keys
 from scanflow.backend import ScanNode
 from scanflow.config import MapServerSettings
+from scanflow.geometry import Pose2D
 from scanflow.maps.export import grid_from_npz, npz_arrays, write_npz
 from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.wire import KeyframesMessage
@@ -52,6 +53,7 @@ class Snapshot:
     keyframes: Keyframes | None = None
     redrawn_seq: int = -1  # the scan of the last redraw (its path already holds up to it)
     last_insert_seq: int = -1  # the last insert in the map (the next names the one before it)
+    last_odom: tuple[float, Pose2D] | None = None  # (stamp, odometry pose) of the last estimate
 
 
 def snapshot_path(data_dir: Path, robot_id: str) -> Path:
@@ -68,6 +70,9 @@ def save_snapshot(data_dir: Path, snap: Snapshot, per_file: int = PER_FILE) -> N
         stamps_s=snap.stamps_s, poses=snap.poses, last_seq=np.int64(snap.last_seq),
         redrawn_seq=np.int64(snap.redrawn_seq), last_insert_seq=np.int64(snap.last_insert_seq),
     )
+    if snap.last_odom is not None:
+        stamp_s, odom = snap.last_odom
+        arrays["last_odom"] = np.array([stamp_s, *odom.to_array()])
     chunks: set[Path] = set()
     if snap.keyframes is not None:
         stored, chunks = _save_chunks(data_dir, snap.robot_id, snap.keyframes, per_file)
@@ -137,14 +142,26 @@ def load_snapshots(data_dir: Path) -> tuple[list[Snapshot], list[str]]:
                 redrawn_seq = int(data.get("redrawn_seq", -1))
                 # Older files: the inserts up to the last pose are likely in.
                 last_insert_seq = int(data.get("last_insert_seq", last_seq))
+                last_odom = _last_odom(data)
                 keyframes = _keyframes(data_dir, robot_id, data, skipped)
         except UNREADABLE as exc:
             skipped.append(f"robot {robot_id}: snapshot not loaded ({type(exc).__name__}: {exc})")
             continue
         snaps.append(Snapshot(
-            robot_id, grid, stamps_s, poses, last_seq, keyframes, redrawn_seq, last_insert_seq
+            robot_id, grid, stamps_s, poses, last_seq, keyframes, redrawn_seq, last_insert_seq,
+            last_odom,
         ))
     return snaps, skipped
+
+
+def _last_odom(data: Mapping[str, NDArray[np.generic]]) -> tuple[float, Pose2D] | None:
+    """The (stamp, odometry pose) a snapshot keeps, None in files without it (older ones)."""
+    if "last_odom" not in data:
+        return None
+    values = np.asarray(data["last_odom"], dtype=np.float64)
+    if values.shape != (4,) or not np.isfinite(values).all():
+        raise ValueError(f"last_odom must be 4 finite numbers, got {values.tolist()}")
+    return float(values[0]), Pose2D.from_array(values[1:])
 
 
 def _keyframes(

@@ -177,7 +177,9 @@ class MatcherService:
         if redraw is not None:
             self._put_redraw(redraw)
             out = out.in_frame(redraw.correction)
-        estimate = PoseEstimateMessage.from_result(out, robot_id, out.seq, out.stamp_s, correction)
+        estimate = PoseEstimateMessage.from_result(
+            out, robot_id, out.seq, out.stamp_s, correction, scan.odom_pose
+        )
         self.shell.put(keys.pose(robot_id, prefix), estimate.encode())
         self.shell.counters.add(f"status.{out.status}")
 
@@ -270,7 +272,10 @@ class MatcherService:
             "robot %s: resumed from the map server (revision %d, %d poses, last %s)",
             robot_id, resumed.revision, len(resumed.poses), pose,
         )
-        return Frontend(self.frontend_settings, initial_pose=pose, grid=grid), resumed
+        frontend = Frontend(self.frontend_settings, initial_pose=pose, grid=grid)
+        if resumed.odom_pose is not None:  # the odometry bridges the time this matcher was out
+            frontend.carry_on(float(resumed.stamps_s[-1]), pose, resumed.odom_pose)
+        return frontend, resumed
 
     def _on_resend(self, query: zenoh.Query) -> None:
         """Send an owned robot's inserts again (the map server missed them): the recent ones,

@@ -123,6 +123,7 @@ pose_messages = st.builds(
     score=finite,
     message=texts,
     correction=st.none() | poses,
+    odom_pose=st.none() | poses,
 )
 scalars = st.booleans() | st.integers(-(2**63), 2**64 - 1) | st.floats(allow_nan=False) | texts
 points_f64 = small_n.flatmap(lambda n: f64_arrays((n, 2)))
@@ -259,7 +260,7 @@ def resumes(draw: st.DrawFn) -> wire.ResumeMessage:
         kept = dataclasses.replace(kept, robot_id=robot_id)
     return wire.ResumeMessage(
         robot_id, draw(counts), draw(st.binary()), draw(f64_arrays(n)),
-        draw(f64_arrays((n, 3))), kept,
+        draw(f64_arrays((n, 3))), kept, draw(st.none() | poses),
     )
 
 
@@ -374,7 +375,7 @@ def test_decoded_arrays_are_read_only() -> None:
 def test_every_payload_carries_type_and_version() -> None:
     data = wire.MapImageMessage("r", 1, "png", b"x").encode()
     assert msgpack.unpackb(data)["type"] == "map_image"
-    assert msgpack.unpackb(data)["v"] == wire.SCHEMA_VERSION == 7
+    assert msgpack.unpackb(data)["v"] == wire.SCHEMA_VERSION == 8
 
 
 def test_message_helpers_carry_match_results() -> None:
@@ -434,8 +435,8 @@ SCAN = wire.ScanMessage(LaserScan(np.array([1.0, np.nan, 3.0]), 0.0, 0.1, robot_
 def test_wrong_version_is_a_version_error() -> None:
     # 1: before no_return_points, 2: before the sensor mount, 3: before map redraws,
     # 4: before the resume message, 5: before the inserts' keyframe flag, 6: before the map
-    # state message
-    for version in (1, 2, 3, 4, 5, 6, 8):
+    # state message, 7: before the estimates' odometry pose
+    for version in (1, 2, 3, 4, 5, 6, 7, 9):
         with pytest.raises(wire.VersionError, match=rf"\.v: schema version {version}"):
             wire.decode_any(_payload(SCAN, v=version))
 

@@ -83,6 +83,27 @@ def test_snapshot_round_trip(tmp_path):
     assert not list(tmp_path.glob(".*"))  # no temporary files left behind
 
 
+def test_the_odometry_pose_of_the_paths_end_is_kept_resumed_and_reset(tmp_path):
+    """A restarted matcher predicts its next scan from the path's end by the odometry since:
+    the map server keeps the last estimate's odometry pose (through a snapshot), gives it with
+    the path when the path ends there, and forgets it on a replay."""
+    robot = new_robot()
+    robot.insert(insert(0))
+    robot.apply(replace(pose(0), odom_pose=Pose2D(5.0, 1.0, 0.5)))
+    assert replies.resume(robot).odom_pose == Pose2D(5.0, 1.0, 0.5)
+    save_snapshot(tmp_path, robot.snapshot())
+    (snap,), _ = load_snapshots(tmp_path)
+    again = new_robot(snap)
+    assert replies.resume(again).odom_pose == Pose2D(5.0, 1.0, 0.5)
+    again.apply(pose(1))  # an estimate without odometry: nothing to go on from
+    assert replies.resume(again).odom_pose is None
+    robot.apply(replace(pose(1), odom_pose=Pose2D(6.0, 1.0, 0.5)))
+    robot.trajectory.append(9.0, Pose2D())  # a path that ends elsewhere (a taken state)
+    assert robot.odom_at_path_end() is None
+    robot.reset()
+    assert robot.last_odom is None
+
+
 def test_a_snapshot_is_one_file_that_loads_as_a_map(tmp_path):
     robot = new_robot()
     robot.insert(insert(0))

@@ -135,6 +135,8 @@ def test_a_robot_resumes_from_the_map_servers_one_answer_or_says_why_not(
         "a": ResumeMessage("a", grid.revision, npz, np.array([1.0, 2.0]), path).encode(),
         "b": b"\x81\xa4type\xa6resume",  # another version's, say
         "c": ResumeMessage("c", 1, b"PK\x03\x04 cut short", np.array([1.0, 2.0]), path).encode(),
+        "d": ResumeMessage("d", grid.revision, npz, np.array([1.0, 2.0]), path,
+                           odom_pose=Pose2D(10.0, 0.0, 0.0)).encode(),
     }
     service.shell.serve(
         "scanflow/*/map/resume",
@@ -156,6 +158,13 @@ def test_a_robot_resumes_from_the_map_servers_one_answer_or_says_why_not(
         assert service._seeded("c") is None  # a broken map: named, and the robot starts afresh
         assert ("robot c: no map to resume from, starting fresh (its answer is unreadable: the "
                 "map server's map of c: not a readable .npz (BadZipFile") in caplog.text
+        # With the odometry pose of the path's end, the first scan after a long outage is
+        # predicted by the odometry since then (without it: held at the path's end).
+        for robot, source in (("a", "initial"), ("d", "odometry")):
+            frontend, _ = service._seeded(robot)
+            out = frontend.process(np.zeros((3, 2)), 30.0, Pose2D(13.0, 0.0, 0.0))
+            assert out.prediction_source == source, robot
+        assert out.pose == Pose2D.from_array(path[-1]) * Pose2D(3.0, 0.0, 0.0)
     finally:
         service.shell.close(flush_s=0.0)
 

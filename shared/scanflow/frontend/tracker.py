@@ -282,6 +282,14 @@ class Frontend:
         else:
             self._predictor.place(pose)
 
+    def carry_on(self, stamp_s: float, pose: Pose2D, odom_pose: Pose2D) -> None:
+        """Carry on a run from its last estimate, `pose` at `stamp_s` with the odometry pose
+        `odom_pose` there (a restarted matcher resuming the map server's path): the next scan is
+        predicted from it by the odometry since, however long this tracker was out."""
+        if not all(math.isfinite(v) for v in (pose.x, pose.y, pose.theta)):
+            raise ValueError(f"pose must be finite, got {pose}")
+        self._predictor.update(stamp_s, pose, odom_pose)
+
     def redraw(self, matching_map: MatchingMap, correction: Pose2D) -> None:
         """Track on `matching_map` from now on: the map redrawn in another frame (T_new_old =
         `correction`), as the back end does after optimising its pose graph. The last pose and

@@ -18,7 +18,8 @@ Changing any message's fields bumps SCHEMA_VERSION (2: `DeskewedScanMessage.no_r
 5: `ResumeMessage`, a restarted matcher's one consistent answer from the map server;
 6: `MapInsertMessage.keyframe`, false for an insert the back end culled as a keyframe;
 7: `MapStateMessage`, a matcher's whole map for a map server that missed more inserts than
-the matcher keeps):
+the matcher keeps; 8: `PoseEstimateMessage.odom_pose` and `ResumeMessage.odom_pose`, so a
+restarted matcher predicts the robot's next pose from the odometry since the last one):
 readers refuse other versions with a VersionError, so services of two versions fail loudly
 instead of dropping or missing a field.
 """

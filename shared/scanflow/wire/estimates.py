@@ -76,6 +76,7 @@ class PoseEstimateMessage(Message):
         "score": NUMBER,
         "message": TEXT,
         "correction": optional(POSE),
+        "odom_pose": optional(POSE),
     }
     robot_id: str
     seq: int
@@ -90,6 +91,9 @@ class PoseEstimateMessage(Message):
     # Set when the back end redrew the map at this scan: T_new_old, the map frame's change
     # (this pose is in the new frame, the ones before in the old).
     correction: Pose2D | None = None
+    # The odometry pose the tracker had for this scan (None: none): a restarted tracker goes on
+    # from the map server's last pose with the odometry since it (schema version 8).
+    odom_pose: Pose2D | None = None
 
     def __post_init__(self) -> None:
         check_robot_id(self.robot_id)
@@ -104,15 +108,17 @@ class PoseEstimateMessage(Message):
         check_text("message", self.message, allow_empty=True)
         if self.correction is not None:
             check_pose("correction", self.correction)
+        if self.odom_pose is not None:
+            check_pose("odom_pose", self.odom_pose)
 
     @classmethod
     def from_result(
         cls, result: MatchResult | FrontendOutput, robot_id: str, seq: int, stamp_s: float,
-        correction: Pose2D | None = None,
+        correction: Pose2D | None = None, odom_pose: Pose2D | None = None,
     ) -> Self:
         """The estimate a tracker publishes: a match result's or a front-end output's pose,
         covariance, status, method, iterations, score and message (and the map frame's
-        `correction` when the map was redrawn at this scan)."""
+        `correction` when the map was redrawn at this scan, the scan's `odom_pose`)."""
         return cls(
             robot_id=robot_id,
             seq=seq,
@@ -125,6 +131,7 @@ class PoseEstimateMessage(Message):
             score=result.score,
             message=result.message,
             correction=correction,
+            odom_pose=odom_pose,
         )
 
 

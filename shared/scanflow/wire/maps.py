@@ -226,7 +226,8 @@ class ResumeMessage(Message):
     the map server at one instant: its map (`map_npz`, the native .npz file) at `revision`, the
     path so far (`poses` at `stamps_s`) and, when it keeps them (loop closure), the
     `keyframes`. One answer rather than three queries: a redraw cannot fall between the map and
-    the keyframes and leave them in two frames.
+    the keyframes and leave them in two frames. `odom_pose` (schema version 8) is the odometry
+    pose of the path's last pose (None: unknown): the next scan is predicted from there.
     """
 
     TYPE = "resume"
@@ -237,6 +238,7 @@ class ResumeMessage(Message):
         "map_npz": BLOB,
         **PATH,
         "keyframes": KEPT_KEYFRAMES,
+        "odom_pose": optional(POSE),
     }
     robot_id: str
     revision: int
@@ -244,11 +246,14 @@ class ResumeMessage(Message):
     stamps_s: NDArray[np.float64]
     poses: NDArray[np.float64]
     keyframes: KeyframesMessage | None = None
+    odom_pose: Pose2D | None = None
 
     def __post_init__(self) -> None:
         check_robot_id(self.robot_id)
         object.__setattr__(self, "revision", check_count("revision", self.revision))
         _check_map_path_kept(self)
+        if self.odom_pose is not None:
+            check_pose("odom_pose", self.odom_pose)
 
 
 @dataclass(frozen=True, eq=False)
