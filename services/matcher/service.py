@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import copy
 import threading
+import time
 
 import numpy as np
 import zenoh
@@ -97,6 +98,7 @@ class MatcherService:
         self.mappers: dict[str, Mapper] = {}  # robots tracked with loop closure
         self.initial_poses: dict[str, Pose2D] = {}  # operators' poses for robots not seen yet
         self.recent: dict[str, RecentInserts] = {}  # per robot: its run's last inserts
+        self.awaiting: dict[str, float] = {}  # robots met mid-stream waiting for the map server
         self.lock = threading.Lock()  # the worker updates maps that match requests read
         prefix = self.shell.prefix
         self.shell.subscribe(
@@ -120,7 +122,11 @@ class MatcherService:
         stream = f"{robot_id}/{kind}"
         restarted = self.shell.seqs.is_restart(stream, message.seq)
         self.shell.seqs.observe(stream, message.seq)
-        frontend = self._frontend(robot_id, message.seq, fresh=restarted)
+        try:
+            frontend = self._frontend(robot_id, message.seq, fresh=restarted)
+        except _NoMapServerYetError:
+            self.shell.counters.add("scans_awaiting_resume")
+            return
         with self.lock:  # a redraw replaces the map that match requests read
             out = frontend.process(
                 message.points,
@@ -217,6 +223,7 @@ class MatcherService:
             self.shell.serve(keys.robot_match(robot_id, self.shell.prefix), self._on_match)
         with self.lock:
             self.frontends[robot_id] = new
+            self.awaiting.pop(robot_id, None)
             self.recent[robot_id] = RecentInserts(self.settings.resend_inserts)
             if mapper is None:
                 self.mappers.pop(robot_id, None)
@@ -252,9 +259,25 @@ class MatcherService:
 
     def _seeded(self, robot_id: str) -> tuple[Frontend, ResumeMessage] | None:
         """A front end continuing the map server's map and last pose of `robot_id`, and all
-        it answered (the path, the keyframes), if it knows the robot."""
+        it answered (the path, the keyframes), if it knows the robot. While no map server
+        answers at all (it is restarting too), _NoMapServerYetError, for up to resume_timeout_s:
+        a front end started afresh meanwhile would replace the map server's map with its own
+        (the robot's scans meanwhile are dropped, counted)."""
         selector = keys.map_key(robot_id, "resume", self.shell.prefix)
         payloads, errors = self.shell.get(selector, self.settings.resume_timeout_s)
+        if not payloads and not errors:
+            now = time.monotonic()
+            since = self.awaiting.setdefault(robot_id, now)
+            if now - since < self.settings.resume_timeout_s:
+                if since == now:
+                    self.shell.log.info(
+                        "robot %s met mid-stream and no map server answers: waiting up to %.0f s "
+                        "for its map (its scans are dropped meanwhile)", robot_id,
+                        self.settings.resume_timeout_s,
+                    )
+                raise _NoMapServerYetError(robot_id)
+            errors.append(f"no map server answered in {self.settings.resume_timeout_s:.0f} s")
+        self.awaiting.pop(robot_id, None)
         resumed = grid = None
         try:
             resumed = ResumeMessage.decode(payloads[0]) if payloads else None
@@ -403,18 +426,25 @@ class MatcherService:
         self.shell.close()
 
 
+class _NoMapServerYetError(Exception):
+    """A robot met mid-stream waits for the map server's map: no map server answers yet."""
+
+
 class _Held:
-    """The robots a matcher holds a place for: those it tracks, and those whose operator's pose
-    waits for their first scan (the two never overlap)."""
+    """The robots a matcher holds a place for: those it tracks, those whose operator's pose
+    waits for their first scan, and those waiting for the map server's map (none overlap but
+    the last two)."""
 
     def __init__(self, service: MatcherService) -> None:
         self._service = service
 
     def __contains__(self, robot_id: object) -> bool:
-        return robot_id in self._service.frontends or robot_id in self._service.initial_poses
+        s = self._service
+        return robot_id in s.frontends or robot_id in s.initial_poses or robot_id in s.awaiting
 
     def __len__(self) -> int:
-        return len(self._service.frontends) + len(self._service.initial_poses)
+        s = self._service
+        return len(s.frontends) + len(set(s.initial_poses) | set(s.awaiting))
 
 
 def main() -> None:

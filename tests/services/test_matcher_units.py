@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import time
 
 import numpy as np
 import pytest
@@ -460,5 +461,45 @@ def test_a_search_request_runs_on_a_copy_of_the_map_without_the_lock(
         assert seen == [under_lock]
         expected = real_answer(request, service._map_of)
         assert (response.status, response.pose) == (expected.status, expected.pose)
+    finally:
+        service.shell.close(flush_s=0.0)
+
+
+def test_a_robot_met_mid_stream_waits_for_a_map_server_not_up_yet(tmp_path, caplog) -> None:
+    """Matcher and map server restarted together, the matcher first: a front end started afresh
+    would replace the map server's map with its own (an audit saw it). The robot's scans are
+    dropped, counted, until the map server answers, then it resumes; past resume_timeout_s
+    without an answer it starts afresh, saying why."""
+    caplog.set_level(logging.INFO)
+    service = matcher()
+    grid = OccupancyGrid(OccupancyParams())
+    grid.insert_scan(np.array([[2.0, 0.0], [2.0, 0.5]]), np.zeros(2))
+    npz = write_npz(tmp_path / "map.npz", npz_arrays(grid)).read_bytes()
+    answers: list[bytes] = []  # the resume query's answers: none while the map server is down
+    service.shell.get = lambda selector, timeout_s: (list(answers), [])
+    ring = np.column_stack((3 * np.cos(np.linspace(0, 6, 60)), 3 * np.sin(np.linspace(0, 6, 60))))
+
+    def scan(robot: str, seq: int) -> DeskewedScanMessage:
+        return DeskewedScanMessage(robot, seq, 0.1 * seq, ring, "odometry", False, 60, 0)
+
+    try:
+        service.handle("scan", scan("r", 5))
+        service.handle("scan", scan("r", 6))
+        assert "r" not in service.frontends and "r" in service.awaiting
+        assert service.shell.counters.get("scans_awaiting_resume") == 2
+        assert "robot r met mid-stream and no map server answers: waiting up to 30 s" in (
+            caplog.text
+        )
+        path = np.array([[0.0, 0.0, 0.0], [0.4, 0.1, 0.2]])
+        answers.append(ResumeMessage("r", grid.revision, npz, np.array([0.1, 0.2]), path).encode())
+        service.handle("scan", scan("r", 7))
+        assert service.frontends["r"].initial_pose == Pose2D.from_array(path[-1])
+        assert service.shell.counters.get("resumed_robots") == 1 and "r" not in service.awaiting
+        answers.clear()
+        service.awaiting["q"] = time.monotonic() - 31.0  # waited past resume_timeout_s
+        service.handle("scan", scan("q", 9))
+        assert "q" in service.frontends and "q" not in service.awaiting
+        assert "robot q: no map to resume from, starting fresh (no map server answered in 30 s)" \
+            in caplog.text
     finally:
         service.shell.close(flush_s=0.0)
