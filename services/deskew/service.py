@@ -45,6 +45,10 @@ class _Robot:
     pending: deque[tuple[float, LaserScan]] = field(default_factory=deque)
     odometry: deque[Odometry] = field(default_factory=deque)
     streams: set[str] = field(default_factory=set)  # the kinds of message this run has had
+    # When a new run began on one stream, the old run's robot: the other streams' messages
+    # still on their way (not restarted yet, in `awaiting`) are the old run's tail.
+    previous: _Robot | None = None
+    awaiting: set[str] = field(default_factory=set)
     published_seq: int | None = None  # the last scan sent to the matcher
     pose_seq: int | None = None  # the last scan the matcher's pose came back for
 
@@ -97,7 +101,7 @@ class DeskewService:
                     robot.stage.velocity.move_frame(message.correction)
                 if message.status in ACCEPTED:
                     robot.stage.observe_pose(message.stamp_s, message.pose)
-                self._flush(robot_id, robot, force=False)
+                self._flush_in_order(robot_id, robot)
             return
         if not self.shell.admits(robot_id, self.robots):
             return
@@ -106,10 +110,14 @@ class DeskewService:
         self.shell.seqs.observe(stream, message.seq)
         robot = self.robots.setdefault(robot_id, _Robot())
         if restarted and kind in robot.streams:
-            # The source restarted (a replay): finish the old run, start afresh. The other
-            # stream's restart, seen later, then finds this run without it and keeps it.
-            self._flush(robot_id, robot, force=True)
-            self.robots[robot_id] = robot = _Robot()
+            robot = self._new_run(robot_id, robot, kind)
+        elif kind in robot.awaiting:
+            if restarted:  # this stream's new run begins too: the old run is complete
+                robot.awaiting.discard(kind)
+                if not robot.awaiting:
+                    self._finish_previous(robot_id, robot)
+            elif robot.previous is not None:  # still the old run's tail: deskewed with it
+                robot = robot.previous
         robot.streams.add(kind)
         if isinstance(message, OdometryMessage):
             robot.add_odometry(message.odom)
@@ -117,9 +125,35 @@ class DeskewService:
             robot.pending.append((time.monotonic() + self.settings.odom_wait_s, message.scan))
         self.idle()
 
+    def _new_run(self, robot_id: str, old: _Robot, kind: str) -> _Robot:
+        """The source restarted (a replay) on stream `kind`: a fresh robot for the new run.
+        The old one stays for the tail of its other streams, which the two subscribers may
+        still deliver after this (a source that starts again without waiting), until each of
+        them restarts too."""
+        self._finish_previous(robot_id, old)
+        new = _Robot(previous=old, awaiting=old.streams - {kind})
+        self.robots[robot_id] = new
+        if not new.awaiting:
+            self._finish_previous(robot_id, new)
+        return new
+
+    def _finish_previous(self, robot_id: str, robot: _Robot) -> None:
+        """Deskew what the old run still holds, whatever covers it, and let it go."""
+        if robot.previous is not None:
+            self._flush(robot_id, robot.previous, force=True)
+            robot.previous = None
+
     def idle(self) -> None:
         for robot_id, robot in self.robots.items():
-            self._flush(robot_id, robot, force=False)
+            self._flush_in_order(robot_id, robot)
+
+    def _flush_in_order(self, robot_id: str, robot: _Robot) -> None:
+        """The old run's scans leave first (they came first), then the robot's own."""
+        if robot.previous is not None:
+            self._flush(robot_id, robot.previous, force=False)
+            if robot.previous.pending:
+                return
+        self._flush(robot_id, robot, force=False)
 
     def _flush(self, robot_id: str, robot: _Robot, force: bool) -> None:
         """Deskew the scans at the head of the queue that are covered or out of time."""
@@ -165,7 +199,10 @@ class DeskewService:
         self.shell.put(keys.deskewed_scan(robot_id, self.shell.prefix), message.encode())
 
     def _pending(self) -> int:
-        return sum(len(r.pending) for r in self.robots.values())
+        return sum(
+            len(r.pending) + (0 if r.previous is None else len(r.previous.pending))
+            for r in self.robots.values()
+        )
 
     def run(self) -> None:
         if self.settings.warm_up:  # before the health token: the first scan at full speed
@@ -174,6 +211,7 @@ class DeskewService:
         poll_s = min(max(self.settings.odom_wait_s / 5, _MIN_POLL_S), 0.1)
         self.shell.run(self.handle, self.idle, poll_s)
         for robot_id, robot in self.robots.items():
+            self._finish_previous(robot_id, robot)
             self._flush(robot_id, robot, force=True)
         self.shell.close()
 

@@ -257,8 +257,8 @@ class MatcherSettings(KernelServiceSettings):
     )
     resume_timeout_s: float = Field(
         30.0, gt=0.0, description="how long a robot seen mid-stream waits for the map server's "
-        "map, path and keyframes (a long run's keyframes are hundreds of MB; an absent map "
-        "server answers at once)",
+        "map, path and keyframes (a long run's keyframes are hundreds of MB), and, while no map "
+        "server answers at all, how long its scans are dropped before it starts afresh",
     )
 
     _split = field_validator("robots", mode="before")(_split_csv)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 import pytest
@@ -11,7 +12,7 @@ from scanflow.deskew import OdometryBuffer, deskew
 from scanflow.geometry import Pose2D
 from scanflow.pipeline import DeskewStage
 from scanflow.scan import LaserScan, Odometry
-from scanflow.wire import OdometryMessage, PoseEstimateMessage, ScanMessage
+from scanflow.wire import DeskewedScanMessage, OdometryMessage, PoseEstimateMessage, ScanMessage
 
 from services.ingest.sources import source_events
 
@@ -151,3 +152,38 @@ def test_a_map_redraws_correction_moves_the_velocity_prior_with_the_frame(launch
     for message, points in zip(deskewed, expected, strict=True):
         np.testing.assert_array_equal(message.points, points, strict=True)
     assert not np.allclose(naive[3], expected[3], atol=1e-3)  # the test can tell the two
+
+
+def test_a_run_started_again_at_once_keeps_each_runs_odometry() -> None:
+    """A source starts its next run without waiting: run 2's odometry restarts before run 1's
+    last scans are in. Those scans are deskewed with run 1's odometry and leave first; run 2's
+    keep run 2's odometry (an audit saw every scan of run 2 deskewed without odometry)."""
+    from scanflow.config import DeskewSettings, ZenohSettings
+
+    from services.deskew.service import DeskewService
+    from services.ingest.sources import source_events as events_of
+
+    run1 = list(events_of(None, "robot", 2.0, 4, None))
+    run2 = list(events_of(None, "robot", 2.0, 5, None))
+    tail = [e for e in run1 if isinstance(e, LaserScan)][-2:]
+    head = [e for e in run1 if not any(e is t for t in tail)]
+    odometry2 = [e for e in run2 if not isinstance(e, LaserScan)]
+    service = DeskewService(DeskewSettings(odom_wait_s=0.5), ZenohSettings(mode="peer", connect=[]))
+    out: list = []
+    service.shell.put = lambda key, payload: out.append(DeskewedScanMessage.decode(payload))
+    try:
+        feed = [*head, *odometry2[:20], *tail, *odometry2[20:],
+                *[e for e in run2 if isinstance(e, LaserScan)]]
+        for event in feed:
+            scan = isinstance(event, LaserScan)
+            message = ScanMessage(event) if scan else OdometryMessage(event)
+            service.handle("scan" if scan else "odom", message)
+        time.sleep(0.6)  # past the latency budget: the last scans leave as they are
+        service.idle()
+    finally:
+        service.shell.close(flush_s=0.0)
+    expected = [*reference_deskew(run1).items(), *reference_deskew(run2).items()]
+    assert [m.seq for m in out] == [seq for seq, _ in expected]
+    for message, (_, points) in zip(out, expected, strict=True):
+        assert message.source_used == "odometry", message.seq
+        np.testing.assert_array_equal(message.points, points, strict=True)
