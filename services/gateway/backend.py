@@ -230,11 +230,11 @@ class ZenohBackend:
             raise BackendError(status, reason)
         raise BackendError(503, f"no service answers {selector} (is it running?)")
 
-    def service_stats(self) -> list[ServiceStatsMessage]:
-        """Every service's stats that answer within STATS_TIMEOUT_S (none: an empty list);
+    def service_stats(self, timeout_s: float = STATS_TIMEOUT_S) -> list[ServiceStatsMessage]:
+        """Every service's stats that answer within `timeout_s` (none: an empty list);
         malformed answers are counted."""
         try:
-            replies = self.query(keys.stats("*", "*", self.prefix), None, STATS_TIMEOUT_S)
+            replies = self.query(keys.stats("*", "*", self.prefix), None, timeout_s)
         except BackendError:
             return []
         stats = []
@@ -250,7 +250,8 @@ class ZenohBackend:
         (re)started knows nothing of the posts before it, and numbering them from 0 again
         would restart the robot's map in every service."""
         names = [f"seq.{robot_id}/{kind}.last" for kind in _SEQ_GAUGES[stream]]
-        lasts = [s.gauges[n] for s in self.service_stats() for n in names if n in s.gauges]
+        stats = self.service_stats(self.settings.query_timeout_s)  # all services, or the wait
+        lasts = [s.gauges[n] for s in stats for n in names if n in s.gauges]
         return int(max(lasts, default=-1))
 
     async def aquery(

@@ -148,7 +148,7 @@ def test_concurrent_posts_reach_the_bus_in_the_order_of_their_seqs(peer, backend
     with ThreadPoolExecutor(8) as pool:
         seqs = list(pool.map(lambda _: post(), range(80)))
     assert sorted(seqs) == list(range(80))
-    eventually(lambda: len(scans) == 80, "every post on the bus")
+    eventually(lambda: len(scans) >= 80, "every post on the bus", 30.0)
     assert [ScanMessage.decode(b).seq for b in scans] == list(range(80))
 
 
@@ -171,6 +171,7 @@ def test_numbering_follows_the_scans_and_odometry_other_sources_put(client, peer
     assert client.post("/api/v1/robots/fed2/odometry", json=odom, headers=auth).json()["seq"] == 15
 
 
+@pytest.mark.parametrize("settings", [GatewaySettings(api_key="test-key", query_timeout_s=10.0)])
 def test_a_restarted_gateway_numbers_past_what_the_services_saw_before_it(client, peer, auth):
     """The gateway restarted: it has seen none of the robot's scans, odometry or poses yet. It
     asks the services' stats for the streams' last seqs rather than start from 0 again (an
