@@ -69,7 +69,7 @@ def assert_served_as_in_process(bus, pipeline: Pipeline, expected: list, redraws
 
     bus.wait_until(lambda: handled() == last, 30.0, "map server caught up")
     served, want = bus.map_grid(), pipeline.frontend.map.grid
-    assert served.extent == want.extent, bus.stats("mapserver").counters
+    assert served.extent == want.extent, str(bus.stats("mapserver").counters)  # all of them
     np.testing.assert_array_equal(served.log_odds, want.log_odds)
     np.testing.assert_array_equal(served.observed, want.observed)
     (path,) = bus.get(keys.trajectory("robot"))
