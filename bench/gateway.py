@@ -39,6 +39,7 @@ from scanflow.scan import LaserScan
 from scanflow.sim import SimConfig, SimFrame, simulate
 from scanflow.wire import MatchRequest, PoseEstimateMessage, ScanMessage
 
+from bench.cpu import process_cpu_s
 from services.common.launch import free_port, wait_for_port
 from services.common.zsession import open_session
 from services.matcher.requests import answer
@@ -121,12 +122,6 @@ async def load(
     }
 
 
-def cpu_s(pid: int) -> float:
-    """A process's user + system CPU time so far (Linux /proc)."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
 class BusScans:
     """Puts 360-beam raw scans of 10 robots, `per_s` a second in all, while in a `with`."""
 
@@ -173,9 +168,9 @@ async def run(
             (await client.post("/api/v1/match", json=body)).raise_for_status()
 
         async def measured(send: Callable[[], Any]) -> dict[str, float]:
-            cpu0 = cpu_s(gateway_pid)
+            cpu0 = process_cpu_s(gateway_pid)
             result = await load(client, send, seconds, concurrency)
-            return {**result, "gateway_cpu_s": cpu_s(gateway_pid) - cpu0}
+            return {**result, "gateway_cpu_s": process_cpu_s(gateway_pid) - cpu0}
 
         results = {
             "latest_pose": await measured(lambda: client.get("/api/v1/robots/bench/pose")),

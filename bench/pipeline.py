@@ -32,6 +32,7 @@ from scanflow.pipeline import Pipeline
 from scanflow.scan import LaserScan
 from scanflow.wire import ScanMessage, ServiceStatsMessage, decode_any
 
+from bench.cpu import process_cpu_s
 from bench.data import corrected_log
 from services.common.launch import PIPELINE as SERVICES
 from services.common.launch import Launcher, free_port
@@ -255,11 +256,9 @@ def _throughput_round(
 def _load(launcher: Launcher, session: Any, name: str) -> dict[str, float]:
     """A service's CPU seconds so far (all threads), its worker's busy seconds and the
     seconds its puts took (blocked by a slow subscriber)."""
-    with open(f"/proc/{launcher.processes[name].pid}/stat") as f:
-        fields = f.read().rsplit(")", 1)[1].split()
     gauges = stats(session, name).gauges
     return {
-        "cpu": (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK"),
+        "cpu": process_cpu_s(launcher.processes[name].pid),
         "worker_busy": gauges["worker_busy_s"],
         "put": gauges["put_s"],
     }
