@@ -32,11 +32,10 @@ async def post_scan(
     body = await read_body(request, ScanIn, ScanMessage)
     given = body.scan.seq if isinstance(body, ScanMessage) else body.seq
     # Checked before it takes a seq: a corrected request may send the same seq again.
-    _scan_message(body, robot, given or 0, settings.max_beams)
+    message = _scan_message(body, robot, given or 0, settings.max_beams)
     key = keys.raw_scan(robot, backend.prefix)
     seq = await backend.apublish_numbered(
-        robot, "scan", given, key,
-        lambda seq: _scan_message(body, robot, seq, settings.max_beams).encode(),
+        robot, "scan", given, key, lambda seq: _renumbered(message, seq).encode()
     )
     backend.metrics.count("scanflow_gateway_ingested_total", kind="scan")
     return IngestAck(robot_id=robot, seq=seq, key=key)
@@ -50,10 +49,10 @@ async def post_scan(
 async def post_odometry(request: Request, robot: Robot, backend: Backend) -> IngestAck:
     body = await read_body(request, OdometryIn, OdometryMessage)
     given = body.odom.seq if isinstance(body, OdometryMessage) else body.seq
-    _odometry_message(body, robot, given or 0)  # checked before it takes a seq, as a scan
+    message = _odometry_message(body, robot, given or 0)  # checked before it takes a seq
     key = keys.odom(robot, backend.prefix)
     seq = await backend.apublish_numbered(
-        robot, "odom", given, key, lambda seq: _odometry_message(body, robot, seq).encode()
+        robot, "odom", given, key, lambda seq: _renumbered(message, seq).encode()
     )
     backend.metrics.count("scanflow_gateway_ingested_total", kind="odom")
     return IngestAck(robot_id=robot, seq=seq, key=key)
@@ -73,6 +72,21 @@ def _scan_message(
         if scan.robot_id != robot or scan.seq != seq:
             scan = replace(scan, robot_id=robot, seq=seq)
         return ScanMessage(scan)
+    except (ScanError, MessageError) as exc:
+        raise invalid(("body",), str(exc)) from exc
+
+
+def _renumbered(
+    message: ScanMessage | OdometryMessage, seq: int
+) -> ScanMessage | OdometryMessage:
+    """The checked message under the seq it was given (built again only when the gateway
+    numbered it); a 422 naming what is wrong (a seq past the wire's limit)."""
+    if message.seq == seq:
+        return message
+    try:
+        if isinstance(message, ScanMessage):
+            return ScanMessage(replace(message.scan, seq=seq))
+        return OdometryMessage(replace(message.odom, seq=seq))
     except (ScanError, MessageError) as exc:
         raise invalid(("body",), str(exc)) from exc
 
