@@ -207,15 +207,20 @@ class ZenohBackend:
         }
 
     def query(
-        self, selector: str, payload: bytes | None = None, timeout_s: float | None = None
+        self, selector: str, payload: bytes | None = None, timeout_s: float | None = None,
+        every_reply: bool = False,
     ) -> list[Reply]:
-        """OK replies to `selector` (blocking); raises BackendError when none came back."""
+        """OK replies to `selector` (blocking); raises BackendError when none came back.
+        `every_reply`: none merged away (Zenoh's default keeps one reply per key)."""
         timeout_s = self.settings.query_timeout_s if timeout_s is None else timeout_s
         if self._closed:
             raise BackendError(503, "the gateway's Zenoh session is closed")
         ok: list[Reply] = []
         errors: list[str] = []
-        for reply in self.session.get(selector, payload=payload, timeout=timeout_s):
+        consolidation = zenoh.ConsolidationMode.NONE if every_reply else None
+        for reply in self.session.get(
+            selector, payload=payload, timeout=timeout_s, consolidation=consolidation
+        ):
             if reply.ok is not None:
                 ok.append(Reply(str(reply.ok.key_expr), reply.ok.payload.to_bytes()))
             else:
@@ -234,7 +239,7 @@ class ZenohBackend:
         """Every service's stats that answer within `timeout_s` (none: an empty list);
         malformed answers are counted."""
         try:
-            replies = self.query(keys.stats("*", "*", self.prefix), None, timeout_s)
+            replies = self.query(keys.stats("*", "*", self.prefix), None, timeout_s, True)
         except BackendError:
             return []
         stats = []
