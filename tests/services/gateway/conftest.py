@@ -34,9 +34,18 @@ class Peer:
             ZenohSettings(mode="peer", connect=[], listen=[f"tcp/127.0.0.1:{port}"])
         )
         self._declared: list = []
+        self._subscribed: set[str] = set()
         self.gateway_session: zenoh.Session | None = None  # set by the `backend` fixture
 
     def put(self, key: str, payload: bytes) -> None:
+        """Put on `key`, the first time only once a subscriber of it (the gateway's) is known
+        here: a put that meets none is dropped, and the gateway's subscriptions reach this
+        session after the sessions connect (under load, after a test's first puts)."""
+        if key not in self._subscribed:
+            publisher = self.session.declare_publisher(key)
+            eventually(lambda: publisher.matching_status.matching, f"a subscriber of {key}")
+            publisher.undeclare()
+            self._subscribed.add(key)
         self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
 
     def answer(self, key: str, reply: Callable[[zenoh.Query], bytes | None]) -> None:
