@@ -47,7 +47,7 @@ from scanflow.io.carmen import Keyframe, load_keyframes
 from scanflow.maps.export import save_png
 from scanflow.matching import match
 from scanflow.pipeline import Pipeline
-from scanflow.sim import SimConfig, simulate
+from scanflow.sim import WORLDS, SimConfig, simulate
 from tqdm import tqdm
 
 OUT_DIR = Path(__file__).resolve().parent / "out"
@@ -294,7 +294,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--mount", type=parse_mount, default=IDENTITY,
                         help="sim: the lidar's place on the robot, X_M,Y_M,YAW_DEG")
-    parser.add_argument("--world", default="rooms", help="sim world: rooms, corridor, loop")
+    parser.add_argument("--world", default="rooms", choices=sorted(WORLDS), help="sim world")
     parser.add_argument("--perfect-odometry", action="store_true",
                         help="sim: exact wheel odometry (the error left is the matching's)")
     parser.add_argument("--json", action="store_true")

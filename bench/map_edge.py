@@ -26,7 +26,7 @@ from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.matching import match
 from scanflow.pipeline import Pipeline
-from scanflow.sim import simulate
+from scanflow.sim import WORLDS, simulate
 
 from bench.frontend import SIM_MAP_FROM_WORLD, fast_sim_config
 
@@ -81,7 +81,7 @@ def run(world: str, duration_s: float, methods: list[str]) -> dict:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--world", default="rooms", help="sim world: rooms, corridor, loop")
+    parser.add_argument("--world", default="rooms", choices=sorted(WORLDS), help="sim world")
     parser.add_argument("--duration", type=float, default=20.0, help="sim seconds")
     parser.add_argument("--methods", default="gn,gn+plicp", help="comma-separated")
     parser.add_argument("--json", action="store_true")

@@ -216,3 +216,14 @@ def test_backend_settings_read_the_environment_and_name_bad_values(clean_env) ->
         with pytest.raises(ValidationError, match=name.lower()):
             config.BackendSettings()
         clean_env.delenv(f"SCANFLOW_BACKEND_{name}")
+
+
+def test_the_ingest_simulator_offers_every_built_in_world() -> None:
+    """The setting's choices are the simulator's worlds (config stays free of the sim's imports,
+    so the list is written out there)."""
+    from typing import get_args
+
+    from scanflow.sim import WORLDS
+
+    choices = get_args(config.IngestSettings.model_fields["sim_world"].annotation)
+    assert sorted(choices) == sorted(WORLDS)
