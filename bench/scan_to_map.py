@@ -110,8 +110,9 @@ class Runs:
 def ndt_on_listed_points(
     source: NDArray[np.float64], world: MatchingMap, guess: Pose2D
 ) -> MatchResult:
-    """ndt as it read a map before: its occupied points listed, cells built from them."""
-    return match(source, world.occupied_points(), guess, method="ndt")
+    """ndt as it read a map before: its occupied points listed, cells built from them (as
+    they are: not filled along surfaces, which is for a scan)."""
+    return match(source, world.occupied_points(), guess, method="ndt", surface_step_m=None)
 
 
 def ndt_on_map(log: Path, scans: int | None) -> dict[str, object]:

@@ -18,6 +18,8 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from scanflow.matching.surface import GAP_BASE_M, GAP_PER_RANGE
+
 # Robust sigma from the median absolute deviation of a Gaussian.
 MAD_TO_SIGMA = 1.4826
 # Grid cells grow beyond the requested size when the target would need more cells than this.
@@ -151,14 +153,14 @@ def grid_k_nearest(
 
 @njit(cache=True)
 def grid_nearest_all(
-    grid: GridArrays, queries: NDArray[np.float64], radius_m: float
+    grid: GridArrays, queries: NDArray[np.float64], radii_m: NDArray[np.float64]
 ) -> NDArray[np.int64]:
-    """Index of each query's nearest grid point within radius_m (-1 if none)."""
+    """Index of each query's nearest grid point within its radius radii_m[i] (-1 if none)."""
     best_d2 = np.empty(1)
     best_j = np.empty(1, dtype=np.int64)
     out = np.empty(len(queries), dtype=np.int64)
     for i in range(len(queries)):
-        grid_k_nearest(grid, queries[i, 0], queries[i, 1], radius_m, best_d2, best_j)
+        grid_k_nearest(grid, queries[i, 0], queries[i, 1], radii_m[i], best_d2, best_j)
         out[i] = best_j[0]
     return out
 
@@ -231,7 +233,8 @@ def thin_dense_target(
 
 @njit(cache=True)
 def _lines(
-    grid: GridArrays, k: int, radius_m: float, fit_radius_m: float, max_flatness: float
+    grid: GridArrays, k: int, radius_m: float, fit_radius_m: float, max_flatness: float,
+    gap_base_m: float, gap_per_range: float,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_], NDArray[np.int64],
            NDArray[np.float64]]:
     points = grid[0]
@@ -248,7 +251,9 @@ def _lines(
         # sparse scans keep short lines and dense ones average noise), else the two-point line.
         count = grid_k_nearest(grid, points[i, 0], points[i, 1], fit_radius_m, best_d2, best_j)
         if count < 2:
-            count = min(grid_k_nearest(grid, points[i, 0], points[i, 1], radius_m, best_d2,
+            reach = max(radius_m, gap_base_m + gap_per_range * math.hypot(points[i, 0],
+                                                                          points[i, 1]))
+            count = min(grid_k_nearest(grid, points[i, 0], points[i, 1], reach, best_d2,
                                        best_j), 2)
         if count < 2:
             continue
@@ -308,13 +313,18 @@ def target_lines(
     radius_m: float = 0.5,
     fit_radius_m: float = 0.2,
     max_flatness: float = 0.05,
+    seen_from_origin: bool = False,
 ) -> TargetLines:
     """Line of each target point from its nearest neighbours (itself included): up to k within
     `fit_radius_m`, at least the two-point line to the nearest within `radius_m`; not ok when it
     has no neighbour or the patch is not line-like (minor/major scatter > max_flatness: corners,
-    clutter)."""
+    clutter). Points of one scan `seen_from_origin` reach for that nearest neighbour as far as
+    one surface spans at their range (`surface_gap_m`), if that is farther: a far wall's
+    points lie further apart than any fixed radius tuned indoors."""
     if not k >= 2:
         raise ValueError(f"k must be >= 2, got {k}")
     if not 0.0 < fit_radius_m <= radius_m:
         raise ValueError(f"fit_radius_m must be in (0, radius_m={radius_m}], got {fit_radius_m}")
-    return TargetLines(*_lines(grid.arrays, k, radius_m, fit_radius_m, max_flatness))
+    gap_base_m, gap_per_range = (GAP_BASE_M, GAP_PER_RANGE) if seen_from_origin else (0.0, 0.0)
+    return TargetLines(*_lines(grid.arrays, k, radius_m, fit_radius_m, max_flatness, gap_base_m,
+                               gap_per_range))

@@ -438,7 +438,7 @@ def matched_conditioning(
         # sparse far points enough to fake a constraint along a corridor (ratio 2.5e-3 with 1 cm
         # noise at 6 m range; 2.8e-4 over 0.5 m). Corners fail the flatness test either way.
         lines = target_lines(GridIndex.build(points), k=NORMAL_NEIGHBOURS, radius_m=0.5,
-                             fit_radius_m=0.5)
+                             fit_radius_m=0.5, seen_from_origin=True)
         c, s = math.cos(pose.theta), math.sin(pose.theta)
         turn = np.array([[c, s], [-s, c]])  # row vectors times R^T: into the target frame
         hessian = line_hessian(points[lines.ok] @ turn, lines.normals[lines.ok] @ turn)

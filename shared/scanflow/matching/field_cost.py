@@ -22,12 +22,11 @@ from scanflow.maps.grid import GridSpec
 from scanflow.matching.api import MatchResult, MatchStatus, failed
 from scanflow.matching.checks import DEGENERATE_RATIO, analyse_hessian, characteristic_length_m
 from scanflow.matching.covariance import least_squares_covariance
+from scanflow.matching.surface import densify_scan
 
 MIN_POINTS = 10
 # Coarse-to-fine levels, cell size x2 per level: 16 levels make a 5 cm cell 1.6 km.
 MAX_LEVELS = 16
-GAP_BASE_M = 0.05
-GAP_PER_RANGE = 0.06  # about 3.5 degrees of arc: wider gaps are occlusion edges
 # The coarse levels may lead into a worse basin: a final fine-level cost this many times the
 # initial one means the match ran away from the guess.
 DIVERGENCE_RATIO = 1.5
@@ -182,26 +181,6 @@ def field_pyramid(
             dense_points_field(dense, resolution_m * 2**k, sigma_m * 2**k) for k in range(levels)
         ]
     return sorted(fields, key=lambda f: -f.spec.resolution_m)
-
-
-def densify_scan(points: NDArray[np.float64], step_m: float) -> NDArray[np.float64]:
-    """Add points every `step_m` between consecutive points that are close for their range.
-
-    A scan's far points are sparser than the field's sigma, which would leave bumps along
-    walls (a false constraint along corridors). Gaps up to GAP_BASE_M + GAP_PER_RANGE * range
-    are filled; larger ones are occlusion edges and stay open.
-    """
-    if len(points) < 2:
-        return points
-    a, b = points[:-1], points[1:]
-    gap = np.hypot(*(b - a).T)
-    max_gap = GAP_BASE_M + GAP_PER_RANGE * np.minimum(np.hypot(*a.T), np.hypot(*b.T))
-    n = np.where(gap < max_gap, np.maximum(np.ceil(gap / step_m).astype(np.int64) - 1, 0), 0)
-    if not n.any():
-        return points
-    seg = np.repeat(np.arange(len(n)), n)
-    f = (np.arange(len(seg)) - np.repeat(np.cumsum(n) - n, n) + 1) / np.repeat(n + 1, n)
-    return np.vstack((points, a[seg] + f[:, None] * (b[seg] - a[seg])))
 
 
 def points_field(

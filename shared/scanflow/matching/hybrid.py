@@ -22,7 +22,6 @@ from scipy.spatial import cKDTree
 from scanflow.geometry import Pose2D
 from scanflow.matching.api import MatchResult, register_method, target_points
 from scanflow.matching.csm import found_a_pose, match_csm
-from scanflow.matching.field_cost import densify_scan
 from scanflow.matching.inputs import (
     require_at_least,
     require_in,
@@ -30,6 +29,7 @@ from scanflow.matching.inputs import (
     require_positive,
 )
 from scanflow.matching.plicp import match_plicp
+from scanflow.matching.surface import densify_scan
 
 # Densification step of the overlap test: point-to-surface distances to ~1 cm.
 OVERLAP_STEP_M = 0.02

@@ -35,7 +35,6 @@ from scanflow.matching.correspondence import (
     thin_dense_target,
 )
 from scanflow.matching.covariance import pose_parameter_jacobian
-from scanflow.matching.field_cost import densify_scan
 from scanflow.matching.inputs import (
     require_in,
     require_iterations,
@@ -43,6 +42,7 @@ from scanflow.matching.inputs import (
     require_positive,
 )
 from scanflow.matching.plicp import CONVERGED, MAX_ITER, MIN_PAIRS, TOO_FEW, line_match_result
+from scanflow.matching.surface import densify_scan, surface_gap_m
 from scanflow.matching.trust import fit_checked
 
 
@@ -167,13 +167,10 @@ def match_icp(
     bad = check_point_inputs("icp", source, tgt, guess, MIN_PAIRS)
     if bad is not None:
         return bad
-    if isinstance(target, np.ndarray):
+    scan = isinstance(target, np.ndarray)  # a point target is one scan seen from its origin
+    if scan:
         tgt = thin_dense_target(tgt, thin_below_deg)
-    surface = (
-        densify_scan(tgt, surface_step_m)
-        if surface_step_m is not None and isinstance(target, np.ndarray)
-        else tgt
-    )
+    surface = densify_scan(tgt, surface_step_m) if surface_step_m is not None and scan else tgt
     pose_arr, pair, iterations, code = _icp_kernel(
         source, GridIndex.build(surface, grid_cell_m).arrays, guess.to_array(),
         max_correspondence_m, min_correspondence_m, keep_fraction, max_iterations, tolerance_m,
@@ -181,11 +178,16 @@ def match_icp(
     )
     pose = Pose2D.from_array(pose_arr)
     grid = GridIndex.build(tgt, grid_cell_m)
-    lines = target_lines(grid)
-    # Judge the solution on the lines of the original target points nearest to the kept pairs.
+    lines = target_lines(grid, seen_from_origin=scan)
+    # Judge the solution on the lines of the original target points nearest to the kept pairs
+    # (a scan's: as far off as one of its surfaces spans between two points).
     kept = np.flatnonzero(pair >= 0)
+    paired = pose.transform_points(source[kept])
+    reach = np.full(len(kept), line_radius_m)
+    if scan:
+        reach = np.maximum(reach, surface_gap_m(np.hypot(*paired.T)))
     assoc = np.full(len(source), -1, dtype=np.int64)
-    assoc[kept] = grid_nearest_all(grid.arrays, pose.transform_points(source[kept]), line_radius_m)
+    assoc[kept] = grid_nearest_all(grid.arrays, paired, reach)
     assoc[(assoc >= 0) & ~lines.ok[assoc]] = -1
     lined = assoc >= 0
     moved = pose.transform_points(source[lined])

@@ -36,6 +36,7 @@ from scanflow.matching.inputs import (
     require_non_negative,
     require_positive,
 )
+from scanflow.matching.surface import densify_scan
 from scanflow.matching.trust import fit_checked
 
 ARMIJO_C = 1e-4
@@ -229,17 +230,20 @@ def newton_level(
 
 
 def _target_cells(
-    target: object, coarsest_m: float
+    target: object, coarsest_m: float, surface_step_m: float | None
 ) -> tuple[Callable[[float], OverlappingCells], NDArray[np.float64]]:
     """(overlapping cells of a given size, points whose absence means an empty target).
 
     A map's own cells (`overlapping_ndt_cells`) and, for emptiness, its coarsest cells' means
-    (so it need not list its occupied points); else cells built from the target's points.
+    (so it need not list its occupied points); else cells built from the target's points, a
+    scan's filled every `surface_step_m` along its surfaces first (None: its samples only).
     """
     kept = getattr(target, "overlapping_ndt_cells", None)
     if kept is not None:
         return kept, kept(coarsest_m).means
     points = target_points(target)
+    if isinstance(target, np.ndarray) and surface_step_m is not None:
+        points = densify_scan(points, surface_step_m)
     return (lambda size: OverlappingCells.from_points(points, size)), points
 
 
@@ -255,17 +259,20 @@ def match_ndt(
     max_iterations: int = 30,
     translation_tol_m: float = 1e-4,
     rotation_tol_rad: float = 1e-4,
+    surface_step_m: float | None = 0.1,
 ) -> MatchResult:
     """Newton's method with an Armijo line search, coarse to fine (cell size doubles per level).
 
     A map target serves its cells kept current incrementally, on its lattice anchor; a point
-    set's are built per call, anchored at the origin.
+    set's are built per call, anchored at the origin. A point target is a scan: filled every
+    `surface_step_m` along its surfaces first (None: its samples only), since the paper's cells
+    need 3+ points each and beams 1 deg apart sample a wall 20 m away only every 35 cm.
     """
-    require_positive(cell_size_m=cell_size_m)
+    require_positive(cell_size_m=cell_size_m, surface_step_m=surface_step_m)
     require_in(1, MAX_LEVELS, levels=levels)
     require_iterations(max_iterations)
     require_non_negative(translation_tol_m=translation_tol_m, rotation_tol_rad=rotation_tol_rad)
-    cells_at, held = _target_cells(target, cell_size_m * 2 ** (levels - 1))
+    cells_at, held = _target_cells(target, cell_size_m * 2 ** (levels - 1), surface_step_m)
     bad = check_inputs("ndt", source, held, guess)
     if bad is not None:
         return bad

@@ -185,7 +185,8 @@ def match_plicp(
     if isinstance(target, np.ndarray):
         tgt = thin_dense_target(tgt, thin_below_deg)
     grid = GridIndex.build(tgt, grid_cell_m)
-    lines = target_lines(grid, normal_neighbours, normal_radius_m, normal_fit_radius_m)
+    lines = target_lines(grid, normal_neighbours, normal_radius_m, normal_fit_radius_m,
+                         seen_from_origin=isinstance(target, np.ndarray))
     if lines.ok.sum() < MIN_PAIRS:
         return failed(
             "plicp", MatchStatus.TOO_FEW_POINTS, guess,
