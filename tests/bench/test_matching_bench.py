@@ -1,4 +1,5 @@
-"""bench.matching: keyframe pairs, the ground-truth-free closure figure, and the CLI end to end."""
+"""bench.matching: keyframe pairs, the ground-truth-free closure figure, simulated pairs with
+exact truth, and the CLI end to end."""
 
 import json
 import math
@@ -9,26 +10,25 @@ from pathlib import Path
 import numpy as np
 import pytest
 from scanflow.geometry import Pose2D
-from scanflow.io.carmen import Keyframe
-from scanflow.scan import LaserScan
+from scanflow.sim import SimConfig, simulate
 
 from bench.data import corrected_log
-from bench.matching import closure, keyframe_pairs, odometry_matcher, run_matcher
+from bench.matching import (
+    Frame,
+    closure,
+    keyframe_pairs,
+    odometry_matcher,
+    run_matcher,
+    sim_frames,
+)
 
 REPO = Path(__file__).resolve().parents[2]
 LOG = corrected_log("intel")
 
 
-def frames_along(poses: list[Pose2D]) -> list[Keyframe]:
+def frames_along(poses: list[Pose2D]) -> list[Frame]:
     """Keyframes at the given poses, odometry equal to the truth, distinct small scans."""
-    return [
-        Keyframe(
-            LaserScan(np.full(8, 1.0 + k, np.float32), -math.pi / 2, math.pi / 8),
-            pose,
-            pose,
-        )
-        for k, pose in enumerate(poses)
-    ]
+    return [Frame(np.full((8, 2), 1.0 + k), pose, pose) for k, pose in enumerate(poses)]
 
 
 def same(a: Pose2D, b: Pose2D) -> bool:
@@ -50,8 +50,8 @@ def test_keyframe_pairs_index_truth_and_guess() -> None:
     for p in pairs:
         want = poses[p.first + 3].relative_to(poses[p.first])
         assert same(p.truth, want) and same(p.guess, want)
-        assert np.array_equal(p.target, frames[p.first].scan.points())
-        assert np.array_equal(p.source, frames[p.first + 3].scan.points())
+        assert p.target is frames[p.first].points
+        assert p.source is frames[p.first + 3].points
     assert [p.first for p in keyframe_pairs(frames, 3, 2, None)] == [0, 6]
     assert [p.first for p in keyframe_pairs(frames, 1, 1, 4)] == [0, 1, 2, 3]
     overlapping = keyframe_pairs(frames, 3, 1, None, start_step=1)
@@ -85,6 +85,21 @@ def test_closure_sees_a_bias_that_accumulates_along_the_chain() -> None:
     assert c["agree_5cm_0.5deg"] == 0.0 and c["agree_10cm_1deg"] == 1.0
     # A constant offset has no spread, against the chains or against the truth.
     assert c["closure_sigma_deg"] < 1e-9 and c["truth_sigma_deg"] < 1e-9
+
+
+def test_simulated_keyframes_carry_exact_truth_and_the_wheel_odometry() -> None:
+    config = SimConfig(world="campus", duration_s=3.0, seed=2, beams=181, fov_deg=180.0,
+                       range_max_m=80.0)
+    sweeps = list(simulate(config))
+    frames = sim_frames(config, every=5)
+    assert len(frames) == 6
+    for frame, sweep in zip(frames, sweeps[::5], strict=True):
+        assert np.array_equal(frame.points, sweep.true_points)
+        assert same(frame.true_pose, sweep.true_pose)
+        # The simulated wheel odometry: near the truth, not equal to it (1 % scale error).
+        assert frame.odom_pose.relative_to(frame.true_pose).translation_norm() < 0.05
+    assert frames[0].odom_pose.relative_to(frames[0].true_pose).translation_norm() < 1e-9
+    assert frames[-1].odom_pose.relative_to(frames[-1].true_pose).translation_norm() > 1e-4
 
 
 def run_bench(*args: str) -> subprocess.CompletedProcess:
@@ -123,3 +138,22 @@ def test_bench_matching_json_with_closure_on_real_pairs() -> None:
     assert 0.0 <= c["agree_5cm_0.5deg"] <= c["agree_10cm_1deg"] <= 1.0
     assert all(math.isfinite(c[k]) and c[k] >= 0 for k in
                ("closure_sigma_xy_m", "closure_sigma_deg", "truth_sigma_xy_m", "truth_sigma_deg"))
+
+
+def test_bench_matching_json_on_simulated_campus_pairs() -> None:
+    out = run_bench("--sim", "campus", "--sim-duration-s", "12", "--sim-beams", "181",
+                    "--sim-fov-deg", "180", "--sim-range-m", "80", "--methods", "odometry",
+                    "plicp", "--peers", "--robust-pairs", "0", "--json")
+    assert out.returncode == 0, out.stderr
+    report = json.loads(out.stdout)
+    assert report["data"] == "sim:campus" and report["pairs"] == 23
+    plicp = report["results"]["plicp"]
+    # Exact truth: the matcher's own error, a few mm on every pair.
+    assert plicp["ok_5cm_0.5deg"] == 1.0 and plicp["trans_p95_m"] < 0.02
+
+
+def test_data_and_sim_are_one_or_the_other() -> None:
+    out = run_bench("--data", str(LOG), "--sim", "rooms")
+    assert out.returncode == 2 and "not allowed with argument" in out.stderr
+    out = run_bench("--sim", "campus", "--sim-range-m", "-1")
+    assert out.returncode == 2 and "range_max_m" in out.stderr
