@@ -3,14 +3,21 @@
 The Hessian mixes metres and radians, so the rotation axis is scaled by a characteristic length
 (the RMS radius of the points) before the eigen-analysis; the weak direction is reported back in
 (x, y, theta) as a unit 3-vector. Corridors show up as one tiny translational eigenvalue.
+`surface_conditioning` asks it of the surfaces under the matched points themselves, apart from
+any method's weights and fitted normals.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+
+from scanflow.geometry import Pose2D
+from scanflow.matching.api import MatchStatus
+from scanflow.matching.correspondence import GridIndex, target_lines
 
 # Ratio of smallest to largest scaled eigenvalue below which a direction counts as unconstrained.
 DEGENERATE_RATIO = 2e-3
@@ -60,3 +67,56 @@ def line_hessian(points: NDArray[np.float64], normals: NDArray[np.float64]) -> N
     j = np.column_stack((normals, cross))
     return j.T @ j
 
+
+
+# Neighbours of each matched point its normal is fitted to (see `surface_conditioning`).
+NORMAL_NEIGHBOURS = 16
+
+
+def surface_conditioning(
+    source: NDArray[np.float64], matched: NDArray[np.bool_], pose: Pose2D
+) -> tuple[MatchStatus, tuple[float, float, float] | None, str]:
+    """OK, DEGENERATE (with the weak direction) or ILL_CONDITIONED for a pose matched from the
+    source points `matched` (csm's optimum, an ICP's pairs), from the geometry of those points.
+
+    A point on a surface pins the pose only across that surface, not along it. So the points'
+    information is the point-to-line Hessian sum J^T J, J = [n, p x n] (n: the normal of the
+    line fitted through the point's neighbours in the source over patches up to 0.5 m, turned
+    into the target frame), analysed as `analyse_hessian` does (DEGENERATE_RATIO, rotation
+    scaled by the points' spread). Why patches this wide, and not the method's own Hessian:
+    over a few cm (a near wall's dense points) or a far wall's two points, range noise tilts the
+    normals enough to fake a constraint along a corridor (ratio 2.5e-3 with 1 cm noise at 6 m
+    range; 2.8e-4 over 0.5 m), and an ICP's robust weights hide how few points hold a direction.
+    For csm, why not the score distribution: Olson's covariance samples +-3 cells and steps, so
+    a flat direction tops out at ~2 cells of std, and real corridor scans reach 1.8 (intel),
+    no margin; a quadratic fit of the scores had negative curvature on most real scans (the
+    peak is not quadratic over +-3 cells). Measured on the next-scan pairs of intel, aces and
+    freiburg-079: csm had 6 of 6138 flagged, all intel corridor scans, 5 of them where its
+    optimum had slid 0.3-0.95 m along the corridor."""
+    points = source[matched]
+    hessian = np.zeros((3, 3))
+    if len(points) >= 2:
+        lines = target_lines(GridIndex.build(points), k=NORMAL_NEIGHBOURS, radius_m=0.5,
+                             fit_radius_m=0.5, seen_from_origin=True)
+        c, s = math.cos(pose.theta), math.sin(pose.theta)
+        turn = np.array([[c, s], [-s, c]])  # row vectors times R^T: into the target frame
+        hessian = line_hessian(points[lines.ok] @ turn, lines.normals[lines.ok] @ turn)
+    # Rotation scaled by the spread of the points that carry the information (a glitch point
+    # far off the target would otherwise make every rotation look unconstrained).
+    cond = analyse_hessian(hessian, characteristic_length_m(points))
+    top = float(cond.eigenvalues[-1])
+    weak = int(np.count_nonzero(cond.eigenvalues <= DEGENERATE_RATIO * top)) if top > 0 else 3
+    if weak >= 2:
+        return (
+            MatchStatus.ILL_CONDITIONED, None,
+            f"the {len(points)} matched points constrain fewer than two directions "
+            f"(too few line-like patches among them: e.g. all at one spot)",
+        )
+    if weak == 1:
+        return (
+            MatchStatus.DEGENERATE, cond.weak_direction,
+            f"unconstrained along {np.round(cond.weak_direction, 3).tolist()} (eigenvalue "
+            f"ratio {cond.ratio:.1e}, e.g. a corridor): the surfaces under the matched points "
+            "do not fix the pose along it",
+        )
+    return MatchStatus.OK, None, ""

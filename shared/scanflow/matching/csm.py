@@ -22,13 +22,7 @@ from scanflow.geometry import Pose2D
 from scanflow.maps.grid import GridSpec
 from scanflow.maps.maxpool import SCORE_SCALE, MaxPoolStack
 from scanflow.matching.api import MatchResult, MatchStatus, failed, match, register_method
-from scanflow.matching.checks import (
-    DEGENERATE_RATIO,
-    analyse_hessian,
-    characteristic_length_m,
-    line_hessian,
-)
-from scanflow.matching.correspondence import GridIndex, target_lines
+from scanflow.matching.checks import surface_conditioning
 from scanflow.matching.field_cost import MIN_POINTS, check_inputs, points_field
 from scanflow.matching.inputs import (
     MatchInputError,
@@ -410,59 +404,6 @@ def check_window_options(
         )
 
 
-# Neighbours of each matched point its normal is fitted to (see `matched_conditioning`).
-NORMAL_NEIGHBOURS = 16
-
-
-def matched_conditioning(
-    source: NDArray[np.float64], matched: NDArray[np.bool_], pose: Pose2D
-) -> tuple[MatchStatus, tuple[float, float, float] | None, str]:
-    """OK, DEGENERATE (with the weak direction) or ILL_CONDITIONED for a csm optimum, from the
-    geometry of the source points that score there (`matched`).
-
-    A point on a surface pins the pose only across that surface: the score under it changes
-    when it moves along the normal, not along the surface. So the points' information is the
-    point-to-line Hessian sum J^T J, J = [n, p x n] (n: the normal of the line fitted through
-    the point's neighbours in the source, turned into the target frame), analysed as plicp and
-    ndt analyse theirs (`analyse_hessian`, DEGENERATE_RATIO, rotation scaled by the points'
-    spread). Why not the score distribution: Olson's covariance samples +-3 cells and steps, so
-    a flat direction tops out at ~2 cells of std, and real corridor scans reach 1.8 (intel),
-    no margin; a quadratic fit of the scores had negative curvature on most real scans (the
-    peak is not quadratic over +-3 cells). Measured on the next-scan pairs of intel, aces and
-    freiburg-079: 6 of 6138 flagged, all intel corridor scans, 5 of them where csm's optimum had
-    slid 0.3-0.95 m along the corridor."""
-    points = source[matched]
-    hessian = np.zeros((3, 3))
-    if len(points) >= 2:
-        # Patches up to 0.5 m: over plicp's 0.2 m, range noise tilts the normals of a wall's
-        # sparse far points enough to fake a constraint along a corridor (ratio 2.5e-3 with 1 cm
-        # noise at 6 m range; 2.8e-4 over 0.5 m). Corners fail the flatness test either way.
-        lines = target_lines(GridIndex.build(points), k=NORMAL_NEIGHBOURS, radius_m=0.5,
-                             fit_radius_m=0.5, seen_from_origin=True)
-        c, s = math.cos(pose.theta), math.sin(pose.theta)
-        turn = np.array([[c, s], [-s, c]])  # row vectors times R^T: into the target frame
-        hessian = line_hessian(points[lines.ok] @ turn, lines.normals[lines.ok] @ turn)
-    # Rotation scaled by the spread of the points that carry the information (a glitch point
-    # far off the target would otherwise make every rotation look unconstrained).
-    cond = analyse_hessian(hessian, characteristic_length_m(points))
-    top = float(cond.eigenvalues[-1])
-    weak = int(np.count_nonzero(cond.eigenvalues <= DEGENERATE_RATIO * top)) if top > 0 else 3
-    if weak >= 2:
-        return (
-            MatchStatus.ILL_CONDITIONED, None,
-            f"the {len(points)} matched points constrain fewer than two directions "
-            f"(too few line-like patches among them: e.g. all at one spot)",
-        )
-    if weak == 1:
-        return (
-            MatchStatus.DEGENERATE, cond.weak_direction,
-            f"unconstrained along {np.round(cond.weak_direction, 3).tolist()} (eigenvalue "
-            f"ratio {cond.ratio:.1e}, e.g. a corridor): the pose along it is the flat score's "
-            "tie-break",
-        )
-    return MatchStatus.OK, None, ""
-
-
 SEARCHED = frozenset({MatchStatus.OK, MatchStatus.DEGENERATE, MatchStatus.ILL_CONDITIONED})
 
 
@@ -535,7 +476,7 @@ def correlative_match(
     poses = [Pose2D(guess.x + c[1] * res, guess.y + c[2] * res, float(cand.angles_rad[c[0]]))
              for c in found]
     matched = stack.lookup(0, cand.rows[k] + iy, cand.cols[k] + ix) > 0
-    status, weak, message = matched_conditioning(source, matched, poses[0])
+    status, weak, message = surface_conditioning(source, matched, poses[0])
     pose = poses[0]
     result = MatchResult(
         pose=pose,

@@ -25,7 +25,11 @@ from scanflow.matching.api import (
     register_method,
     target_points,
 )
-from scanflow.matching.checks import analyse_hessian, characteristic_length_m
+from scanflow.matching.checks import (
+    analyse_hessian,
+    characteristic_length_m,
+    surface_conditioning,
+)
 from scanflow.matching.correspondence import (
     MAD_TO_SIGMA,
     THIN_BELOW_DEG,
@@ -267,6 +271,10 @@ def line_match_result(
             f"weakly constrained along {np.round(weak, 3).tolist()} "
             f"(eigenvalue ratio {cond.ratio:.1e}), e.g. a corridor"
         )
+    elif (surface := surface_conditioning(source, assoc >= 0, pose))[0] is not MatchStatus.OK:
+        # The Hessian above holds the fitted normals' noise, which fakes a constraint along a
+        # corridor (a near wall's dense points, 1 cm noise over a few cm): ask the surfaces.
+        status, weak, message = surface
     elif code == MAX_ITER:
         status, message = MatchStatus.MAX_ITERATIONS, f"no convergence in {iterations} iterations"
     return MatchResult(
