@@ -68,7 +68,6 @@ def line_hessian(points: NDArray[np.float64], normals: NDArray[np.float64]) -> N
     return j.T @ j
 
 
-
 # Neighbours of each matched point its normal is fitted to (see `surface_conditioning`).
 NORMAL_NEIGHBOURS = 16
 
