@@ -68,6 +68,18 @@ def line_hessian(points: NDArray[np.float64], normals: NDArray[np.float64]) -> N
     return j.T @ j
 
 
+def without_weak_direction(
+    step: Pose2D, weak: tuple[float, float, float], length_m: float
+) -> Pose2D:
+    """`step` (x, y, theta) with its component along `weak` removed, in the metric of
+    `analyse_hessian` (theta scaled by `length_m`), where `weak` was found."""
+    scale = np.array([1.0, 1.0, length_m])
+    d = step.to_array() * scale
+    w = np.asarray(weak, dtype=np.float64) * scale
+    w /= np.linalg.norm(w)
+    return Pose2D.from_array((d - d.dot(w) * w) / scale)
+
+
 # Neighbours of each matched point its normal is fitted to (see `surface_conditioning`).
 NORMAL_NEIGHBOURS = 16
 

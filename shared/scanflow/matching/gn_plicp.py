@@ -26,23 +26,11 @@ from numpy.typing import NDArray
 
 from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.matching.api import MatchResult, MatchStatus, register_method, target_points
-from scanflow.matching.checks import characteristic_length_m
+from scanflow.matching.checks import characteristic_length_m, without_weak_direction
 from scanflow.matching.correspondence import thin_dense_target
 from scanflow.matching.gn import match_gn
 from scanflow.matching.inputs import require_at_most, require_positive
 from scanflow.matching.plicp import match_plicp
-
-
-def without_weak_direction(
-    step: Pose2D, weak: tuple[float, float, float], length_m: float
-) -> Pose2D:
-    """`step` (x, y, theta) with its component along `weak` removed, in the metric of
-    `analyse_hessian` (theta scaled by `length_m`), where `weak` was found."""
-    scale = np.array([1.0, 1.0, length_m])
-    d = step.to_array() * scale
-    w = np.asarray(weak, dtype=np.float64) * scale
-    w /= np.linalg.norm(w)
-    return Pose2D.from_array((d - d.dot(w) * w) / scale)
 
 
 def fine_target(target: object, moved: NDArray[np.float64], gate_m: float) -> NDArray[np.float64]:

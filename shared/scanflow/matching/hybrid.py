@@ -20,7 +20,8 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from scanflow.geometry import Pose2D
-from scanflow.matching.api import MatchResult, register_method, target_points
+from scanflow.matching.api import MatchResult, MatchStatus, register_method, target_points
+from scanflow.matching.checks import characteristic_length_m, without_weak_direction
 from scanflow.matching.csm import found_a_pose, match_csm
 from scanflow.matching.inputs import (
     require_at_least,
@@ -110,8 +111,17 @@ def match_csm_plicp(
         overlaps = [scorer.score(f.pose) if f.ok else -1.0 for f in fines]
     best = pick_hypothesis(overlaps, switch_margin) if len(fines) > 1 else 0
     fine = fines[best]
+    pose = fine.pose
+    if fine.status is MatchStatus.DEGENERATE and fine.weak_direction is not None:
+        # Along a direction the scans do not observe, the search's peak is a tie-break that
+        # drifts with the scans' extents (to the window's edge along a corridor): keep the
+        # guess's value there, the only information along it.
+        offset = Pose2D.from_array(pose.to_array() - guess.to_array())
+        kept = without_weak_direction(offset, fine.weak_direction, characteristic_length_m(source))
+        pose = Pose2D.from_array(guess.to_array() + kept.to_array())
     return replace(
         fine,
+        pose=pose,
         method="csm+plicp",
         iterations=fine.iterations + coarse.iterations,
         extra={

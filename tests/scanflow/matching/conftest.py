@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable
 
@@ -10,7 +11,14 @@ import pytest
 from numpy.typing import NDArray
 from scanflow.geometry import Pose2D, angle_diff
 from scanflow.matching import match
-from scanflow.sim import ConstantVelocityTrajectory, LidarModel, get_world, measure
+from scanflow.sim import (
+    ConstantVelocityTrajectory,
+    LidarModel,
+    SimConfig,
+    get_world,
+    measure,
+    simulate,
+)
 
 Segments = NDArray[np.float64]  # (S, 4): x0, y0, x1, y1
 
@@ -132,3 +140,12 @@ def simulated_nees(method: str, trials: int = 60, seed: int = 11) -> list[float]
         v = np.array([r.pose.x - truth.x, r.pose.y - truth.y, dtheta])
         nees.append(float(v @ np.linalg.solve(r.covariance, v)))
     return nees
+
+
+@pytest.fixture(scope="session")
+def corridor_pairs() -> list[tuple[np.ndarray, np.ndarray, Pose2D]]:
+    """(source, target, truth) of sweeps 0.5 s apart along the simulator's corridor, exactly
+    deskewed, 1 cm range noise, a 270-deg lidar: neither end is in range for most of them."""
+    frames = list(simulate(SimConfig(world="corridor", duration_s=14.0, seed=0)))[20::5]
+    return [(b.true_points, a.true_points, b.true_pose.relative_to(a.true_pose))
+            for a, b in itertools.pairwise(frames)]

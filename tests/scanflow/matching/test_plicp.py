@@ -1,7 +1,6 @@
 """Point-to-line ICP on simulated scans: accuracy, degeneracy, bad input, covariance calibration,
 the target line fits, and the compiled grid lookup against scipy's KD-tree."""
 
-import itertools
 import math
 
 import numpy as np
@@ -11,7 +10,6 @@ from hypothesis import strategies as st
 from scanflow.geometry import Pose2D
 from scanflow.matching import MatchStatus, match
 from scanflow.matching.correspondence import GridIndex, grid_k_nearest, target_lines
-from scanflow.sim import SimConfig, simulate
 from scipy.spatial import cKDTree
 
 from .conftest import scan_points, simulated_nees
@@ -45,15 +43,6 @@ def test_corridor_is_flagged_with_the_weak_direction() -> None:
     r = match(source, target, Pose2D(0.05, 0.0, 0.0), method="plicp")
     assert r.status is MatchStatus.DEGENERATE
     assert r.weak_direction is not None and abs(r.weak_direction[0]) > 0.9
-
-
-@pytest.fixture(scope="module")
-def corridor_pairs() -> list[tuple[np.ndarray, np.ndarray, Pose2D]]:
-    """(source, target, truth) of sweeps 0.5 s apart along the simulator's corridor, exactly
-    deskewed, 1 cm range noise, a 270-deg lidar: neither end is in range for most of them."""
-    frames = list(simulate(SimConfig(world="corridor", duration_s=14.0, seed=0)))[20::5]
-    return [(b.true_points, a.true_points, b.true_pose.relative_to(a.true_pose))
-            for a, b in itertools.pairwise(frames)]
 
 
 @pytest.mark.parametrize("method", ["plicp", "icp", "csm+plicp"])
