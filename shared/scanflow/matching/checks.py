@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from scanflow.geometry import Pose2D
+from scanflow.geometry import Pose2D, angle_diff, normalize_angle
 from scanflow.matching.api import MatchStatus
 from scanflow.matching.correspondence import GridIndex, target_lines
 
@@ -78,6 +78,16 @@ def without_weak_direction(
     w = np.asarray(weak, dtype=np.float64) * scale
     w /= np.linalg.norm(w)
     return Pose2D.from_array((d - d.dot(w) * w) / scale)
+
+
+def guess_along(
+    weak: tuple[float, float, float], pose: Pose2D, guess: Pose2D, length_m: float
+) -> Pose2D:
+    """`pose` with its (x, y, theta) parameters moved to the guess's along `weak` and kept
+    across it (`without_weak_direction` of the offset from the guess, headings the short way)."""
+    offset = Pose2D(pose.x - guess.x, pose.y - guess.y, angle_diff(pose.theta, guess.theta))
+    kept = without_weak_direction(offset, weak, length_m)
+    return Pose2D(guess.x + kept.x, guess.y + kept.y, normalize_angle(guess.theta + kept.theta))
 
 
 # Neighbours of each matched point its normal is fitted to (see `surface_conditioning`).

@@ -21,7 +21,7 @@ from scipy.spatial import cKDTree
 
 from scanflow.geometry import Pose2D
 from scanflow.matching.api import MatchResult, MatchStatus, register_method, target_points
-from scanflow.matching.checks import characteristic_length_m, without_weak_direction
+from scanflow.matching.checks import characteristic_length_m, guess_along
 from scanflow.matching.csm import found_a_pose, match_csm
 from scanflow.matching.inputs import (
     require_at_least,
@@ -116,9 +116,7 @@ def match_csm_plicp(
         # Along a direction the scans do not observe, the search's peak is a tie-break that
         # drifts with the scans' extents (to the window's edge along a corridor): keep the
         # guess's value there, the only information along it.
-        offset = Pose2D.from_array(pose.to_array() - guess.to_array())
-        kept = without_weak_direction(offset, fine.weak_direction, characteristic_length_m(source))
-        pose = Pose2D.from_array(guess.to_array() + kept.to_array())
+        pose = guess_along(fine.weak_direction, pose, guess, characteristic_length_m(source))
     return replace(
         fine,
         pose=pose,

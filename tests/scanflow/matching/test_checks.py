@@ -1,11 +1,19 @@
-"""checks.py: removing the unobserved (weak) direction from a pose correction."""
+"""checks.py: removing the unobserved (weak) direction from a pose correction, or keeping the
+guess's value along it."""
+
+import math
 
 import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
-from scanflow.geometry import Pose2D
-from scanflow.matching.checks import analyse_hessian, line_hessian, without_weak_direction
+from scanflow.geometry import Pose2D, normalize_angle
+from scanflow.matching.checks import (
+    analyse_hessian,
+    guess_along,
+    line_hessian,
+    without_weak_direction,
+)
 
 finite = st.floats(-1.0, 1.0, allow_nan=False)
 # Fine steps are within the agreement window (0.1 m, 1 deg) by far: no heading wraps around.
@@ -40,3 +48,40 @@ def test_a_corridor_s_weak_direction_is_where_the_projection_acts() -> None:
     across = without_weak_direction(Pose2D(0.0, 0.02, 0.0), weak, 3.0)
     assert along.translation_norm() < 1e-9
     assert across.to_array() == pytest.approx([0.0, 0.02, 0.0], abs=1e-9)
+
+
+@given(st.tuples(small, small, small), st.tuples(small, small, st.floats(-math.pi, math.pi)),
+       st.tuples(finite, finite, finite), st.floats(0.5, 20.0))
+def test_the_guess_is_kept_along_the_weak_direction_the_rest_from_the_pose(
+    offset: tuple, guess: tuple, weak: tuple, length_m: float
+) -> None:
+    """The result differs from the guess only across the weak direction, and from the pose only
+    along it, in analyse_hessian's metric; headings on either side of +-pi are a small offset,
+    not 2 pi (a weak direction mixing x and theta would turn 2 pi into metres)."""
+    scale = np.array([1.0, 1.0, length_m])
+    ws = np.array(weak) * scale
+    if np.linalg.norm(ws) < 1e-3:
+        return
+    ws /= np.linalg.norm(ws)
+    g = Pose2D(*guess)
+    pose = Pose2D(g.x + offset[0], g.y + offset[1], normalize_angle(g.theta + offset[2]))
+    out = guess_along(weak, pose, g, length_m)
+
+    def scaled(a: Pose2D, b: Pose2D) -> np.ndarray:
+        return np.array([a.x - b.x, a.y - b.y, math.remainder(a.theta - b.theta, math.tau)]) * scale
+
+    assert abs(scaled(out, g) @ ws) < 1e-9
+    across = scaled(out, pose) - (scaled(out, pose) @ ws) * ws
+    assert np.linalg.norm(across) < 1e-9
+    assert np.linalg.norm(scaled(out, g)) <= np.linalg.norm(np.array(offset) * scale) + 1e-9
+
+
+def test_a_heading_across_pi_is_a_small_offset_from_the_guess() -> None:
+    """Guess at +pi - 1 mrad, pose 3 mrad further (wrapped to -pi + 2 mrad), a weak direction
+    mixing x and theta: the pose keeps its x, not one moved by 2 pi x the length."""
+    guess = Pose2D(1.0, 2.0, math.pi - 0.001)
+    pose = Pose2D(1.01, 2.0, normalize_angle(guess.theta + 0.003))
+    out = guess_along((1.0, 0.0, 0.5), pose, guess, 2.0)
+    assert out.x == pytest.approx(1.0 + 0.5 * (0.01 - 0.003 * 2.0), abs=1e-9)
+    assert math.remainder(out.theta - guess.theta, math.tau) == pytest.approx(
+        0.5 * (0.003 - 0.01 / 2.0), abs=1e-9)

@@ -86,3 +86,4 @@ def test_along_a_corridor_the_guess_stands_where_the_search_cannot_tell(corridor
         assert err.translation_norm() < 0.02 and abs(err.theta) < 0.005, (r.status, err)
         degenerate += r.status is MatchStatus.DEGENERATE
     assert degenerate >= len(corridor_pairs) // 2  # the case at hand: mostly unobservable
+
