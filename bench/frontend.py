@@ -211,12 +211,14 @@ def run_starts(path: Path, settings: FrontendSettings, limit: int | None, starts
 
 def fast_sim_config(
     world: str, duration_s: float, seed: int, mount: Pose2D = IDENTITY,
-    perfect_odometry: bool = False,
+    perfect_odometry: bool = False, lidar: tuple[int, float, float] | None = None,
 ) -> SimConfig:
-    """The simulator at 1.5 m/s and 180 deg/s; with perfect odometry, exact wheel odometry."""
+    """The simulator at 1.5 m/s and 180 deg/s; with perfect odometry, exact wheel odometry;
+    `lidar` (beams, fov deg, range m) instead of SimConfig's."""
     noise = {"odom_scale_error": 0.0, "odom_yaw_noise": 0.0} if perfect_odometry else {}
+    sensor = dict(zip(("beams", "fov_deg", "range_max_m"), lidar, strict=True)) if lidar else {}
     return SimConfig(world=world, duration_s=duration_s, seed=seed, max_speed_mps=1.5,
-                     max_yaw_rate_dps=180.0, mount=mount, **noise)
+                     max_yaw_rate_dps=180.0, mount=mount, **noise, **sensor)
 
 
 def settings_for(method: str | None, recheck_ratio: float | None = None) -> FrontendSettings:
@@ -234,14 +236,17 @@ def run_sim(
     mount: Pose2D = IDENTITY,
     world: str = "rooms",
     perfect_odometry: bool = False,
+    lidar: tuple[int, float, float] | None = None,
 ) -> dict:
     """ATE of the robot's poses on the simulator at 1.5 m/s and 180 deg/s, with and without
-    deskewing (and with the lidar's mount ignored, when it has one). With perfect odometry,
-    whatever error remains is the matching's own."""
-    frames = list(simulate(fast_sim_config(world, duration_s, seed, mount, perfect_odometry)))
+    deskewing (and with the lidar's mount ignored, when it has one), and the CPU time per scan.
+    With perfect odometry, whatever error remains is the matching's own."""
+    config = fast_sim_config(world, duration_s, seed, mount, perfect_odometry, lidar)
+    frames = list(simulate(config))
     truth = poses_array([SIM_MAP_FROM_WORLD * f.true_pose for f in frames])
     report: dict = {"scans": len(frames), "speed_mps": 1.5, "yaw_rate_dps": 180.0,
                     "world": world, "perfect_odometry": perfect_odometry,
+                    "lidar": [config.beams, config.fov_deg, config.range_max_m],
                     "method": settings.method, "recheck_ratio": settings.recheck_ratio,
                     "mount": mount.to_array().tolist()}
     runs = {"deskewed": (True, mount), "raw": (False, mount)}
@@ -251,12 +256,14 @@ def run_sim(
         pipeline = Pipeline(settings, deskew_enabled=enabled,
                             initial_pose=Pose2D.from_array(truth[0]))
         poses, statuses = [], {}
+        cpu0 = time.process_time()
         for frame in frames:
             for sample in frame.odometry:
                 pipeline.add_odometry(sample)
             est = pipeline.process(replace(frame.scan, mount=declared)).estimate
             poses.append(est.pose)
             statuses[str(est.status)] = statuses.get(str(est.status), 0) + 1
+        cpu_ms_per_scan = (time.process_time() - cpu0) * 1e3 / len(frames)
         estimate = poses_array(poses)
         heading = normalize_angles(estimate[:, 2] - truth[:, 2])
         report[name] = {
@@ -266,6 +273,7 @@ def run_sim(
             "final_position_error_m": float(np.hypot(*(estimate - truth)[-1, :2])),
             "final_heading_error_deg": float(np.degrees(heading[-1])),
             "statuses": statuses,
+            "cpu_ms_per_scan": cpu_ms_per_scan,
         }
     return report
 
@@ -277,6 +285,16 @@ def parse_mount(text: str) -> Pose2D:
         return Pose2D(x, y, math.radians(yaw_deg))
     except ValueError as exc:
         raise argparse.ArgumentTypeError(f"mount must be X_M,Y_M,YAW_DEG, got {text!r}") from exc
+
+
+def parse_lidar(text: str) -> tuple[int, float, float]:
+    """'BEAMS,FOV_DEG,RANGE_M' -> (beams, fov deg, range m)."""
+    try:
+        beams, fov_deg, range_m = text.split(",")
+        return int(beams), float(fov_deg), float(range_m)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(
+            f"--lidar takes BEAMS,FOV_DEG,RANGE_M (e.g. 181,180,80), got {text!r}") from exc
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -297,12 +315,19 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--world", default="rooms", choices=sorted(WORLDS), help="sim world")
     parser.add_argument("--perfect-odometry", action="store_true",
                         help="sim: exact wheel odometry (the error left is the matching's)")
+    parser.add_argument("--lidar", type=parse_lidar, default=None,
+                        help="sim: BEAMS,FOV_DEG,RANGE_M (default: the simulator's 360,270,30)")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
     settings = settings_for(args.method, args.recheck_ratio)
+    if args.sim and args.lidar:
+        try:
+            fast_sim_config(args.world, args.duration, args.seed, lidar=args.lidar)
+        except ValueError as exc:
+            parser.error(str(exc))
     if args.sim:
         report = run_sim(settings, args.duration, args.seed, args.mount, args.world,
-                         args.perfect_odometry)
+                         args.perfect_odometry, args.lidar)
     elif args.data is not None and args.starts > 0:
         report = run_starts(args.data, settings, args.limit, args.starts)
     elif args.data is not None:

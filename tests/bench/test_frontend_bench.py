@@ -1,4 +1,5 @@
-"""bench.frontend's simulator mode: the mounted-lidar runs and the --mount argument."""
+"""bench.frontend's simulator mode: the mounted-lidar runs, the --mount and --lidar arguments,
+an outdoor run."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from scanflow.pipeline import Pipeline
 from bench.data import corrected_log
 from bench.frontend import (
     accuracy,
+    parse_lidar,
     parse_mount,
     poses_array,
     run_pass,
@@ -39,6 +41,20 @@ def test_parse_mount_takes_metres_and_degrees_and_names_bad_input() -> None:
     assert parse_mount("0.4,-0.1,90") == Pose2D(0.4, -0.1, math.pi / 2)
     with pytest.raises(argparse.ArgumentTypeError, match="X_M,Y_M,YAW_DEG"):
         parse_mount("0.4,-0.1")
+
+
+def test_an_outdoor_run_with_a_far_reaching_lidar_is_tracked() -> None:
+    """The campus seen by a 181-beam, 180-deg lidar reaching 80 m: buildings 15-70 m away."""
+    report = run_sim(default_settings(), 6.0, 0, world="campus", lidar=parse_lidar("181,180,80"))
+    assert report["lidar"] == [181, 180.0, 80.0]
+    run = report["deskewed"]
+    assert run["statuses"] == {"initialised": 1, "tracked": report["scans"] - 1}
+    assert run["max_position_error_m"] < 0.5 and run["cpu_ms_per_scan"] > 0
+
+
+def test_parse_lidar_names_bad_input() -> None:
+    with pytest.raises(argparse.ArgumentTypeError, match="BEAMS,FOV_DEG,RANGE_M"):
+        parse_lidar("181,180")
 
 
 def test_with_perfect_odometry_the_error_left_is_the_matching_s() -> None:
