@@ -275,6 +275,7 @@ def run_sim(
             "statuses": statuses,
             "cpu_ms_per_scan": cpu_ms_per_scan,
         }
+    report["peak_rss_mb"] = peak_rss_mb()
     return report
 
 
