@@ -50,6 +50,8 @@ from scanflow.pipeline import Pipeline
 from scanflow.sim import WORLDS, SimConfig, simulate
 from tqdm import tqdm
 
+from bench.lidar import Lidar, add_lidar_option, sim_lidar_fields
+
 OUT_DIR = Path(__file__).resolve().parent / "out"
 RPE_DELTA_M = 1.0
 # The simulated worlds have walls at whole multiples of the 5 cm cell: turn the map frame so
@@ -211,14 +213,13 @@ def run_starts(path: Path, settings: FrontendSettings, limit: int | None, starts
 
 def fast_sim_config(
     world: str, duration_s: float, seed: int, mount: Pose2D = IDENTITY,
-    perfect_odometry: bool = False, lidar: tuple[int, float, float] | None = None,
+    perfect_odometry: bool = False, lidar: Lidar | None = None,
 ) -> SimConfig:
     """The simulator at 1.5 m/s and 180 deg/s; with perfect odometry, exact wheel odometry;
     `lidar` (beams, fov deg, range m) instead of SimConfig's."""
     noise = {"odom_scale_error": 0.0, "odom_yaw_noise": 0.0} if perfect_odometry else {}
-    sensor = dict(zip(("beams", "fov_deg", "range_max_m"), lidar, strict=True)) if lidar else {}
     return SimConfig(world=world, duration_s=duration_s, seed=seed, max_speed_mps=1.5,
-                     max_yaw_rate_dps=180.0, mount=mount, **noise, **sensor)
+                     max_yaw_rate_dps=180.0, mount=mount, **noise, **sim_lidar_fields(lidar))
 
 
 def settings_for(method: str | None, recheck_ratio: float | None = None) -> FrontendSettings:
@@ -236,7 +237,7 @@ def run_sim(
     mount: Pose2D = IDENTITY,
     world: str = "rooms",
     perfect_odometry: bool = False,
-    lidar: tuple[int, float, float] | None = None,
+    lidar: Lidar | None = None,
 ) -> dict:
     """ATE of the robot's poses on the simulator at 1.5 m/s and 180 deg/s, with and without
     deskewing (and with the lidar's mount ignored, when it has one), and the CPU time per scan.
@@ -288,16 +289,6 @@ def parse_mount(text: str) -> Pose2D:
         raise argparse.ArgumentTypeError(f"mount must be X_M,Y_M,YAW_DEG, got {text!r}") from exc
 
 
-def parse_lidar(text: str) -> tuple[int, float, float]:
-    """'BEAMS,FOV_DEG,RANGE_M' -> (beams, fov deg, range m)."""
-    try:
-        beams, fov_deg, range_m = text.split(",")
-        return int(beams), float(fov_deg), float(range_m)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(
-            f"--lidar takes BEAMS,FOV_DEG,RANGE_M (e.g. 181,180,80), got {text!r}") from exc
-
-
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, help="CARMEN log (.log or .log.gz)")
@@ -316,8 +307,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--world", default="rooms", choices=sorted(WORLDS), help="sim world")
     parser.add_argument("--perfect-odometry", action="store_true",
                         help="sim: exact wheel odometry (the error left is the matching's)")
-    parser.add_argument("--lidar", type=parse_lidar, default=None,
-                        help="sim: BEAMS,FOV_DEG,RANGE_M (default: the simulator's 360,270,30)")
+    add_lidar_option(parser)
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
     settings = settings_for(args.method, args.recheck_ratio)

@@ -10,7 +10,7 @@ so overlapping pairs), optionally every S-th pair and at most N pairs. Source = 
 scan i, so a match estimates T_i_(i+K). Ground truth: true_pose_i^-1 * true_pose_j; initial
 guess: the wheel odometry odom_pose_i^-1 * odom_pose_j. Error: translation norm and |rotation|
 of gt^-1 * estimate.
-Simulated pairs (`--sim WORLD`, e.g. `campus` with `--sim-range-m 80`): every `--sim-every`-th
+Simulated pairs (`--sim WORLD`, e.g. `campus` with `--lidar 181,180,80`): every `--sim-every`-th
 sweep of a seeded run of the built-in simulator is a keyframe, its points exactly deskewed (range
 noise and dropouts kept), its truth exact and its guess the simulated wheel odometry (1 % scale
 error, yaw noise). A real log's corrected poses carry a few cm and ~0.3-0.6 deg of their own
@@ -56,6 +56,7 @@ from scanflow.matching import DEFAULT_METHOD, MatchResult, available_methods, ma
 from scanflow.sim import WORLDS, SimConfig, simulate
 from tqdm import tqdm
 
+from bench.lidar import add_lidar_option, sim_lidar_fields
 from bench.peers import available_peers
 
 THRESHOLDS = ((0.05, 0.5), (0.10, 1.0))  # (metres, degrees)
@@ -312,9 +313,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--sim-duration-s", type=float, default=120.0)
     parser.add_argument("--sim-every", type=int, default=5,
                         help="every N-th sweep (10 Hz) is a keyframe")
-    parser.add_argument("--sim-beams", type=int, default=SimConfig.beams)
-    parser.add_argument("--sim-fov-deg", type=float, default=SimConfig.fov_deg)
-    parser.add_argument("--sim-range-m", type=float, default=SimConfig.range_max_m)
+    add_lidar_option(parser)
     parser.add_argument("--sim-seed", type=int, default=0)
     parser.add_argument("--gap", type=int, default=1, help="pair scan i with scan i+gap")
     parser.add_argument("--methods", nargs="*", default=list(DEFAULT_METHODS),
@@ -343,7 +342,7 @@ def main(argv: list[str] | None = None) -> None:
         try:
             config = SimConfig(
                 world=args.sim, duration_s=args.sim_duration_s, seed=args.sim_seed,
-                beams=args.sim_beams, fov_deg=args.sim_fov_deg, range_max_m=args.sim_range_m,
+                **sim_lidar_fields(args.lidar),
             )
         except ValueError as exc:
             parser.error(str(exc))
@@ -387,9 +386,8 @@ def main(argv: list[str] | None = None) -> None:
     }
     if args.sim:
         report["sim"] = {"world": args.sim, "duration_s": args.sim_duration_s,
-                         "every": args.sim_every, "beams": args.sim_beams,
-                         "fov_deg": args.sim_fov_deg, "range_m": args.sim_range_m,
-                         "seed": args.sim_seed}
+                         "every": args.sim_every, "seed": args.sim_seed,
+                         "lidar": [config.beams, config.fov_deg, config.range_max_m]}
     if args.json:
         print(json.dumps(report, indent=2))
         return

@@ -1,5 +1,5 @@
-"""bench.frontend's simulator mode: the mounted-lidar runs, the --mount and --lidar arguments,
-an outdoor run."""
+"""bench.frontend's simulator mode: the mounted-lidar runs and the --mount argument, an outdoor
+run."""
 
 from __future__ import annotations
 
@@ -15,7 +15,6 @@ from scanflow.pipeline import Pipeline
 from bench.data import corrected_log
 from bench.frontend import (
     accuracy,
-    parse_lidar,
     parse_mount,
     poses_array,
     run_pass,
@@ -23,6 +22,7 @@ from bench.frontend import (
     run_starts,
     settings_for,
 )
+from bench.lidar import parse_lidar
 
 INTEL = corrected_log("intel")
 ACES = corrected_log("aces")
@@ -50,11 +50,6 @@ def test_an_outdoor_run_with_a_far_reaching_lidar_is_tracked() -> None:
     run = report["deskewed"]
     assert run["statuses"] == {"initialised": 1, "tracked": report["scans"] - 1}
     assert run["max_position_error_m"] < 0.5 and run["cpu_ms_per_scan"] > 0
-
-
-def test_parse_lidar_names_bad_input() -> None:
-    with pytest.raises(argparse.ArgumentTypeError, match="BEAMS,FOV_DEG,RANGE_M"):
-        parse_lidar("181,180")
 
 
 def test_with_perfect_odometry_the_error_left_is_the_matching_s() -> None:

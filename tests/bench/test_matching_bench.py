@@ -141,12 +141,13 @@ def test_bench_matching_json_with_closure_on_real_pairs() -> None:
 
 
 def test_bench_matching_json_on_simulated_campus_pairs() -> None:
-    out = run_bench("--sim", "campus", "--sim-duration-s", "12", "--sim-beams", "181",
-                    "--sim-fov-deg", "180", "--sim-range-m", "80", "--methods", "odometry",
+    out = run_bench("--sim", "campus", "--sim-duration-s", "12", "--lidar", "181,180,80",
+                    "--methods", "odometry",
                     "plicp", "--peers", "--robust-pairs", "0", "--json")
     assert out.returncode == 0, out.stderr
     report = json.loads(out.stdout)
     assert report["data"] == "sim:campus" and report["pairs"] == 23
+    assert report["sim"]["lidar"] == [181, 180.0, 80.0]
     plicp = report["results"]["plicp"]
     # Exact truth: the matcher's own error, a few mm on every pair.
     assert plicp["ok_5cm_0.5deg"] == 1.0 and plicp["trans_p95_m"] < 0.02
@@ -155,5 +156,7 @@ def test_bench_matching_json_on_simulated_campus_pairs() -> None:
 def test_data_and_sim_are_one_or_the_other() -> None:
     out = run_bench("--data", str(LOG), "--sim", "rooms")
     assert out.returncode == 2 and "not allowed with argument" in out.stderr
-    out = run_bench("--sim", "campus", "--sim-range-m", "-1")
+    out = run_bench("--sim", "campus", "--lidar", "181,180,-1")
     assert out.returncode == 2 and "range_max_m" in out.stderr
+    out = run_bench("--sim", "campus", "--lidar", "181,180")
+    assert out.returncode == 2 and "BEAMS,FOV_DEG,RANGE_M" in out.stderr
