@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 
 from scanflow.geometry import Pose2D, angle_diff, normalize_angle
 from scanflow.matching.api import MatchStatus
-from scanflow.matching.correspondence import GridIndex, target_lines
+from scanflow.matching.correspondence import GridIndex, target_lines, thin_dense_target
 
 # Ratio of smallest to largest scaled eigenvalue below which a direction counts as unconstrained.
 DEGENERATE_RATIO = 2e-3
@@ -114,7 +114,9 @@ def surface_conditioning(
     peak is not quadratic over +-3 cells). Measured on the next-scan pairs of intel, aces and
     freiburg-079: csm had 6 of 6138 flagged, all intel corridor scans, 5 of them where its
     optimum had slid 0.3-0.95 m along the corridor."""
-    points = source[matched]
+    # A dense scan (3,000+ beams) is averaged per bearing bin first: its 16 nearest points lie
+    # a few mm apart, where the range noise fails the flatness test (`thin_dense_target`).
+    points = thin_dense_target(source[matched])
     hessian = np.zeros((3, 3))
     if len(points) >= 2:
         lines = target_lines(GridIndex.build(points), k=NORMAL_NEIGHBOURS, radius_m=0.5,
