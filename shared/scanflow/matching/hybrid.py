@@ -107,8 +107,14 @@ def match_csm_plicp(
     overlaps = [math.nan] * len(fines)
     if len(fines) > 1:
         scorer = OverlapScorer.build(source, target_points(target), overlap_gate_m)
-        # A failed refinement ranks below every successful one; ties keep the csm order.
-        overlaps = [scorer.score(f.pose) if f.ok else -1.0 for f in fines]
+        # csm's best stands unless another refinement is ok and overlaps clearly more; its own
+        # is ranked whenever it found a pose, however conditioned (along rows of trees the right
+        # refinement is rightly degenerate, and a wrong basin's few matched points may look
+        # well conditioned); any other refinement that is not ok ranks below it.
+        overlaps = [
+            scorer.score(f.pose) if f.ok or (i == 0 and found_a_pose(f)) else -1.0
+            for i, f in enumerate(fines)
+        ]
     best = pick_hypothesis(overlaps, switch_margin) if len(fines) > 1 else 0
     fine = fines[best]
     pose = fine.pose
