@@ -190,7 +190,7 @@ def match_icp(
     assoc[kept] = grid_nearest_all(grid.arrays, paired, reach)
     assoc[(assoc >= 0) & ~lines.ok[assoc]] = -1
     lined = assoc >= 0
-    moved = pose.transform_points(source[lined])
+    moved = paired[lined[kept]]  # the lined pairs are among the kept ones, already moved
     normals, centres = lines.normals[assoc[lined]], lines.centres[assoc[lined]]
     hessian = line_hessian(moved, normals)
     result = line_match_result(
