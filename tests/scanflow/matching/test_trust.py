@@ -11,11 +11,11 @@ LOCAL_METHODS = ("icp", "plicp", "gn", "lm", "ndt", "csm+plicp")
 
 
 def wrong_basin() -> tuple[np.ndarray, np.ndarray, Pose2D, Pose2D]:
-    """Two sweeps in the "rooms" world 11 cm apart and a guess 1 m / 30 deg off, from which ndt
-    converges 1 m / 27 deg away from the truth."""
-    base = Pose2D(12.5189, 2.9210, 0.93335)
-    moved = Pose2D(12.6323, 2.9347, 0.93456)
-    guess = Pose2D(-0.9078, 0.0819, 0.52481)
+    """Two sweeps in the "rooms" world 17 cm apart and a guess 1 m / 30 deg off, from which ndt
+    converges 1.25 m / 57 deg away from the truth."""
+    base = Pose2D(2.94214, 2.68405, 1.89296)
+    moved = Pose2D(3.08573, 2.76663, 1.88218)
+    guess = Pose2D(-0.95701, -0.02042, -0.53438)
     source, target = scan_points("rooms", moved, 5), scan_points("rooms", base, 4)
     return source, target, moved.relative_to(base), guess
 
