@@ -45,26 +45,6 @@ def test_corridor_is_flagged_with_the_weak_direction() -> None:
     assert r.weak_direction is not None and abs(r.weak_direction[0]) > 0.9
 
 
-@pytest.mark.parametrize("method", ["plicp", "icp", "csm+plicp"])
-@pytest.mark.parametrize("slid_m", [0.0, 0.5])
-def test_a_match_slid_along_a_corridor_is_never_ok(corridor_pairs, method: str,
-                                                   slid_m: float) -> None:
-    """Started on the truth or 0.5 m along the corridor, a match may end anywhere along it, but
-    never `ok` more than 10 cm off. The near walls' dense points, fitted over a few cm, have
-    normals tilted by the noise, which faked a constraint along it (eigenvalue ratio 2.4-3.4e-3
-    against DEGENERATE_RATIO 2e-3): csm+plicp was `ok` 0.5 m off on most of these pairs (its
-    search's best peak slides to the window's edge), plicp from 0.5 m off stayed there, `ok`."""
-    wrong = []
-    for source, target, truth in corridor_pairs:
-        r = match(source, target, truth * Pose2D(slid_m, 0.0, 0.0), method=method)
-        err = r.pose.relative_to(truth)
-        if r.ok and (err.translation_norm() > 0.1 or abs(err.theta) > math.radians(1.0)):
-            wrong.append(round(err.translation_norm(), 2))
-        if not r.ok:
-            assert r.status is MatchStatus.DEGENERATE and abs(r.weak_direction[0]) > 0.9
-    assert not wrong, f"ok but off by {wrong} m"
-
-
 def test_too_few_points_and_empty_target() -> None:
     target = scan_points("rooms", TARGET_POSE, 1)
     assert match(target[:3], target, method="plicp").status is MatchStatus.TOO_FEW_POINTS
