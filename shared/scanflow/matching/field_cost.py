@@ -351,8 +351,7 @@ def run_coarse_to_fine(
             f"fine-level cost rose from {start_cost:.3g} to {end_cost:.3g}",
             total,
         )
-    scan_guess = None if hasattr(target, "likelihood_pyramid") else guess
-    return assess_field_match(method, pyramid[-1], source, pose, total, scan_guess)
+    return assess_field_match(method, pyramid[-1], source, pose, total, guess)
 
 
 def assess_field_match(
@@ -361,18 +360,16 @@ def assess_field_match(
     source: NDArray[np.float64],
     pose: NDArray[np.float64],
     iterations: int,
-    scan_guess: Pose2D | None = None,
+    guess: Pose2D,
 ) -> MatchResult:
     """Covariance sigma^2 H^-1 and the conditioning checks at the final pose on the finest field.
 
-    The field's own Hessian is asked first. Against a scan target (`scan_guess`: its guess) the
-    surfaces under the points within 2 sigma of the field are asked too (`surface_conditioning`,
-    as icp, plicp and csm do): a scan's field also slopes where its sparse far samples end,
-    which fakes a constraint along a corridor (gn said OK on 76 % of the simulated corridor's
-    pairs, 45 % while 0.5 m off along it). A DEGENERATE pose then keeps the guess's value along
-    the weak direction, where that slope only pulled it astray. A map's field, built from many
-    scans, is trusted as it is: asking the surfaces there (their 0.5 m line fits smooth door
-    frames away) and keeping the prediction along them cost aces' front end (BENCHMARKS.md).
+    The field's own Hessian is asked first, then the surfaces under the points within 2 sigma
+    of the field (`surface_conditioning`, as icp, plicp and csm do): a field also slopes where
+    its samples end or thin out, which fakes a constraint along a corridor. Against a scan, gn
+    said OK on 76 % of the simulated corridor's pairs, 45 % while 0.5 m off along it; against
+    the front end's map, it slid 7 m along that corridor over a run. A DEGENERATE pose keeps
+    the guess's value along the weak direction, where that slope only pulled it astray.
     """
     length_m = characteristic_length_m(source)
     lin = linearise(field, source, pose)
@@ -381,11 +378,11 @@ def assess_field_match(
     if cond.degenerate:
         status, weak = MatchStatus.DEGENERATE, cond.weak_direction
         message = f"one direction unconstrained (eigenvalue ratio {cond.ratio:.2e})"
-    elif scan_guess is not None:
+    else:
         matched = field.sample(moved_points(source, pose))[0] >= MATCHED_VALUE
         status, weak, message = surface_conditioning(source, matched, Pose2D.from_array(pose))
         if weak is not None:
-            pose = guess_along(weak, Pose2D.from_array(pose), scan_guess, length_m).to_array()
+            pose = guess_along(weak, Pose2D.from_array(pose), guess, length_m).to_array()
             lin = linearise(field, source, pose)
     return MatchResult(
         pose=Pose2D.from_array(pose),

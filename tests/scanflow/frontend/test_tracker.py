@@ -350,7 +350,7 @@ def stays_put(monkeypatch: pytest.MonkeyPatch) -> str:
         source: NDArray[np.float64], target: object, guess: Pose2D, **_: object
     ) -> MatchResult:
         field = field_pyramid(target, 1, 0.05, 0.1)[-1]
-        return assess_field_match("stays-put", field, source, guess.to_array(), 0)
+        return assess_field_match("stays-put", field, source, guess.to_array(), 0, guess)
 
     monkeypatch.setitem(matching_api._METHODS, "stays-put", match_stays_put)
     return "stays-put"
