@@ -381,9 +381,9 @@ def assess_field_match(
     else:
         matched = field.sample(moved_points(source, pose))[0] >= MATCHED_VALUE
         status, weak, message = surface_conditioning(source, matched, Pose2D.from_array(pose))
-        if weak is not None:
-            pose = guess_along(weak, Pose2D.from_array(pose), guess, length_m).to_array()
-            lin = linearise(field, source, pose)
+    if weak is not None:
+        pose = guess_along(weak, Pose2D.from_array(pose), guess, length_m).to_array()
+        lin = linearise(field, source, pose)
     return MatchResult(
         pose=Pose2D.from_array(pose),
         covariance=least_squares_covariance(lin.hessian, lin.cost, lin.hits),

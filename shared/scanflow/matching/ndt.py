@@ -20,7 +20,12 @@ from numpy.typing import NDArray
 from scanflow.geometry import Pose2D
 from scanflow.maps.ndt_cells import OverlappingCells
 from scanflow.matching.api import MatchResult, MatchStatus, failed, register_method, target_points
-from scanflow.matching.checks import analyse_hessian, characteristic_length_m, line_hessian
+from scanflow.matching.checks import (
+    analyse_hessian,
+    characteristic_length_m,
+    guess_along,
+    line_hessian,
+)
 from scanflow.matching.covariance import unknown_covariance
 from scanflow.matching.field_cost import (
     MAX_LEVELS,
@@ -311,11 +316,14 @@ def match_ndt(
         total += alt.iterations
         if alt.status is None and ndt_cost(cells, source, alt.pose) < ndt_cost(cells, source, pose):
             pose = alt.pose
+    length_m = characteristic_length_m(source)
+    cond = analyse_hessian(surface_hessian(cells, source, pose), length_m)
+    status, weak = MatchStatus.OK, None
+    if cond.degenerate:
+        # The guess is the only information along an unobserved direction (as for the others).
+        status, weak = MatchStatus.DEGENERATE, cond.weak_direction
+        pose = guess_along(weak, Pose2D.from_array(pose), guess, length_m).to_array()
     ev = ndt_evaluate(cells, source, pose)
-    cond = analyse_hessian(surface_hessian(cells, source, pose), characteristic_length_m(source))
-    status, weak = (
-        (MatchStatus.DEGENERATE, cond.weak_direction) if cond.degenerate else (MatchStatus.OK, None)
-    )
     try:
         cov = np.linalg.inv(ev.information)
     except np.linalg.LinAlgError:

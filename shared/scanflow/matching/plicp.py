@@ -28,6 +28,7 @@ from scanflow.matching.api import (
 from scanflow.matching.checks import (
     analyse_hessian,
     characteristic_length_m,
+    guess_along,
     surface_conditioning,
 )
 from scanflow.matching.correspondence import (
@@ -243,7 +244,8 @@ def line_match_result(
     code: int,
     min_inlier_fraction: float,
 ) -> MatchResult:
-    """Status, covariance and degeneracy of a solution scored on target lines (icp, plicp)."""
+    """Status, covariance and degeneracy of a solution scored on target lines (icp, plicp); a
+    DEGENERATE pose keeps the guess's value along its weak direction."""
     inliers = int(np.count_nonzero(assoc >= 0))
     if code == TOO_FEW:
         return failed(
@@ -277,6 +279,10 @@ def line_match_result(
         status, weak, message = surface
     elif code == MAX_ITER:
         status, message = MatchStatus.MAX_ITERATIONS, f"no convergence in {iterations} iterations"
+    if weak is not None:
+        # Along an unobserved direction the solution drifts with noise and the scans' extents
+        # (plicp 0.5 m along the simulated corridor): the guess is the only information there.
+        pose = guess_along(weak, pose, guess, characteristic_length_m(source))
     return MatchResult(
         pose=pose,
         covariance=cov,
