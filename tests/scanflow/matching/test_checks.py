@@ -111,7 +111,7 @@ def test_a_match_slid_along_a_corridor_is_rarely_ok(corridor_pairs, method: str,
     """Started on the truth or 0.5 m along the corridor, a match may end anywhere along it, but
     is `ok` more than 10 cm off on at most SILENTLY_WRONG[method] of the pairs; when
     degenerate, it names the corridor's axis and keeps the guess's value along it (the only
-    information there: plicp drifted 0.5 m, ndt 0.3 m). What fooled each before:
+    information there: plicp drifted up to 5 cm, ndt 0.3 m). What fooled each before:
     - icp, plicp, csm+plicp (every pair, then): the near walls' dense points, fitted over a few
       cm, have normals tilted by the noise, which faked a constraint along it (eigenvalue ratio
       2.4-3.4e-3 against DEGENERATE_RATIO 2e-3): csm+plicp was `ok` 0.5 m off on most pairs
