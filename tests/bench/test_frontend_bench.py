@@ -48,19 +48,8 @@ def test_an_outdoor_run_with_a_far_reaching_lidar_is_tracked() -> None:
     report = run_sim(default_settings(), 6.0, 0, world="campus", lidar=parse_lidar("181,180,80"))
     assert report["lidar"] == [181, 180.0, 80.0]
     run = report["deskewed"]
-    # Every scan tracked, or searched again and recovered (one is, along a row of trees).
-    assert set(run["statuses"]) <= {"initialised", "tracked", "recovered"}
-    assert run["statuses"]["tracked"] >= report["scans"] - 3
+    assert run["statuses"] == {"initialised": 1, "tracked": report["scans"] - 1}
     assert run["max_position_error_m"] < 0.5 and run["cpu_ms_per_scan"] > 0
-
-
-def test_along_a_corridor_the_front_end_keeps_the_odometry_where_nothing_else_tells() -> None:
-    """The simulator's corridor: 2 m wide, 40 m long, so the 30 m lidar rarely sees an end.
-    gn on the map slid back along it nearly every scan (the map's field slopes where its far
-    samples end): 7.8 m off after 6 s. The surfaces under its points now say `degenerate`,
-    and the prediction stands along the corridor."""
-    run = run_sim(default_settings(), 6.0, 0, world="corridor")["deskewed"]
-    assert run["max_position_error_m"] < 0.5
 
 
 def test_with_perfect_odometry_the_error_left_is_the_matching_s() -> None:
@@ -90,12 +79,11 @@ def test_starts_runs_the_log_from_each_of_its_first_keyframes() -> None:
 
 
 @pytest.mark.skipif(not ACES.exists(), reason="the shared aces log is not beside the checkout")
-def test_the_recheck_keeps_aces_from_keyframe_43_on_its_map() -> None:
-    """aces from keyframe 43 (BENCHMARKS.md, "Front end"): without the recheck the front end
-    breaks (ATE 3.1 m), with it 0.10 m. (From keyframe 13, where gn landed 17 deg off in a
-    fast turn, it no longer breaks without the recheck since gn keeps the prediction along a
-    corridor it cannot see along.)"""
-    frames = load_keyframes(ACES)[43:303]
+def test_the_recheck_keeps_aces_from_keyframe_13_on_its_map() -> None:
+    """aces from keyframe 13 (BENCHMARKS.md, "Front end", the recheck): at its 209th scan, a
+    fast turn, gn lands 17 deg off with a score of 0.43 and passes every check. Without the
+    recheck the front end breaks there."""
+    frames = load_keyframes(ACES)[13:273]
     truth = poses_array([kf.true_pose for kf in frames])
     runs = {
         ratio: run_pass(Pipeline(settings_for(None, ratio)), frames, f"recheck {ratio}")

@@ -351,7 +351,8 @@ def run_coarse_to_fine(
             f"fine-level cost rose from {start_cost:.3g} to {end_cost:.3g}",
             total,
         )
-    return assess_field_match(method, pyramid[-1], source, pose, total, guess)
+    scan = not hasattr(target, "likelihood_pyramid")
+    return assess_field_match(method, pyramid[-1], source, pose, total, guess, scan)
 
 
 def assess_field_match(
@@ -361,15 +362,18 @@ def assess_field_match(
     pose: NDArray[np.float64],
     iterations: int,
     guess: Pose2D,
+    scan_target: bool = False,
 ) -> MatchResult:
-    """Covariance sigma^2 H^-1 and the conditioning checks at the final pose on the finest field.
+    """Covariance sigma^2 H^-1 and the conditioning checks at the final pose on the finest field;
+    a DEGENERATE pose keeps the guess's value along its weak direction.
 
-    The field's own Hessian is asked first, then the surfaces under the points within 2 sigma
-    of the field (`surface_conditioning`, as icp, plicp and csm do): a field also slopes where
-    its samples end or thin out, which fakes a constraint along a corridor. Against a scan, gn
-    said OK on 76 % of the simulated corridor's pairs, 45 % while 0.5 m off along it; against
-    the front end's map, it slid 7 m along that corridor over a run. A DEGENERATE pose keeps
-    the guess's value along the weak direction, where that slope only pulled it astray.
+    The field's own Hessian is asked first. Against a scan (`scan_target`) the surfaces under
+    the points within 2 sigma of the field are asked too (`surface_conditioning`, as icp, plicp
+    and csm do): a scan's field slopes where its sparse far samples end, which fakes a
+    constraint along a corridor (gn said OK on 76 % of the simulated corridor's pairs, 45 %
+    while 0.5 m off along it). A map's field is judged by its Hessian alone: asking its
+    surfaces too stopped the front end's 7 m slide along the simulated corridor, but broke
+    mapping intel from every other keyframe (22 m off; BENCHMARKS.md, "Front end").
     """
     length_m = characteristic_length_m(source)
     lin = linearise(field, source, pose)
@@ -378,7 +382,7 @@ def assess_field_match(
     if cond.degenerate:
         status, weak = MatchStatus.DEGENERATE, cond.weak_direction
         message = f"one direction unconstrained (eigenvalue ratio {cond.ratio:.2e})"
-    else:
+    elif scan_target:
         matched = field.sample(moved_points(source, pose))[0] >= MATCHED_VALUE
         status, weak, message = surface_conditioning(source, matched, Pose2D.from_array(pose))
     if weak is not None:
