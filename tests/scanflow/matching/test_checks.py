@@ -90,13 +90,15 @@ def test_a_heading_across_pi_is_a_small_offset_from_the_guess() -> None:
 
 
 def along_weak(result, guess: Pose2D, source: np.ndarray) -> float:
-    """The component of (result - guess) along the result's weak direction, in the metric of
-    `analyse_hessian` (theta scaled by the source's spread)."""
-    scale = np.array([1.0, 1.0, characteristic_length_m(source)])
-    offset = np.array([result.pose.x - guess.x, result.pose.y - guess.y,
-                       normalize_angle(result.pose.theta - guess.theta)]) * scale
-    w = np.asarray(result.weak_direction) * scale
-    return float(offset @ w / np.linalg.norm(w))
+    """How far (result - guess) reaches along the result's weak direction, in the metric of
+    `analyse_hessian` (theta scaled by the source's spread): what `without_weak_direction`
+    would remove from it."""
+    length_m = characteristic_length_m(source)
+    offset = Pose2D(result.pose.x - guess.x, result.pose.y - guess.y,
+                    normalize_angle(result.pose.theta - guess.theta))
+    removed = offset.to_array() - without_weak_direction(
+        offset, result.weak_direction, length_m).to_array()
+    return float(np.linalg.norm(removed * np.array([1.0, 1.0, length_m])))
 
 
 # Share of the corridor pairs a method may still end `ok` yet over 10 cm off: gn, lm and ndt
