@@ -48,8 +48,21 @@ def test_an_outdoor_run_with_a_far_reaching_lidar_is_tracked() -> None:
     report = run_sim(default_settings(), 6.0, 0, world="campus", lidar=parse_lidar("181,180,80"))
     assert report["lidar"] == [181, 180.0, 80.0]
     run = report["deskewed"]
-    assert run["statuses"] == {"initialised": 1, "tracked": report["scans"] - 1}
+    # Every scan tracked, or searched again and recovered: along a row of trees, gn's match
+    # is `degenerate` and keeps the prediction's position there (0.30 m off before, 0.35 m
+    # after the search), scoring low enough for the recheck.
+    assert set(run["statuses"]) <= {"initialised", "tracked", "recovered"}
+    assert run["statuses"]["tracked"] >= report["scans"] - 3
     assert run["max_position_error_m"] < 0.5 and run["cpu_ms_per_scan"] > 0
+
+
+def test_along_a_corridor_the_front_end_keeps_the_odometry_where_nothing_else_tells() -> None:
+    """The simulator's corridor: 2 m wide, 40 m long, so the 30 m lidar rarely sees an end.
+    gn on the map slid back along it nearly every scan (the map's field slopes where its far
+    samples end): 7.8 m off after 6 s. The surfaces under its points now say `degenerate`,
+    and the prediction's position stands along the corridor."""
+    run = run_sim(default_settings(), 6.0, 0, world="corridor")["deskewed"]
+    assert run["max_position_error_m"] < 0.5
 
 
 def test_with_perfect_odometry_the_error_left_is_the_matching_s() -> None:
@@ -78,12 +91,30 @@ def test_starts_runs_the_log_from_each_of_its_first_keyframes() -> None:
     assert len(report["rechecked_scans_by_start"]) == 3
 
 
+@pytest.mark.skipif(not INTEL.exists(), reason="the shared intel log is not beside the checkout")
+def test_intel_from_every_other_keyframe_holds_where_the_prediction_is_degrees_off() -> None:
+    """bench.localisation's slam run (intel's odd keyframes, mapped from scratch), its first 60
+    scans. At the 10th the map match is `degenerate` along a direction mixing y and a turn,
+    and the prediction is 8 deg off. Keeping the prediction's value along that whole direction
+    (as against a scan) put the pose 0.3 m and 1.6 deg off and the run 1.1 m off by the 34th
+    scan (22 m by the end); only a corridor's position is taken from the prediction now."""
+    visit = load_keyframes(INTEL)[1::2][:60]
+    pipeline = Pipeline(default_settings(), initial_pose=visit[0].true_pose)
+    off_m = [
+        pipeline.process(kf.scan, kf.odom_pose).estimate.pose.relative_to(kf.true_pose)
+        .translation_norm()
+        for kf in visit
+    ]
+    assert max(off_m) < 0.5
+
+
 @pytest.mark.skipif(not ACES.exists(), reason="the shared aces log is not beside the checkout")
-def test_the_recheck_keeps_aces_from_keyframe_13_on_its_map() -> None:
-    """aces from keyframe 13 (BENCHMARKS.md, "Front end", the recheck): at its 209th scan, a
-    fast turn, gn lands 17 deg off with a score of 0.43 and passes every check. Without the
-    recheck the front end breaks there."""
-    frames = load_keyframes(ACES)[13:273]
+def test_the_recheck_keeps_aces_from_keyframe_44_on_its_map() -> None:
+    """aces from keyframe 44, 260 scans (BENCHMARKS.md, "Front end", the recheck): without the
+    recheck the front end breaks (ATE 2.8 m), with it 0.19 m. (From keyframe 13, where gn
+    landed 17 deg off in a fast turn, it no longer breaks without the recheck since gn keeps
+    the prediction's position along a corridor it cannot see along.)"""
+    frames = load_keyframes(ACES)[44:304]
     truth = poses_array([kf.true_pose for kf in frames])
     runs = {
         ratio: run_pass(Pipeline(settings_for(None, ratio)), frames, f"recheck {ratio}")

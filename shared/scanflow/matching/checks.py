@@ -90,6 +90,30 @@ def guess_along(
     return Pose2D(guess.x + kept.x, guess.y + kept.y, normalize_angle(guess.theta + kept.theta))
 
 
+# Largest share of rotation (theta scaled by the points' spread) in a weak direction that
+# `guess_position_along` still takes for a corridor's axis.
+CORRIDOR_MAX_ROTATION_SHARE = 0.5
+
+
+def guess_position_along(
+    weak: tuple[float, float, float], pose: Pose2D, guess: Pose2D, length_m: float
+) -> Pose2D | None:
+    """`pose` moved to the guess's position along the translation axis of `weak`, its heading
+    kept; None when `weak` is mostly a rotation (more than CORRIDOR_MAX_ROTATION_SHARE of it,
+    theta scaled by `length_m`), where no corridor axis is defined.
+
+    Unlike `guess_along`, the guess's heading never enters: a prediction several degrees off
+    (odometry over a long step) has that error along any weak direction with a rotation in it,
+    and `guess_along` turned it into tens of cm of position error (intel from every other
+    keyframe: 0.3 m and 1.6 deg at one scan, 22 m by the end; BENCHMARKS.md, "Front end")."""
+    scaled = np.array([weak[0], weak[1], weak[2] * length_m])
+    if not abs(scaled[2]) < CORRIDOR_MAX_ROTATION_SHARE * float(np.linalg.norm(scaled)):
+        return None
+    axis = scaled[:2] / math.hypot(scaled[0], scaled[1])
+    shift = float(axis @ np.array([guess.x - pose.x, guess.y - pose.y]))
+    return Pose2D(pose.x + shift * axis[0], pose.y + shift * axis[1], pose.theta)
+
+
 # Neighbours of each matched point its normal is fitted to (see `surface_conditioning`).
 NORMAL_NEIGHBOURS = 16
 

@@ -25,6 +25,7 @@ from scanflow.matching.checks import (
     analyse_hessian,
     characteristic_length_m,
     guess_along,
+    guess_position_along,
     surface_conditioning,
 )
 from scanflow.matching.covariance import least_squares_covariance
@@ -367,26 +368,36 @@ def assess_field_match(
     """Covariance sigma^2 H^-1 and the conditioning checks at the final pose on the finest field;
     a DEGENERATE pose keeps the guess's value along its weak direction.
 
-    The field's own Hessian is asked first. Against a scan (`scan_target`) the surfaces under
-    the points within 2 sigma of the field are asked too (`surface_conditioning`, as icp, plicp
-    and csm do): a scan's field slopes where its sparse far samples end, which fakes a
-    constraint along a corridor (gn said OK on 76 % of the simulated corridor's pairs, 45 %
-    while 0.5 m off along it). A map's field is judged by its Hessian alone: asking its
-    surfaces too stopped the front end's 7 m slide along the simulated corridor, but broke
-    mapping intel from every other keyframe (22 m off; BENCHMARKS.md, "Front end").
+    The field's own Hessian is asked first, then the surfaces under the points within 2 sigma
+    of the field (`surface_conditioning`, as icp, plicp and csm do): a field also slopes where
+    its samples end or thin out, which fakes a constraint along a corridor. Against a scan
+    (`scan_target`), gn said OK on 76 % of the simulated corridor's pairs, 45 % while 0.5 m off
+    along it; the weak direction then takes the guess's value (`guess_along`). Against the
+    front end's map, gn slid 7 m along that corridor over a run; there only a corridor's axis
+    takes the guess's position, the heading stays the match's (`guess_position_along`): the
+    front end's predictions can be degrees off in heading, which `guess_along` turned into
+    position error (BENCHMARKS.md, "Front end").
     """
     length_m = characteristic_length_m(source)
     lin = linearise(field, source, pose)
     cond = analyse_hessian(lin.hessian, length_m)
     status, message, weak = MatchStatus.OK, "", None
+    kept: Pose2D | None = None
     if cond.degenerate:
         status, weak = MatchStatus.DEGENERATE, cond.weak_direction
         message = f"one direction unconstrained (eigenvalue ratio {cond.ratio:.2e})"
-    elif scan_target:
+        kept = guess_along(weak, Pose2D.from_array(pose), guess, length_m)
+    else:
         matched = field.sample(moved_points(source, pose))[0] >= MATCHED_VALUE
         status, weak, message = surface_conditioning(source, matched, Pose2D.from_array(pose))
-    if weak is not None:
-        pose = guess_along(weak, Pose2D.from_array(pose), guess, length_m).to_array()
+        if weak is not None and scan_target:
+            kept = guess_along(weak, Pose2D.from_array(pose), guess, length_m)
+        elif weak is not None:
+            kept = guess_position_along(weak, Pose2D.from_array(pose), guess, length_m)
+            if kept is None:  # not a corridor: the field's Hessian decides, as for a turn
+                status, weak, message = MatchStatus.OK, None, ""
+    if kept is not None:
+        pose = kept.to_array()
         lin = linearise(field, source, pose)
     return MatchResult(
         pose=Pose2D.from_array(pose),
