@@ -366,7 +366,8 @@ def assess_field_match(
     scan_target: bool = False,
 ) -> MatchResult:
     """Covariance sigma^2 H^-1 and the conditioning checks at the final pose on the finest field;
-    a DEGENERATE pose keeps the guess's value along its weak direction.
+    a DEGENERATE pose keeps the guess's value along its weak direction (against a map, from the
+    surfaces: its position along a corridor's axis only).
 
     The field's own Hessian is asked first, then the surfaces under the points within 2 sigma
     of the field (`surface_conditioning`, as icp, plicp and csm do): a field also slopes where
