@@ -382,19 +382,18 @@ def assess_field_match(
     length_m = characteristic_length_m(source)
     lin = linearise(field, source, pose)
     cond = analyse_hessian(lin.hessian, length_m)
-    status, message, weak = MatchStatus.OK, "", None
+    at = Pose2D.from_array(pose)
     kept: Pose2D | None = None
     if cond.degenerate:
         status, weak = MatchStatus.DEGENERATE, cond.weak_direction
         message = f"one direction unconstrained (eigenvalue ratio {cond.ratio:.2e})"
-        kept = guess_along(weak, Pose2D.from_array(pose), guess, length_m)
+        kept = guess_along(weak, at, guess, length_m)
     else:
         matched = field.sample(moved_points(source, pose))[0] >= MATCHED_VALUE
-        status, weak, message = surface_conditioning(source, matched, Pose2D.from_array(pose))
-        if weak is not None and scan_target:
-            kept = guess_along(weak, Pose2D.from_array(pose), guess, length_m)
-        elif weak is not None:
-            kept = guess_position_along(weak, Pose2D.from_array(pose), guess, length_m)
+        status, weak, message = surface_conditioning(source, matched, at)
+        if weak is not None:
+            keep = guess_along if scan_target else guess_position_along
+            kept = keep(weak, at, guess, length_m)
             if kept is None:  # not a corridor: the field's Hessian decides, as for a turn
                 status, weak, message = MatchStatus.OK, None, ""
     if kept is not None:
