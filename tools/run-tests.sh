@@ -2,9 +2,11 @@
 # Run the test suite; a run that collects no test is a failure, not a silent pass.
 #   tools/run-tests.sh PYTHON [PYTEST ARGS...]
 # Without pytest arguments (`make test`, CI) the container tests (-m docker: minutes spent
-# mostly waiting on image builds, Zenoh leases and health checks) run in a second pytest process
-# alongside the rest, on the otherwise idle second core; their report follows the main one and
-# either run failing fails the whole. With arguments: one pytest run with exactly those.
+# mostly waiting on image builds, Zenoh leases and health checks) and the tests marked
+# second_lane (long service runs, chosen so that the two processes end about together) run in a
+# second pytest process alongside the rest, on the otherwise idle second core; their report
+# follows the main one and either run failing fails the whole. With arguments: one pytest run
+# with exactly those.
 set -u
 py="${1:-python3}"
 bash "$(dirname "$0")/system-deps.sh"
@@ -24,28 +26,29 @@ if [ $# -gt 1 ]; then
   exit
 fi
 
+side="docker or second_lane"
 log="$(mktemp)"
 trap 'rm -f "$log"' EXIT
 # A background job starts with SIGINT ignored: restore it, so that Ctrl-C ends that run too,
 # through pytest's teardown (its compose projects taken down); the script then waits for it.
 "$py" -c 'import signal, sys, pytest
 signal.signal(signal.SIGINT, signal.default_int_handler)
-sys.exit(pytest.main(sys.argv[1:]))' -m docker >"$log" 2>&1 &
-docker_pid=$!
+sys.exit(pytest.main(sys.argv[1:]))' -m "$side" >"$log" 2>&1 &
+side_pid=$!
 trap ':' INT
-"$py" -m pytest -m "not docker"
+"$py" -m pytest -m "not ($side)"
 main_rc=$?
-echo "==== waiting for the container tests (pytest -m docker, started alongside) ===="
-wait "$docker_pid"
-docker_rc=$?
-while kill -0 "$docker_pid" 2>/dev/null; do  # `wait` returns early when Ctrl-C comes
-  wait "$docker_pid"
-  docker_rc=$?
+echo "==== waiting for the second process (pytest -m '$side', started alongside) ===="
+wait "$side_pid"
+side_rc=$?
+while kill -0 "$side_pid" 2>/dev/null; do  # `wait` returns early when Ctrl-C comes
+  wait "$side_pid"
+  side_rc=$?
 done
 cat "$log"
-checked "$main_rc" "-m 'not docker'"
+checked "$main_rc" "-m 'not ($side)'"
 main_rc=$?
-checked "$docker_rc" "-m docker"
-docker_rc=$?
-echo "==== exit codes: -m 'not docker' $main_rc, -m docker $docker_rc ===="
-[ "$main_rc" -eq 0 ] && [ "$docker_rc" -eq 0 ]
+checked "$side_rc" "-m '$side'"
+side_rc=$?
+echo "==== exit codes: -m 'not ($side)' $main_rc, -m '$side' $side_rc ===="
+[ "$main_rc" -eq 0 ] && [ "$side_rc" -eq 0 ]

@@ -27,7 +27,8 @@ from scanflow.wire import (
 
 from services.ingest.sources import source_events
 
-pytestmark = [pytest.mark.integration, pytest.mark.slow]
+# Long service runs (about 3 min): `make test` runs them beside the rest (tools/run-tests.sh).
+pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.second_lane]
 
 RING = {
     "SCANFLOW_INGEST_SIM_DURATION_S": "80", "SCANFLOW_INGEST_SIM_SEED": "1",
