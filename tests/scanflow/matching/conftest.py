@@ -75,7 +75,8 @@ def cast(
     if noise_m > 0:
         r = r + (rng or np.random.default_rng(0)).normal(0.0, noise_m, r.shape)
     keep = np.isfinite(r) & (r < max_range_m)
-    return np.column_stack((r * np.cos(angles), r * np.sin(angles)))[keep]
+    r, angles = r[keep], angles[keep]  # beams that miss (r = inf) would give inf * 0 = nan
+    return np.column_stack((r * np.cos(angles), r * np.sin(angles)))
 
 
 @pytest.fixture
