@@ -57,6 +57,7 @@ class Pose2D:
 
     @staticmethod
     def identity() -> Pose2D:
+        """The identity motion (a new instance; `IDENTITY` is the shared one)."""
         return Pose2D()
 
     def __mul__(self, other: Pose2D) -> Pose2D:
@@ -71,6 +72,7 @@ class Pose2D:
         )
 
     def inverse(self) -> Pose2D:
+        """The inverse motion, so `self * self.inverse()` is the identity."""
         c, s = math.cos(self.theta), math.sin(self.theta)
         return Pose2D(-c * self.x - s * self.y, s * self.x - c * self.y, -self.theta)
 
@@ -88,6 +90,7 @@ class Pose2D:
         return out
 
     def rotation_matrix(self) -> NDArray[np.float64]:
+        """The 2x2 rotation matrix of `theta`."""
         c, s = math.cos(self.theta), math.sin(self.theta)
         return np.array([[c, -s], [s, c]])
 
@@ -114,16 +117,19 @@ class Pose2D:
         return Pose2D(m[0, 2], m[1, 2], math.atan2(m[1, 0] - m[0, 1], m[0, 0] + m[1, 1]))
 
     def to_array(self) -> NDArray[np.float64]:
+        """(x, y, theta) as a float64 array of shape (3,)."""
         return np.array([self.x, self.y, self.theta])
 
     @staticmethod
     def from_array(values: ArrayLike) -> Pose2D:
+        """From 3 values (x, y, theta) in any shape; ValueError for any other count."""
         v = np.asarray(values, dtype=np.float64).reshape(-1)
         if v.shape != (3,):
             raise ValueError(f"pose array must have 3 values (x, y, theta), got {v.shape}")
         return Pose2D(v[0], v[1], v[2])
 
     def translation_norm(self) -> float:
+        """Length of the translation (x, y)."""
         return math.hypot(self.x, self.y)
 
     def interpolate(self, other: Pose2D, fraction: float) -> Pose2D:

@@ -79,46 +79,57 @@ def check_prefix(prefix: str) -> str:
 
 
 def raw_scan(robot: str = "*", prefix: str = DEFAULT_PREFIX) -> str:
+    """`<prefix>/<robot>/scan/raw`: raw scans (ScanMessage); robot "*" matches every robot."""
     return _key(robot, "scan/raw", prefix)
 
 
 def odom(robot: str = "*", prefix: str = DEFAULT_PREFIX) -> str:
+    """`<prefix>/<robot>/odom`: odometry samples (OdometryMessage)."""
     return _key(robot, "odom", prefix)
 
 
 def deskewed_scan(robot: str = "*", prefix: str = DEFAULT_PREFIX) -> str:
+    """`<prefix>/<robot>/scan/deskewed`: deskewed scans (DeskewedScanMessage)."""
     return _key(robot, "scan/deskewed", prefix)
 
 
 def pose(robot: str = "*", prefix: str = DEFAULT_PREFIX) -> str:
+    """`<prefix>/<robot>/pose`: pose estimates (PoseEstimateMessage)."""
     return _key(robot, "pose", prefix)
 
 
 def robot_match(robot: str = "*", prefix: str = DEFAULT_PREFIX) -> str:
+    """`<prefix>/<robot>/match`: match queries against that robot's map (MatchRequest)."""
     return _key(robot, "match", prefix)
 
 
 def initial_pose(robot: str = "*", prefix: str = DEFAULT_PREFIX) -> str:
+    """`<prefix>/<robot>/initial_pose`: the queryable taking a robot's InitialPoseMessage."""
     return _key(robot, "initial_pose", prefix)
 
 
 def scan_match(prefix: str = DEFAULT_PREFIX) -> str:
+    """`<prefix>/match`: scan-to-scan match queries (MatchRequest), not tied to a robot."""
     return f"{check_prefix(prefix)}/match"
 
 
 def map_key(robot: str = "*", what: str = "meta", prefix: str = DEFAULT_PREFIX) -> str:
+    """`<prefix>/<robot>/map/<what>`: a map key (meta, image, region, changed, insert, ...)."""
     return _key(robot, f"map/{check_id(what, 'map topic')}", prefix)
 
 
 def trajectory(robot: str = "*", prefix: str = DEFAULT_PREFIX) -> str:
+    """`<prefix>/<robot>/trajectory`: the trajectory queryable (TrajectoryMessage)."""
     return _key(robot, "trajectory", prefix)
 
 
 def health(service: str = "*", instance: str = "*", prefix: str = DEFAULT_PREFIX) -> str:
+    """`<prefix>/health/<service>/<instance>`: a service's liveliness token."""
     return _service_key("health", service, instance, prefix)
 
 
 def stats(service: str = "*", instance: str = "*", prefix: str = DEFAULT_PREFIX) -> str:
+    """`<prefix>/stats/<service>/<instance>`: a service's stats queryable."""
     return _service_key("stats", service, instance, prefix)
 
 

@@ -120,6 +120,7 @@ class Pipeline:
         )
 
     def add_odometry(self, sample: Odometry) -> None:
+        """Buffer one odometry sample: it deskews scans and gives the front end odometry poses."""
         self.deskew_stage.add_odometry(sample)
 
     def process(self, scan: LaserScan, odom_pose: Pose2D | None = None) -> PipelineOutput:

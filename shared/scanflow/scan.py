@@ -138,6 +138,7 @@ class LaserScan:
 
     @property
     def beam_count(self) -> int:
+        """Number of beams, valid or not."""
         return int(self.ranges_m.size)
 
     @cached_property
@@ -166,10 +167,12 @@ class LaserScan:
 
     @property
     def valid_count(self) -> int:
+        """Beams with a usable return (`valid_mask`)."""
         return int(np.count_nonzero(self.valid_mask))
 
     @property
     def no_return_count(self) -> int:
+        """Beams that saw nothing in range (`no_return_mask`)."""
         return int(np.count_nonzero(self.no_return_mask))
 
     @property

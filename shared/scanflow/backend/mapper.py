@@ -73,6 +73,7 @@ class MapperStep:
 
     @property
     def redrawn(self) -> bool:
+        """True when the map was redrawn this step (`correction` is set)."""
         return self.correction is not None
 
 

@@ -140,10 +140,12 @@ class PoseGraph:
 
     @property
     def node_count(self) -> int:
+        """Number of nodes (poses) added so far."""
         return self._n
 
     @property
     def edge_count(self) -> int:
+        """Number of edges added so far."""
         return self._m
 
     @property
@@ -152,6 +154,7 @@ class PoseGraph:
         return self._poses[: self._n].copy()
 
     def pose(self, i: int) -> Pose2D:
+        """Node `i`'s pose T_map_node; ValueError unless 0 <= i < node_count."""
         return Pose2D.from_array(self._poses[self._index("i", i)])
 
     def _index(self, name: str, value: int) -> int:

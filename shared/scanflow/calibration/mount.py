@@ -60,6 +60,7 @@ class MountEstimate:
 
     @property
     def ok(self) -> bool:
+        """True for status OK: enough pairs, with both the position and the yaw observable."""
         return self.status is MountStatus.OK
 
 

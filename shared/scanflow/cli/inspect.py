@@ -42,6 +42,7 @@ class LogSummary:
     mounts: set[tuple[float, float, float]] = field(default_factory=set)
 
     def add_scan(self, scan: LaserScan) -> None:
+        """Count one scan in: beams, drops, valid ranges, angles, stamps, robot and mount."""
         self.scans += 1
         self.beams.add(scan.beam_count)
         self.robots.add(scan.robot_id)
@@ -65,6 +66,7 @@ class LogSummary:
             self.mounts.add((round(m.x, 3), round(m.y, 3), round(math.degrees(m.theta), 2)))
 
     def add_odometry(self, odom: Odometry) -> None:
+        """Count one odometry sample and its robot in."""
         self.odometry += 1
         self.robots.add(odom.robot_id)
 

@@ -43,14 +43,17 @@ class Setting:
 
     @property
     def prefix(self) -> str:
+        """The section's `env_prefix` ("" when it has none)."""
         return str(self.section.model_config.get("env_prefix", ""))
 
     @property
     def name(self) -> str:
+        """The environment variable's name: prefix and field, upper-cased."""
         return f"{self.prefix}{self.field}".upper()
 
     @property
     def shared(self) -> bool:
+        """True when a base every service section repeats (SHARED_BASES) declares the field."""
         return self.declared_in in SHARED_BASES
 
 

@@ -40,6 +40,7 @@ class MotionFilter:
         )
 
     def mark_inserted(self, stamp_s: float, pose: Pose2D) -> None:
+        """Record an insertion at `stamp_s`, `pose`: the thresholds count from here on."""
         self._last = (float(stamp_s), pose)
 
     def move_frame(self, correction: Pose2D) -> None:

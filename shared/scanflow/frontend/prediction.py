@@ -79,6 +79,7 @@ class MotionPredictor:
 
     @property
     def last_pose(self) -> Pose2D | None:
+        """The last recorded or placed map pose (None before any); `predict` starts from it."""
         return self._last_pose
 
     def predict(self, stamp_s: float, odom_pose: Pose2D | None) -> Prediction:

@@ -94,6 +94,7 @@ class FrontendOutput:
 
     @property
     def accepted(self) -> bool:
+        """True when `status` is in ACCEPTED (initialised, localised, tracked or recovered)."""
         return self.status in ACCEPTED
 
     def in_frame(self, correction: Pose2D) -> FrontendOutput:

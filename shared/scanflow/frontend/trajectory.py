@@ -40,6 +40,7 @@ class TrajectoryStore:
         return self._count
 
     def append(self, stamp_s: float, pose: Pose2D) -> None:
+        """Add one row (stamp_s, x, y, theta), doubling the buffer when it is full."""
         if self._count == len(self._rows):
             grown = np.empty((2 * len(self._rows), 4))
             grown[: self._count] = self._rows
@@ -63,9 +64,11 @@ class TrajectoryStore:
 
     @property
     def nbytes(self) -> int:
+        """Bytes held by the row buffer, spare capacity included."""
         return self._rows.nbytes
 
     def save_tum(self, path: Path | str) -> Path:
+        """Write the trajectory as a TUM file at `path`, atomically; returns the path."""
         return save_tum(path, self.stamps_s, self.poses)
 
 

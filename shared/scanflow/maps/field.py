@@ -149,6 +149,7 @@ class LikelihoodField:
 
     @property
     def is_empty(self) -> bool:
+        """True when no value is above 0: no obstacle within reach, nothing to match against."""
         return not bool(np.any(self.values > 0))
 
     def sample(

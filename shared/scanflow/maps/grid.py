@@ -35,14 +35,17 @@ class GridSpec:
 
     @property
     def shape(self) -> tuple[int, int]:
+        """(rows, cols), the numpy shape of the grid's arrays."""
         return (self.rows, self.cols)
 
     @property
     def width_m(self) -> float:
+        """Extent along x: cols times the resolution."""
         return self.cols * self.resolution_m
 
     @property
     def height_m(self) -> float:
+        """Extent along y: rows times the resolution."""
         return self.rows * self.resolution_m
 
     @staticmethod
@@ -82,6 +85,7 @@ class GridSpec:
         return np.column_stack((x, y))
 
     def contains(self, cells: NDArray[np.int64]) -> NDArray[np.bool_]:
+        """True for each (row, col) cell that lies inside the grid."""
         c = np.asarray(cells).reshape(-1, 2)
         return (c[:, 0] >= 0) & (c[:, 0] < self.rows) & (c[:, 1] >= 0) & (c[:, 1] < self.cols)
 
@@ -130,13 +134,16 @@ class CellBox:
 
     @property
     def shape(self) -> tuple[int, int]:
+        """(rows, cols) the box spans."""
         return (self.row1 - self.row0, self.col1 - self.col0)
 
     @property
     def is_empty(self) -> bool:
+        """True when the box holds no cell (zero rows or zero cols)."""
         return self.row1 == self.row0 or self.col1 == self.col0
 
     def union(self, other: CellBox | None) -> CellBox:
+        """The bounding box of both boxes (`self` when `other` is None)."""
         if other is None:
             return self
         return CellBox(
@@ -155,6 +162,7 @@ class CellBox:
         )
 
     def contains_box(self, other: CellBox) -> bool:
+        """True when `other` lies entirely inside this box."""
         return (
             self.row0 <= other.row0
             and self.col0 <= other.col0
@@ -163,11 +171,13 @@ class CellBox:
         )
 
     def expanded(self, cells: int) -> CellBox:
+        """The box grown by `cells` on every side."""
         return CellBox(
             self.row0 - cells, self.col0 - cells, self.row1 + cells, self.col1 + cells
         )
 
     def shifted(self, rows: int, cols: int) -> CellBox:
+        """The box moved by `rows` and `cols`."""
         return CellBox(self.row0 + rows, self.col0 + cols, self.row1 + rows, self.col1 + cols)
 
     def coarsened(self, factor: int) -> CellBox:
@@ -369,6 +379,7 @@ class BoxUnion:
         return bool(self._parts)
 
     def add(self, boxes: NDArray[np.int64]) -> None:
+        """Add (n, 4) boxes; past MERGE_AFTER parts, all are merged into one disjoint cover."""
         if len(boxes):
             self._parts.append(boxes)
         if len(self._parts) > self.MERGE_AFTER:

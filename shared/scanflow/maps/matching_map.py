@@ -66,10 +66,12 @@ class MatchingMap:
 
     @property
     def resolution_m(self) -> float:
+        """The grid's cell size (m)."""
         return self.grid.resolution_m
 
     @property
     def revision(self) -> int:
+        """The grid's `revision`: it goes up as scans are inserted."""
         return self.grid.revision
 
     @property

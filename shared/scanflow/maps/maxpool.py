@@ -99,6 +99,7 @@ class MaxPoolStack:
 
     @property
     def depth(self) -> int:
+        """The highest level: it holds maxima over 2**depth x 2**depth blocks."""
         return len(self.levels) - 1
 
     def lookup(
@@ -138,6 +139,7 @@ class MaxPoolStore:
 
     @property
     def nbytes(self) -> int:
+        """Bytes of the stored levels (padding included)."""
         return int(self._levels.nbytes)
 
     def _storage(self, box: CellBox) -> CellBox:

@@ -142,6 +142,7 @@ class _LatticeBlocks(Generic[V]):
 
     @property
     def nbytes(self) -> int:
+        """Bytes of the block index and the packed per-block arrays, spare slots included."""
         return int(self._index.nbytes + sum(a.nbytes for a in self._slot_arrays()))
 
     def mark_dirty(self, fine_cells: NDArray[np.int64]) -> None:

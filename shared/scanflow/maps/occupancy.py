@@ -75,10 +75,12 @@ class OccupancyParams:
 
     @property
     def hit_log_odds(self) -> float:
+        """logit(p_hit) (> 0): what a scan adds to the log-odds of each cell it hits."""
         return _logit(self.p_hit)
 
     @property
     def miss_log_odds(self) -> float:
+        """logit(p_miss) (< 0): what a scan adds to each cell its beams pass through."""
         return _logit(self.p_miss)
 
     def threshold_log_odds(self, probability: float | None = None) -> float:
@@ -482,6 +484,7 @@ class OccupancyGrid:
 
     @property
     def resolution_m(self) -> float:
+        """Cell size (m), from `params`."""
         return self.params.resolution_m
 
     @property
@@ -496,6 +499,7 @@ class OccupancyGrid:
 
     @property
     def is_empty(self) -> bool:
+        """True until some cell has been updated (no `extent` yet)."""
         return self._extent is None
 
     @property

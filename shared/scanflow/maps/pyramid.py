@@ -93,6 +93,7 @@ class FieldLayer:
 
     @property
     def nbytes(self) -> int:
+        """Bytes of the stored field values (the padded extent's float32 array)."""
         return int(self._values.nbytes)
 
     def mark_dirty(self, fine_cells: NDArray[np.int64]) -> None:

@@ -74,13 +74,17 @@ class MatchResult:
 
     @property
     def ok(self) -> bool:
+        """True when the status is OK, the only one whose pose can be trusted."""
         return self.status is MatchStatus.OK
 
 
 class MapTarget(Protocol):
     """What scan-to-map methods need from a map: see scanflow.maps."""
 
-    def likelihood_field(self) -> Any: ...
+    def likelihood_field(self, level: int = 0) -> Any:
+        """The map's `LikelihoodField` (scanflow.maps.field) at pyramid level `level` (cells
+        2**level times the finest), what scan-to-map methods match to."""
+        ...
 
 
 Target = NDArray[np.float64] | MapTarget
@@ -119,6 +123,7 @@ def register_method(
 
 
 def available_methods() -> list[str]:
+    """Names of every registered method, sorted (importing the method modules first)."""
     _load_methods()
     return sorted(_METHODS)
 
@@ -180,6 +185,7 @@ def as_points(
 
 
 def as_pose(guess: Pose2D | ArrayLike | None) -> Pose2D:
+    """The guess as a Pose2D (None: identity); MatchInputError unless 3 finite numbers."""
     if guess is None:
         return Pose2D()
     if isinstance(guess, Pose2D):

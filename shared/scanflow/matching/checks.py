@@ -33,6 +33,7 @@ class Conditioning:
 
     @property
     def degenerate(self) -> bool:
+        """True when `ratio` is not above DEGENERATE_RATIO: some direction is unconstrained."""
         return not self.ratio > DEGENERATE_RATIO
 
 

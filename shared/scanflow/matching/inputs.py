@@ -37,6 +37,7 @@ class OptionSpec:
 
     @property
     def expected(self) -> str:
+        """The accepted types in words ("an integer or a number"), for error messages."""
         return " or ".join(_KIND_NAMES[k] for k in self.kinds or ())
 
     def check(self, method: str, value: Any) -> Any:

@@ -41,10 +41,12 @@ class LidarModel:
 
     @property
     def full_circle(self) -> bool:
+        """True for a 360 deg field of view, where the beams tile the circle."""
         return self.fov_deg >= 360.0
 
     @property
     def angle_min_rad(self) -> float:
+        """First beam's angle: -pi for a full circle, else -fov/2 (the fov centred ahead)."""
         return -math.pi if self.full_circle else -math.radians(self.fov_deg) / 2.0
 
     @property

@@ -36,10 +36,12 @@ class ConstantVelocityTrajectory:
         self.twist = np.array([vx_mps, vy_mps, omega_rps], dtype=np.float64)
 
     def pose_at(self, times_s: ArrayLike) -> NDArray[np.float64]:
+        """Poses (N, 3) reached from `start` after moving with the constant twist for `times_s`."""
         t = np.atleast_1d(np.asarray(times_s, dtype=np.float64))
         return compose_arrays(self.start.to_array(), se2_exp(t[:, None] * self.twist[None, :]))
 
     def twist_at(self, times_s: ArrayLike) -> NDArray[np.float64]:
+        """The constant twist (vx, vy, omega), one row per time."""
         t = np.atleast_1d(np.asarray(times_s, dtype=np.float64))
         return np.tile(self.twist, (t.size, 1))
 
@@ -58,6 +60,7 @@ class PiecewiseTwistTrajectory:
 
     @property
     def duration_s(self) -> float:
+        """Time the knots span: `step_s` per knot."""
         return self.step_s * self.knot_poses.shape[0]
 
     def _knot(self, t: NDArray[np.float64]) -> NDArray[np.intp]:
@@ -65,12 +68,15 @@ class PiecewiseTwistTrajectory:
         return np.clip(k, 0, self.knot_poses.shape[0] - 1)
 
     def pose_at(self, times_s: ArrayLike) -> NDArray[np.float64]:
+        """Exact poses (N, 3): each time's knot moved along its twist's arc (times before 0 or
+        after the last knot extend the first or last piece)."""
         t = np.atleast_1d(np.asarray(times_s, dtype=np.float64))
         k = self._knot(t)
         tau = (t - k * self.step_s)[:, None]
         return compose_arrays(self.knot_poses[k], se2_exp(tau * self.twists[k]))
 
     def twist_at(self, times_s: ArrayLike) -> NDArray[np.float64]:
+        """The body twist (N, 3) of each time's piece (times outside clamp to the end pieces)."""
         return self.twists[self._knot(np.atleast_1d(np.asarray(times_s, dtype=np.float64)))]
 
 

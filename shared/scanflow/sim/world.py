@@ -52,6 +52,7 @@ def _wall_with_doors(
 
 
 def rooms() -> World:
+    """Six 5 m x 4 m rooms joined by doors, with pillars and an open door out in the east wall."""
     walls = [(0.0, 0.0, 15.0, 0.0), (15.0, 8.0, 0.0, 8.0), (0.0, 8.0, 0.0, 0.0)]
     walls += _wall_with_doors((15.0, 0.0), (15.0, 8.0), [2.0])
     walls += _wall_with_doors((5.0, 0.0), (5.0, 8.0), [2.0, 6.0])
@@ -64,12 +65,14 @@ def rooms() -> World:
 
 
 def corridor() -> World:
+    """A featureless 40 m x 2 m corridor, toured end to end: the degenerate case for matching."""
     walls = _box(0.0, 0.0, 40.0, 2.0)
     tour = [(2.0, 1.0), (38.0, 1.0)]
     return World("corridor", np.array(walls, dtype=np.float64), np.array(tour, dtype=np.float64))
 
 
 def loop() -> World:
+    """Corridors around a central block, with alcoves, toured around the block for loop closure."""
     walls = _box(0.0, 0.0, 24.0, 16.0) + _box(4.0, 3.0, 20.0, 13.0)
     for x in (7.0, 15.0):
         walls += [(x, 0.0, x, 0.6), (x + 1.0, 0.0, x + 1.0, 0.6)]
@@ -80,6 +83,7 @@ def loop() -> World:
 
 
 def campus() -> World:
+    """Outdoors: buildings 15-70 m away, rows of trees and open streets (far, sparse returns)."""
     buildings = [
         (0.0, 70.0, 45.0, 85.0), (55.0, 72.0, 110.0, 82.0), (95.0, 60.0, 110.0, 72.0),
         (-20.0, 10.0, -5.0, 60.0), (120.0, 5.0, 135.0, 40.0), (10.0, -25.0, 40.0, -10.0),

@@ -53,6 +53,7 @@ class Message:
         return cls(**decode_fields(cls.WIRE, fields))
 
     def encode(self) -> bytes:
+        """The msgpack payload; MessageError over MAX_PAYLOAD_BYTES (MAX_BULK_BYTES if BULK)."""
         return pack_message(self.TYPE, self.to_fields(), self.BULK)
 
     @classmethod
@@ -65,6 +66,7 @@ class Message:
 
     @classmethod
     def build(cls, fields: Fields) -> Self:
+        """The message from decoded fields; a constructor's ValueError becomes a SchemaError."""
         try:
             return cls.from_fields(fields)
         except DecodeError:
@@ -89,6 +91,7 @@ def message_types() -> dict[str, type[Message]]:
 
 
 def check_finite(name: str, value: float) -> float:
+    """`value` as a float; MessageError naming `name` when it is not finite."""
     value = float(value)
     if not math.isfinite(value):
         raise MessageError(f"{name} must be finite, got {value!r}")
@@ -113,12 +116,14 @@ def check_count(name: str, value: int) -> int:
 
 
 def check_pose(name: str, value: Any) -> Pose2D:
+    """`value` itself when it is a Pose2D, else MessageError naming `name`."""
     if not isinstance(value, Pose2D):
         raise MessageError(f"{name} must be a Pose2D, got {type(value).__name__}")
     return value
 
 
 def check_text(name: str, value: str, allow_empty: bool = False) -> str:
+    """`value` when it is a string, non-empty unless `allow_empty`; else MessageError."""
     if not isinstance(value, str) or (not value and not allow_empty):
         raise MessageError(
             f"{name} must be a {'' if allow_empty else 'non-empty '}string, got {value!r}"

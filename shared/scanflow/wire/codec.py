@@ -54,6 +54,7 @@ def short(value: Any) -> str:
 
 
 def clip(text: str) -> str:
+    """`text` cut to MAX_ERROR_CHARS (with "..."), so an error message stays bounded."""
     return text if len(text) <= MAX_ERROR_CHARS else text[:MAX_ERROR_CHARS] + "..."
 
 
@@ -168,6 +169,7 @@ def decode_array(envelope: Any, where: str, dtype: str) -> NDArray[Any]:
 
 
 def encode_pose(pose: Pose2D) -> list[float]:
+    """A pose as the wire's [x, y, theta] list (`Fields.pose` reads it back)."""
     return [pose.x, pose.y, pose.theta]
 
 
@@ -181,6 +183,7 @@ class Fields:
         self.where = where
 
     def get(self, name: str) -> Any:
+        """The raw value of field `name`; SchemaError when it is missing."""
         if name not in self.data:
             raise SchemaError(f"{self.where}.{name}: missing")
         return self.data[name]
@@ -194,12 +197,15 @@ class Fields:
         return value
 
     def is_nil(self, name: str) -> bool:
+        """True when field `name` is nil (None); SchemaError when it is missing."""
         return self.get(name) is None
 
     def text(self, name: str) -> str:
+        """A str."""
         return self._typed(name, (str,), "a string")
 
     def integer(self, name: str) -> int:
+        """An int (a bool is refused)."""
         return self._typed(name, (int,), "an integer")
 
     def number(self, name: str) -> float:
@@ -207,15 +213,19 @@ class Fields:
         return float(self._typed(name, (int, float), "a number"))
 
     def flag(self, name: str) -> bool:
+        """A bool (0 and 1 are refused)."""
         return self._typed(name, (bool,), "a bool")
 
     def blob(self, name: str) -> bytes:
+        """A bytes value (msgpack bin)."""
         return self._typed(name, (bytes,), "bytes")
 
     def array(self, name: str, dtype: str) -> NDArray[Any]:
+        """The array envelope in field `name`, decoded read-only (`decode_array`) as `dtype`."""
         return decode_array(self.get(name), f"{self.where}.{name}", dtype)
 
     def nested(self, name: str) -> Fields:
+        """The map in field `name` as Fields, its errors named `where.name`."""
         return Fields(self.get(name), f"{self.where}.{name}")
 
     def numbers(self, name: str, count: int) -> tuple[float, ...]:
@@ -228,6 +238,7 @@ class Fields:
         return tuple(float(v) for v in value)
 
     def pose(self, name: str) -> Pose2D:
+        """A Pose2D from [x, y, theta]; SchemaError unless 3 finite numbers."""
         x, y, theta = self.numbers(name, 3)
         try:
             return Pose2D(x, y, theta)

@@ -301,10 +301,12 @@ class MatchResponse(Message):
 
     @property
     def ok(self) -> bool:
+        """True when there is no `error` and the status is "ok": the pose can be trusted."""
         return not self.error and self.status == "ok"
 
     @classmethod
     def from_result(cls, result: MatchResult) -> Self:
+        """The response carrying `result`'s fields (all but `extra`, which is not sent)."""
         return cls(
             pose=result.pose,
             covariance=result.covariance,

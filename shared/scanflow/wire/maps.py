@@ -336,10 +336,12 @@ class MapMetaMessage(Message):
 
     @property
     def spec(self) -> GridSpec:
+        """The map's layout as a GridSpec (origin, resolution, rows, cols)."""
         return GridSpec(self.origin_x_m, self.origin_y_m, self.resolution_m, self.rows, self.cols)
 
     @classmethod
     def from_spec(cls, robot_id: str, spec: GridSpec, revision: int, stamp_s: float) -> Self:
+        """The meta of a map laid out as `spec`, at `revision` and `stamp_s`."""
         return cls(
             robot_id=robot_id,
             resolution_m=spec.resolution_m,

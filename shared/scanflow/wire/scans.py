@@ -86,17 +86,21 @@ class ScanMessage(Message):
 
     @property
     def robot_id(self) -> str:
+        """The scan's robot id."""
         return self.scan.robot_id
 
     @property
     def seq(self) -> int:
+        """The scan's `seq`: the message sequence number."""
         return int(self.scan.seq)
 
     def to_fields(self) -> dict[str, Any]:
+        """The scan's fields (SCAN_WIRE) at the message's top level, not nested under `scan`."""
         return scan_to_fields(self.scan)
 
     @classmethod
     def from_fields(cls, fields: Fields) -> Self:
+        """The message around the LaserScan read from `fields` (`scan_from_fields`)."""
         return cls(scan_from_fields(fields))
 
 
@@ -190,15 +194,19 @@ class OdometryMessage(Message):
 
     @property
     def robot_id(self) -> str:
+        """The sample's robot id."""
         return self.odom.robot_id
 
     @property
     def seq(self) -> int:
+        """The sample's `seq`: the message sequence number."""
         return int(self.odom.seq)
 
     def to_fields(self) -> dict[str, Any]:
+        """The sample's fields (ODOM_WIRE) at the message's top level, not nested under `odom`."""
         return encode_fields(ODOM_WIRE, self.odom)
 
     @classmethod
     def from_fields(cls, fields: Fields) -> Self:
+        """The message around the Odometry read from `fields` (ODOM_WIRE)."""
         return cls(Odometry(**decode_fields(ODOM_WIRE, fields)))

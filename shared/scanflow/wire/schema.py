@@ -65,8 +65,10 @@ def mapping(types: tuple[type, ...], what: str) -> FieldCodec:
 
 
 def encode_fields(schema: Schema, obj: Any) -> dict[str, Any]:
+    """Each schema field read off `obj` (an attribute of that name) and encoded by its codec."""
     return {name: codec.encode(getattr(obj, name)) for name, codec in schema.items()}
 
 
 def decode_fields(schema: Schema, fields: Fields) -> dict[str, Any]:
+    """Each schema field read, typed and checked, off `fields`: the constructor's keywords."""
     return {name: codec.decode(fields, name) for name, codec in schema.items()}
