@@ -39,6 +39,7 @@ SIM_MOUNTS = {
 
 
 def describe(estimate: MountEstimate, seconds: float) -> dict:
+    """An estimate as figures: status, mount and std (m, m, deg), residual, pairs, `seconds`."""
     m = estimate.mount
     return {
         "status": str(estimate.status),
@@ -90,6 +91,7 @@ def log_case(path: Path) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
+    """Calibrate the simulated mounts or the log's and print the report as JSON."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--sim", action="store_true", help="simulated mounts")

@@ -39,6 +39,7 @@ WINDOW = {
 
 
 def default_log() -> Path:
+    """The corrected Intel log in the data directory (it may be missing)."""
     return corrected_log("intel")
 
 
@@ -56,6 +57,7 @@ clock = CLOCKS["wall"]
 
 
 def timed(fn, *args, **kwargs):  # type: ignore[no-untyped-def]
+    """(fn(*args, **kwargs), its duration in s on the current `clock`)."""
     t0 = clock()
     out = fn(*args, **kwargs)
     return out, clock() - t0
@@ -75,6 +77,8 @@ def search_times(source: np.ndarray, target: np.ndarray, guess) -> tuple[float, 
 
 
 def run(log: Path, pairs: int) -> dict[str, object]:
+    """Branch and bound vs exhaustive on up to `pairs` consecutive keyframe pairs spread over
+    the log: agreement, median times (ms), speedups, csm and csm+gn success rates."""
     frames = load_keyframes(log)
     step = max((len(frames) - 1) // pairs, 1)
     idx = list(range(0, len(frames) - 1, step))[:pairs]
@@ -133,6 +137,7 @@ def run(log: Path, pairs: int) -> dict[str, object]:
 
 
 def main() -> None:
+    """Run the benchmark on --data (default: the Intel log) and print the figures."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=None, help="CARMEN log (default: intel)")
     parser.add_argument("--pairs", type=int, default=20)

@@ -144,6 +144,8 @@ def speed(beams: int, repeats: int) -> dict[str, dict[str, float]]:
 
 
 def run(repeats: int = 200, duration_s: float = 5.0) -> dict[str, object]:
+    """The setup, the beam errors with odometry and with the constant-velocity model, and the
+    speed of deskew at 360 and 1440 beams."""
     frames = list(simulate(_config(360, duration_s), _fast_circle()))
     return {
         "setup": {
@@ -163,6 +165,7 @@ def run(repeats: int = 200, duration_s: float = 5.0) -> dict[str, object]:
 
 
 def main() -> None:
+    """Run the benchmark and print its figures (as JSON with --json)."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--json", action="store_true", help="print the figures as JSON")
     parser.add_argument("--repeats", type=int, default=200, help="passes over the scans timed")

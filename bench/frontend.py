@@ -60,6 +60,7 @@ SIM_MAP_FROM_WORLD = Pose2D(0.013, -0.021, 0.3)
 
 
 def poses_array(poses: list[Pose2D]) -> NDArray[np.float64]:
+    """Poses as an (N, 3) array of (x, y, theta); (0, 3) for none."""
     return np.array([p.to_array() for p in poses]).reshape(-1, 3)
 
 
@@ -99,6 +100,7 @@ def rpe_per_m(estimate: NDArray[np.float64], truth: NDArray[np.float64]) -> dict
 
 
 def accuracy(estimate: NDArray[np.float64], truth: NDArray[np.float64]) -> dict[str, float]:
+    """ATE (RMSE after SE(2) alignment, m) and RPE per metre of (N, 3) estimate against truth."""
     return {"ate_rmse_m": ate_rmse_m(estimate, truth), **rpe_per_m(estimate, truth)}
 
 
@@ -125,6 +127,8 @@ class Pass:
 
 
 def run_pass(pipeline: Pipeline, frames: list[Keyframe], desc: str) -> Pass:
+    """One pass of `frames` through `pipeline`: poses, wall time, time per stage, statuses,
+    inserts and rechecks."""
     poses, statuses = [], {}
     stage = {"deskew": 0.0, "match": 0.0, "insert": 0.0}
     inserted = rechecked = 0
@@ -147,10 +151,13 @@ def run_pass(pipeline: Pipeline, frames: list[Keyframe], desc: str) -> Pass:
 
 
 def peak_rss_mb() -> float:
+    """Peak RSS of this process so far, in MiB (ru_maxrss is in KiB on Linux)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def run_log(path: Path, settings: FrontendSettings, limit: int | None, replays: int) -> dict:
+    """The log through the pipeline: accuracy against the corrected poses (also odometry's and
+    chained ICP's), throughput, stage shares, the map and its PNG; replays on that map."""
     frames = load_keyframes(path)[:limit] if limit else load_keyframes(path)
     truth = poses_array([kf.true_pose for kf in frames])
     odometry = poses_array([kf.odom_pose for kf in frames])
@@ -290,6 +297,7 @@ def parse_mount(text: str) -> Pose2D:
 
 
 def main(argv: list[str] | None = None) -> None:
+    """Run the sim, starts or log benchmark the arguments choose and print its report as JSON."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, help="CARMEN log (.log or .log.gz)")
     parser.add_argument("--sim", action="store_true", help="simulator at fast motion instead")

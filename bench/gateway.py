@@ -48,6 +48,7 @@ API_KEY = "bench"
 
 
 def scan_json(scan: LaserScan) -> dict[str, Any]:
+    """The scan as a POST body: ranges (non-finite: null), angles, range limits, stamp, sweep."""
     ranges = [None if not np.isfinite(r) else float(r) for r in scan.ranges_m]
     return {
         "ranges_m": ranges,
@@ -154,6 +155,8 @@ async def run(
     frames: list[SimFrame], seconds: float, concurrency: int, http_port: int,
     gateway_pid: int, bus: BusScans,
 ) -> dict[str, dict[str, float]]:
+    """Rate, latency and gateway CPU time of each scenario: latest pose, both matches, posted
+    scans, and latest pose while `bus` puts scans."""
     first, second = frames[0], frames[1]
     body_s2s = {"method": "icp", "source": scan_json(second.scan), "target": scan_json(first.scan)}
     x, y, theta = first.true_pose.to_array().tolist()
@@ -188,6 +191,7 @@ async def run(
 
 
 def main() -> None:
+    """Start the gateway with this process as its Zenoh peer, run the scenarios, print them."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=5.0, help="per scenario")
     parser.add_argument("--concurrency", type=int, default=8)

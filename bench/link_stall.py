@@ -74,6 +74,7 @@ def run(block_close_s: float, stall_s: float, messages: int, size: int) -> dict[
 
 
 def main() -> None:
+    """Run the stall with Zenoh's default block_close_s and with scanflow's; print both runs."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--stall-s", type=float, default=7.0)
     parser.add_argument("--messages", type=int, default=20_000)

@@ -118,6 +118,8 @@ def tracking_part(
 
 
 def run(path: Path, queries: int, seed: int, level: int, limit: int | None = None) -> dict:
+    """The prior map from the even keyframes, then global localisation (at `level` and level 0)
+    and tracking on the odd ones."""
     frames = load_keyframes(path)[:limit]
     settings = default_settings()
     with tempfile.TemporaryDirectory() as tmp:
@@ -144,6 +146,7 @@ def run(path: Path, queries: int, seed: int, level: int, limit: int | None = Non
 
 
 def main(argv: list[str] | None = None) -> None:
+    """Run the benchmark on --data and print tables (JSON with --json)."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, required=True, help="CARMEN log (.log or .gz)")
     parser.add_argument("--queries", type=int, default=60, help="keyframes for part 1")

@@ -36,6 +36,8 @@ ROBOT = "robot"
 
 
 def run(path: Path, limit: int | None) -> dict[str, Any]:
+    """The log's inserts taken as one MapStateMessage and resent one by one: bytes and times
+    (ms) of each; asserts both end with the front end's map."""
     frames = load_keyframes(path)[:limit] if limit else load_keyframes(path)
     pipeline = Pipeline()
     recent = RecentInserts(0)
@@ -94,6 +96,7 @@ def run(path: Path, limit: int | None) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> None:
+    """Run the benchmark on --data (default: the Intel log) and print its report as JSON."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=corrected_log("intel"))
     parser.add_argument("--limit", type=int, default=None, help="first N keyframes only")

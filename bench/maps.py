@@ -101,12 +101,14 @@ def scan_at(
 
 
 def timed(fn: Callable[[], object]) -> float:
+    """Wall time of one call of `fn`, in s."""
     start = time.perf_counter()
     fn()
     return time.perf_counter() - start
 
 
 def summary_ms(samples_s: list[float]) -> dict[str, float]:
+    """Mean, p50, p95 and max of `samples_s`, in ms (3 decimals)."""
     ms = np.array(samples_s) * 1e3
     return {
         "mean": round(float(ms.mean()), 3),
@@ -117,6 +119,8 @@ def summary_ms(samples_s: list[float]) -> dict[str, float]:
 
 
 def run(step_m: float, rebuilds: int) -> dict[str, object]:
+    """The simulated building mapped, then driven again: insert and refresh times per scan,
+    full rebuild times, map memory and peak RSS."""
     rng = np.random.default_rng(0)
     walls = building_walls()
     scans = [scan_at(pose, walls, rng) for pose in serpentine(step_m)]
@@ -291,6 +295,7 @@ def view_refresh(
 
 
 def print_table(r: dict[str, object]) -> None:
+    """Print the report of `run` as text."""
     print(f"{r['world']}, {r['resolution_m']} m cells, one scan every {r['step_m']} m")
     print(
         f"extent {r['extent_cells']} cells = {r['mapped_area_m2']} m^2, "
@@ -318,6 +323,7 @@ def print_table(r: dict[str, object]) -> None:
 
 
 def print_views(v: dict[str, object]) -> None:
+    """Print the report of `view_refresh` as text."""
     ins = v["insert_ms"]
     print(f"matching views on {v['log']} ({v['scans']} scans at the corrected poses):")
     print(f"insert p50 {ins['p50']} mean {ins['mean']} p95 {ins['p95']} ms "  # type: ignore[index]
@@ -338,6 +344,7 @@ def print_views(v: dict[str, object]) -> None:
 
 
 def main() -> None:
+    """Run the building (unless --views-only) and, with --data, the log's views; print them."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--step-m", type=float, default=0.25, help="distance between scans")

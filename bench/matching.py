@@ -126,6 +126,7 @@ def pair_of(frames: list[Frame], i: int, j: int) -> Pair:
 
 
 def scanflow_matcher(method: str) -> Matcher:
+    """A Matcher that runs scanflow's `match` with `method` (a MatchResult, with its status)."""
     def run(src: NDArray[np.float64], tgt: NDArray[np.float64], guess: Pose2D) -> MatchResult:
         return match(src, tgt, guess, method=method)
 
@@ -225,6 +226,7 @@ def shares_within(prefix: str, trans_m: NDArray, rot_deg: NDArray) -> dict[str, 
 
 
 def summarise(trans_m: NDArray, rot_deg: NDArray, times_s: NDArray, cpu_s: NDArray) -> dict:
+    """Success shares at THRESHOLDS, error percentiles (m, deg), times (ms) and the pair count."""
     out = shares_within("ok", trans_m, rot_deg)
     out.update(
         trans_p50_m=float(np.median(trans_m)),
@@ -251,6 +253,8 @@ def perturbed_guesses(pairs: list[Pair], metres: float, degrees: float, seed: in
 
 
 def matchers(methods: list[str], peers: list[str]) -> dict[str, Matcher]:
+    """The matchers by name: scanflow `methods` (or odometry) and the installed `peers`; the
+    missing peers are named on stderr."""
     found = available_peers()
     missing = [p for p in peers if p not in found]
     if missing:
@@ -263,6 +267,7 @@ def matchers(methods: list[str], peers: list[str]) -> dict[str, Matcher]:
 
 
 def format_table(results: dict[str, dict]) -> str:
+    """The results table: success shares, error percentiles, times and trust per matcher."""
     head = (
         f"{'matcher':<18} {'5cm/0.5d':>8} {'10cm/1d':>8} {'t50 m':>7} {'t95 m':>7} "
         f"{'r50 deg':>7} {'r95 deg':>7} {'med ms':>7} {'mean ms':>7} {'cpu ms':>7} "
@@ -305,6 +310,7 @@ def trust_cells(r: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
+    """Run the matchers on the pairs of --data or --sim and print tables (JSON with --json)."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--data", type=Path, help="CARMEN log (.log or .log.gz)")

@@ -32,6 +32,7 @@ def to_3d(points: NDArray[np.float64], extrude: bool) -> NDArray[np.float64]:
 
 
 def pose_to_matrix4(pose: Pose2D) -> NDArray[np.float64]:
+    """The 4x4 homogeneous transform of a planar pose (rotation about z, z = 0)."""
     m = np.eye(4)
     m[:2, :2] = pose.rotation_matrix()
     m[:2, 3] = (pose.x, pose.y)
@@ -39,6 +40,7 @@ def pose_to_matrix4(pose: Pose2D) -> NDArray[np.float64]:
 
 
 def matrix4_to_pose(m: NDArray[np.float64]) -> Pose2D:
+    """The planar pose of a 4x4 transform: its x, y and yaw atan2(R10, R00)."""
     return Pose2D(float(m[0, 3]), float(m[1, 3]), math.atan2(m[1, 0], m[0, 0]))
 
 

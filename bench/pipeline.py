@@ -128,6 +128,7 @@ class Observer:
 
 
 def stats(session: Any, service: str) -> ServiceStatsMessage:
+    """The stats of `service` instance 0 (first reply within 5 s); RuntimeError when none."""
     for reply in session.get(keys.stats(service, "0"), timeout=5.0):
         if reply.ok is not None:
             return decode_any(reply.ok.payload.to_bytes())  # type: ignore[return-value]
@@ -311,6 +312,7 @@ def memory(log: Path, limit: int | None, replays: int = 3) -> dict[str, Any]:
 
 
 def main() -> None:
+    """Run the --only sections (transport, throughput, latency, memory) and print them."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--data", type=Path, default=FREIBURG, help="the log (freiburg-079)")

@@ -106,6 +106,7 @@ def run(frames: list[Keyframe], count: int, scans_per_keyframe: int) -> dict[str
 
 
 def main() -> None:
+    """Measure the resume for each --keyframes count from the --data log's scans; print it."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=corrected_log("freiburg-079"))
     parser.add_argument("--keyframes", default="1916,5000,20000,60000")

@@ -186,6 +186,8 @@ def compare(
 
 
 def run_log(path: Path, limit: int | None, settings: FrontendSettings | None = None) -> dict:
+    """Both passes on the log's keyframes (the first `limit`) against its corrected poses, and
+    the odometry's accuracy."""
     frames = load_keyframes(path)[:limit] if limit else load_keyframes(path)
     feed = Feed([kf.scan for kf in frames], [kf.odom_pose for kf in frames],
                 [[] for _ in frames])
@@ -228,6 +230,7 @@ def run_sim(
 
 
 def main(argv: list[str] | None = None) -> None:
+    """Run the sim or log comparison the arguments choose and print its report as JSON."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, help="CARMEN log (.log or .log.gz)")
     parser.add_argument("--limit", type=int, default=None, help="first N keyframes only")

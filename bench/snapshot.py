@@ -31,6 +31,7 @@ GROWTH = 100  # keyframes a robot adds between two snapshots (10 s at 0.1 s per 
 
 
 def map_of(frames: list[Keyframe], scans: int) -> OccupancyGrid:
+    """The occupancy grid of the first `scans` keyframes at their corrected sensor poses."""
     grid = OccupancyGrid(OccupancyParams())
     for frame in frames[:scans]:
         sensor = frame.true_pose * frame.scan.mount
@@ -39,6 +40,7 @@ def map_of(frames: list[Keyframe], scans: int) -> OccupancyGrid:
 
 
 def disk_mib(folder: Path) -> float:
+    """Total size of the files under `folder`, in MiB (one decimal)."""
     return round(sum(p.stat().st_size for p in folder.rglob("*") if p.is_file()) / 2**20, 1)
 
 
@@ -75,6 +77,7 @@ def run(
 
 
 def main() -> None:
+    """Snapshot runs of each --keyframes count on the --data log; print their figures."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=corrected_log("freiburg-079"))
     parser.add_argument("--keyframes", default="1916,5000,20000,60000")

@@ -25,15 +25,18 @@ class Counters:
         self._counts: dict[str, int] = defaultdict(int)
 
     def add(self, name: str, amount: int = 1) -> int:
+        """Add `amount` to the named count; its new value."""
         with self._lock:
             self._counts[name] += amount
             return self._counts[name]
 
     def get(self, name: str) -> int:
+        """The named count; 0 for one never added to."""
         with self._lock:
             return self._counts.get(name, 0)
 
     def snapshot(self) -> dict[str, int]:
+        """A copy of every count, by name."""
         with self._lock:
             return dict(self._counts)
 
@@ -85,11 +88,13 @@ class SeqTracker:
             return state is not None and 0 <= seq <= state.last_seq
 
     def last_seq(self, stream: str) -> int:
+        """The stream's last seq (seen or resumed from); -1 for a stream not seen."""
         with self._lock:
             state = self._streams.get(stream)
             return -1 if state is None else state.last_seq
 
     def snapshot(self) -> dict[str, dict[str, int]]:
+        """last_seq, received, missed and restarts of every stream, by stream name."""
         with self._lock:
             return {
                 name: {

@@ -51,4 +51,5 @@ class Inbox:
             return None
 
     def depth(self) -> int:
+        """How many items wait in the inbox now."""
         return self._queue.qsize()

@@ -74,6 +74,7 @@ class Launcher:
 
     @property
     def zenoh_port(self) -> int:
+        """The router's port, read from the services' SCANFLOW_ZENOH_CONNECT endpoint."""
         return int(self.env["SCANFLOW_ZENOH_CONNECT"].rsplit(":", 1)[1])
 
     def start(
@@ -156,5 +157,6 @@ class Launcher:
             session.close()
 
     def log_text(self, name: str) -> str:
+        """The log so far of the service started under `name`; empty when there is none."""
         path = self.log_dir / f"{name}.log"
         return path.read_text(errors="replace") if path.exists() else ""

@@ -45,6 +45,7 @@ class Outbox:
                     return False
 
     def depth(self) -> int:
+        """How many puts wait for the sender thread now."""
         return self._queue.qsize()
 
     def close(self, timeout_s: float) -> int:

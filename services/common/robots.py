@@ -32,6 +32,7 @@ class RobotLimit:
         self._reported: set[str] = set()
 
     def admits(self, robot_id: str, known: Known) -> bool:
+        """Whether the service may keep state for `robot_id`; a refusal is reported to `refused`."""
         if robot_id in known or len(known) < self.max_robots:
             return True
         first = robot_id not in self._reported and len(self._reported) < self.max_robots

@@ -320,6 +320,7 @@ class ServiceShell:
             )
 
     def stop(self) -> None:
+        """Set the stop event: `run` returns after the item in hand; nothing is closed here."""
         self.stop_event.set()
 
     def close(self, flush_s: float = 0.2, drain_s: float = 10.0) -> None:

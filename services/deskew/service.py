@@ -53,6 +53,7 @@ class _Robot:
     pose_seq: int | None = None  # the last scan the matcher's pose came back for
 
     def add_odometry(self, sample: Odometry) -> None:
+        """Hold `sample` for its scan; beyond MAX_PENDING_ODOMETRY, the oldest go to the stage."""
         self.odometry.append(sample)
         while len(self.odometry) > MAX_PENDING_ODOMETRY:
             self.stage.add_odometry(self.odometry.popleft())
@@ -92,6 +93,8 @@ class DeskewService:
     def handle(
         self, kind: str, message: ScanMessage | OdometryMessage | PoseEstimateMessage
     ) -> None:
+        """A pose updates the robot's prior (its frame too, after a redraw) and releases its scans;
+        a scan or odometry sample of an admitted robot joins its run (a restart: a new run)."""
         robot_id = message.robot_id
         if isinstance(message, PoseEstimateMessage):
             robot = self.robots.get(robot_id)
@@ -144,6 +147,7 @@ class DeskewService:
             robot.previous = None
 
     def idle(self) -> None:
+        """Deskew and publish, in order, the scans odometry now covers or that are out of time."""
         for robot_id, robot in self.robots.items():
             self._flush_in_order(robot_id, robot)
 
@@ -205,6 +209,7 @@ class DeskewService:
         )
 
     def run(self) -> None:
+        """Warm up (if set), serve until stopped, then deskew every scan still held, and close."""
         if self.settings.warm_up:  # before the health token: the first scan at full speed
             warm_up()
         self.shell.start()

@@ -10,6 +10,7 @@ from services.gateway.app import create_app
 
 
 def main() -> None:
+    """Check the settings, set up logging and CPUs, then serve the app with uvicorn."""
     require_settings("gateway", GatewaySettings, ZenohSettings)
     settings = GatewaySettings()
     init_process(settings)

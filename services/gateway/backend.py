@@ -102,6 +102,7 @@ class ZenohBackend:
 
     @classmethod
     def open(cls, settings: GatewaySettings, zenoh_settings: ZenohSettings) -> ZenohBackend:
+        """A backend on a new Zenoh session, with its subscriptions declared."""
         backend = cls(open_session(zenoh_settings), settings, zenoh_settings)
         backend.start()
         return backend
@@ -123,6 +124,7 @@ class ZenohBackend:
         ]
 
     def close(self) -> None:
+        """Undeclare subscriptions and publishers and close the session; later calls do nothing."""
         if self._closed:
             return
         self._closed = True
@@ -192,10 +194,12 @@ class ZenohBackend:
 
     # -- reads ----------------------------------------------------------------------------
     def alive_services(self) -> list[tuple[str, str]]:
+        """(service, instance) of every liveliness token present now, sorted."""
         with self._lock:
             return sorted(self._alive)
 
     def session_info(self) -> dict[str, object]:
+        """The Zenoh session's state for /health: open, mode, own zid, routers and peers."""
         closed = self._closed or self.session.is_closed()
         info = self.session.info
         return {

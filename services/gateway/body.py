@@ -28,6 +28,7 @@ BODY_ANSWERS: dict[int | str, dict[str, Any]] = {
 
 
 def content_type(request: Request) -> str:
+    """The request's media type (Content-Type without parameters, lowercased); JSON when absent."""
     return request.headers.get("content-type", JSON).split(";", 1)[0].strip().lower()
 
 

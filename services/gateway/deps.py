@@ -19,10 +19,12 @@ api_key_header = APIKeyHeader(
 
 
 def get_settings(request: Request) -> GatewaySettings:
+    """The app's GatewaySettings (app.state.settings), as a dependency."""
     return request.app.state.settings
 
 
 def get_backend(request: Request) -> ZenohBackend:
+    """The app's ZenohBackend (app.state.backend), as a dependency."""
     return request.app.state.backend
 
 

@@ -43,11 +43,13 @@ class EventHub:
         return sub
 
     def unsubscribe(self, sub: Subscription) -> None:
+        """Stop handing events to `sub`; one already gone is no error."""
         with self._lock:
             self._subs.discard(sub)
 
     @property
     def clients(self) -> int:
+        """How many stream clients are subscribed now."""
         with self._lock:
             return len(self._subs)
 

@@ -77,6 +77,7 @@ class Histogram:
         self.sum = 0.0
 
     def observe(self, value: float) -> None:
+        """Count `value` in every bucket it does not exceed, and in the total and the sum."""
         for i, bound in enumerate(self.buckets):
             if value <= bound:
                 self.counts[i] += 1
@@ -84,6 +85,7 @@ class Histogram:
         self.sum += value
 
     def lines(self, name: str, labels: Labels) -> list[str]:
+        """The `_bucket` (cumulative, then +Inf), `_sum` and `_count` sample lines of `name`."""
         out = [
             f"{name}_bucket{_fmt_labels((*labels, ('le', repr(bound))))} {n}"
             for bound, n in zip(self.buckets, self.counts, strict=True)
@@ -111,6 +113,7 @@ class Metrics:
             return value
 
     def observe(self, name: str, value_s: float, **labels: str) -> None:
+        """Record `value_s` (seconds) in the labelled latency histogram, made on first use."""
         key = _labels(**labels)
         with self._lock:
             family = self._histograms[name]
@@ -120,6 +123,7 @@ class Metrics:
             hist.observe(value_s)
 
     def render(self) -> str:
+        """These counters and histograms as exposition text; empty when there are none yet."""
         with self._lock:
             lines: list[str] = []
             for name, family in sorted(self._counters.items()):

@@ -59,6 +59,7 @@ class PoseIn(BaseModel):
     theta_rad: Angle = 0.0
 
     def to_pose(self) -> Pose2D:
+        """The pose as a Pose2D."""
         return Pose2D(self.x_m, self.y_m, self.theta_rad)
 
 
@@ -146,6 +147,7 @@ class OdometryIn(BaseModel):
         "refused (409) except 0, which starts a new run (its map afresh)"))
 
     def to_odometry(self, robot_id: str, seq: int) -> Odometry:
+        """The Odometry sample of `robot_id` under `seq`; velocity (vx, vy, omega) or None."""
         v = self.velocity
         velocity = None if v is None else (v.vx_mps, v.vy_mps, v.omega_radps)
         return Odometry(self.stamp_s, self.pose.to_pose(), velocity, robot_id, seq)
@@ -214,6 +216,7 @@ class MatchOut(BaseModel):
 
     @classmethod
     def from_response(cls, r: MatchResponse, round_trip_s: float) -> MatchOut:
+        """The matcher's answer for JSON (non-finite covariance entries null), with the wait."""
         return cls(
             pose=PoseIn(x_m=r.pose.x, y_m=r.pose.y, theta_rad=r.pose.theta),
             covariance=matrix_out(r.covariance),
@@ -341,6 +344,7 @@ class MapMetaOut(BaseModel):
 
     @classmethod
     def from_message(cls, m: MapMetaMessage) -> MapMetaOut:
+        """The map server's metadata, with the map's size in metres (cells times resolution)."""
         return cls(
             robot_id=m.robot_id,
             revision=m.revision,

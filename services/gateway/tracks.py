@@ -56,6 +56,7 @@ class RobotTrack:
 
     @property
     def latest(self) -> PoseEstimateMessage | None:
+        """The newest cached estimate; None when the cache is empty."""
         return self.estimates[-1] if self.estimates else None
 
     def add(self, estimate: PoseEstimateMessage, received_s: float) -> None:
@@ -112,6 +113,7 @@ class TrackStore:
             return track is not None
 
     def saw_scan(self, robot_id: str, seq: int) -> None:
+        """Note a scan of the robot seen now: arrival time, count and seq (not if refused)."""
         with self._lock:
             track = self._track(robot_id)
             if track is not None:
@@ -120,6 +122,7 @@ class TrackStore:
                 track.saw_seq("scan", seq)
 
     def saw_odometry(self, robot_id: str, seq: int) -> None:
+        """Note the seq of an odometry sample of the robot (nothing when the robot is refused)."""
         with self._lock:
             track = self._track(robot_id)
             if track is not None:
@@ -163,17 +166,20 @@ class TrackStore:
             return given
 
     def saw_map(self, robot_id: str, revision: int) -> None:
+        """Note the revision of the robot's map (nothing when the robot is refused)."""
         with self._lock:
             track = self._track(robot_id)
             if track is not None:
                 track.map_revision = revision
 
     def latest(self, robot_id: str) -> PoseEstimateMessage | None:
+        """The robot's newest cached estimate; None for an unknown robot or an empty cache."""
         with self._lock:
             track = self._tracks.get(robot_id)
             return None if track is None else track.latest
 
     def known(self, robot_id: str) -> bool:
+        """Whether the robot has a track: seen on the bus or posted, and admitted."""
         with self._lock:
             return robot_id in self._tracks
 

@@ -20,6 +20,7 @@ class Pacer:
         self._anchor: tuple[float, float] | None = None
 
     def wait(self, stamp_s: float) -> None:
+        """Sleep until `stamp_s` is due (the first stamp anchors the clock); wakes early on stop."""
         if self.rate == 0:
             return
         now = time.monotonic()
@@ -63,6 +64,7 @@ class CreditWindow:
             self._acked.pop(robot_id, None)
 
     def acked(self, robot_id: str) -> int:
+        """The robot's highest acknowledged pose seq since its last reset; -1 for none."""
         with self._cond:
             return self._acked.get(robot_id, -1)
 

@@ -89,6 +89,7 @@ class Ingest:
         return drained
 
     def run(self) -> None:
+        """Publish the source `replays` times, each time waiting for its last scan's pose; close."""
         self.shell.start()
         total = 0
         for replay in range(self.settings.replays):

@@ -63,6 +63,7 @@ class Keyframes:
 
     @classmethod
     def from_message(cls, message: KeyframesMessage) -> Keyframes:
+        """The keyframes a KeyframesMessage carries, under a new run id."""
         kept = cls()
         kept.seqs = message.seqs.tolist()
         kept.poses = [Pose2D.from_array(p) for p in message.poses]

@@ -24,6 +24,7 @@ from services.mapserver.robot import RobotMap
 
 
 def meta(robot: RobotMap) -> MapMetaMessage:
+    """The robot's map geometry and revision, stamped with the wall clock now."""
     grid = robot.map.grid
     return MapMetaMessage.from_spec(robot.robot_id, grid.spec, robot.map.revision, time.time())
 
@@ -74,6 +75,7 @@ def region(robot: RobotMap, bounds_m: tuple[float, float, float, float] | None) 
 
 
 def trajectory(robot: RobotMap) -> TrajectoryMessage:
+    """The robot's whole trajectory as kept here: stamps and (N, 3) poses."""
     return TrajectoryMessage(robot.robot_id, robot.trajectory.stamps_s, robot.trajectory.poses)
 
 

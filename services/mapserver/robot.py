@@ -191,6 +191,7 @@ class RobotMap:
         )
 
     def snapshot(self) -> Snapshot:
+        """The robot's state for save_snapshot: map, trajectory, seqs, keyframes, last odometry."""
         return Snapshot(
             self.robot_id,
             self.map.grid,

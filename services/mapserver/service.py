@@ -99,6 +99,8 @@ class MapServer:
 
     # -- bus ------------------------------------------------------------------------------
     def handle(self, kind: str, message: Update) -> None:
+        """Apply an insert, redraw or pose under the lock the queries take, then the idle work
+        (change notices, snapshots) when due."""
         with self.lock:
             self._apply(kind, message)
         self.idle()
@@ -284,6 +286,8 @@ class MapServer:
         return gauges
 
     def run(self) -> None:
+        """Warm up (if set), serve until stopped, then publish the last change notices, snapshot
+        every robot and close."""
         if self.settings.warm_up:  # before the health token: the first scan at full speed
             warm_up()
         self.shell.start()

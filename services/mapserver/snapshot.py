@@ -57,6 +57,7 @@ class Snapshot:
 
 
 def snapshot_path(data_dir: Path, robot_id: str) -> Path:
+    """Where the robot's snapshot is: `<data_dir>/<robot_id>.snapshot.npz`."""
     return data_dir / f"{robot_id}{SUFFIX}"
 
 

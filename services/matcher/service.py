@@ -110,9 +110,12 @@ class MatcherService:
         self.shell.add_stats(lambda: {"robots": len(self.frontends)})
 
     def owns(self, robot_id: str) -> bool:
+        """Whether this instance tracks `robot_id`: in its `robots` list, else by CRC-32 shard."""
         return owns(robot_id, self.settings.shard, self.settings.robots)
 
     def handle(self, kind: str, message: DeskewedScanMessage) -> None:
+        """Track a scan of an owned, admitted robot (front end, then back end, under the lock) and
+        publish its insert, redraw and pose; dropped while the robot waits for the map server."""
         robot_id = message.robot_id
         if not self.owns(robot_id):
             self.shell.counters.add(f"other_shard.{kind}")
@@ -419,6 +422,7 @@ class MatcherService:
         return answer(request, self._map_of)
 
     def run(self) -> None:
+        """Warm up (if set, the match methods too), serve until stopped, then close."""
         if self.settings.warm_up:  # before the health token: the first scan at full speed
             warm_up(methods=True)
         self.shell.start()

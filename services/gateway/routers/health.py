@@ -18,6 +18,8 @@ router = APIRouter(prefix=API_PREFIX, tags=["health"])
     summary="Liveliness of every service and of the gateway's own Zenoh session",
 )
 def health(backend: Backend) -> JSONResponse:
+    """Liveliness of the gateway's Zenoh session and of each service's token: "ok", "degraded"
+    (a service missing) or "down" (the session closed or cut off from its router: 503)."""
     zenoh = ZenohOut(**backend.session_info())  # type: ignore[arg-type]
     alive = backend.alive_services()
     missing = sorted(set(EXPECTED_SERVICES) - {service for service, _ in alive})

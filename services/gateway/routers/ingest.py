@@ -29,6 +29,8 @@ ANSWERS = {
 async def post_scan(
     request: Request, robot: Robot, backend: Backend, settings: Settings
 ) -> IngestAck:
+    """Publish one scan (JSON or msgpack) for a client without Zenoh. The URL's robot id wins
+    over the body's; with no seq the gateway numbers it. 422 names what is wrong with it."""
     body = await read_body(request, ScanIn, ScanMessage)
     given = body.scan.seq if isinstance(body, ScanMessage) else body.seq
     # Checked before it takes a seq: a corrected request may send the same seq again.
@@ -47,6 +49,8 @@ async def post_scan(
     summary="Publish an odometry sample on the robot's odom key",
 )
 async def post_odometry(request: Request, robot: Robot, backend: Backend) -> IngestAck:
+    """Publish one odometry sample (JSON or msgpack), numbered as scans are; 422 names what is
+    wrong with it, 409 a seq that does not move the robot's stream forward."""
     body = await read_body(request, OdometryIn, OdometryMessage)
     given = body.odom.seq if isinstance(body, OdometryMessage) else body.seq
     message = _odometry_message(body, robot, given or 0)  # checked before it takes a seq

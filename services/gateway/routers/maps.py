@@ -32,6 +32,7 @@ ANSWERS = {404: {"description": "no map for this robot"}, 422: {"description": "
 @router.get("/robots/{robot}/map", response_model=MapMetaOut, responses=ANSWERS,
             summary="Map metadata: resolution, origin, size, revision")
 async def map_meta(robot: Robot, backend: Backend) -> MapMetaOut:
+    """The robot's map as the map server holds it now: resolution, origin, size and revision."""
     replies = await backend.aquery(keys.map_key(robot, "meta", backend.prefix))
     return MapMetaOut.from_message(MapMetaMessage.decode(replies[0].payload))
 
@@ -52,6 +53,8 @@ async def map_file(
     x1: Bound = None,
     y1: Bound = None,
 ) -> Response:
+    """The whole map as the map server exported it, or with all of x0, y0, x1, y1 (metres, map
+    frame) the cells inside that box; `X-Map-Revision` says which revision it is."""
     bounds = (x0, y0, x1, y1)
     headers = {"Cache-Control": "no-cache"}
     if all(b is None for b in bounds):

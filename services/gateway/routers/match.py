@@ -29,6 +29,7 @@ ANSWERS = {
 @router.get("/match/methods", response_model=MethodsOut,
             summary="Every matching method the library has")
 def methods() -> MethodsOut:
+    """The names `method` accepts in POST /match, and the default one."""
     return MethodsOut(methods=available_methods(), default=DEFAULT_METHOD)
 
 
@@ -44,6 +45,8 @@ def methods() -> MethodsOut:
 async def post_match(
     request: Request, backend: Backend, settings: Settings
 ) -> MatchOut | Response:
+    """Match a scan against a second scan or against a robot's map (`robot_id`) on the matcher's
+    queryable: pose, covariance, status and timing; msgpack in and out on request."""
     body = await read_body(request, MatchIn, MatchRequest)
     wire = body if isinstance(body, MatchRequest) else to_request(body, settings.max_beams)
     check_request(wire, settings.max_beams)

@@ -19,6 +19,7 @@ CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
     summary="Prometheus metrics: scans, drops, gaps, match and request latencies",
 )
 async def metrics(request: Request, backend: Backend) -> PlainTextResponse:
+    """Prometheus text: the gateway's request and match figures, then every service's counters."""
     stats = await anyio.to_thread.run_sync(backend.service_stats)
     text = (
         request.app.state.metrics.render()

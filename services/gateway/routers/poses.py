@@ -37,6 +37,8 @@ def _unknown(robot: str) -> HTTPException:
     summary="Latest pose, or the pose at time t (interpolated between estimates)",
 )
 async def get_pose(robot: Robot, backend: Backend, t: TimeParam = None) -> PoseOut:
+    """The robot's latest pose, or with `t` its pose at that time: interpolated between the two
+    estimates around it (the map server's whole trajectory for times before the gateway's cache)."""
     if t is None:
         latest = backend.tracks.latest(robot)
         if latest is None:
@@ -66,6 +68,8 @@ async def get_pose(robot: Robot, backend: Backend, t: TimeParam = None) -> PoseO
     "from there (before its first scan: the start)",
 )
 async def put_pose(robot: Robot, body: PoseIn, backend: Backend) -> PoseIn:
+    """Set where the robot is now (map frame): its tracker matches the next scan from there.
+    Answers with the pose the tracker took."""
     message = InitialPoseMessage(robot, body.to_pose())
     replies = await backend.aquery(keys.initial_pose(robot, backend.prefix), message.encode())
     taken = InitialPoseMessage.decode(replies[0].payload)  # the tracker's echo
@@ -93,6 +97,8 @@ async def get_trajectory(
     end: TimeParam = None,
     format: Annotated[Literal["json", "tum"], Query(description="tum: for evo")] = "json",
 ) -> TrajectoryOut | PlainTextResponse:
+    """The robot's poses within [start, end], as JSON or TUM lines (for evo): the map server's
+    trajectory, or the gateway's cache when the map server cannot give it (`X-Scanflow-Source`)."""
     source: Literal["mapserver", "cache"] = "mapserver"
     try:
         stamps, poses = await _full_trajectory(backend, robot)

@@ -12,6 +12,8 @@ router = APIRouter(prefix=API_PREFIX, tags=["robots"])
 
 @router.get("/robots", response_model=RobotsOut, summary="Robots seen and live services")
 def list_robots(backend: Backend) -> RobotsOut:
+    """Every robot seen on the bus (last pose, data times, map revision, restarts) and every
+    service alive now."""
     robots = [
         RobotOut(
             robot_id=r.robot_id,
