@@ -27,6 +27,7 @@ DESCRIPTION = (
 async def robot_stream(
     request: Request, robot: Robot, backend: Backend, limit: Limit = None
 ) -> AsyncIterator[ServerSentEvent]:
+    """One robot's pose and map events as they come (the route's `description` is the doc)."""
     async for event in _events(request, backend.events, robot, limit):
         yield event
 
@@ -36,6 +37,7 @@ async def robot_stream(
 async def all_stream(
     request: Request, backend: Backend, limit: Limit = None
 ) -> AsyncIterator[ServerSentEvent]:
+    """Every robot's pose and map events as they come (the route's `description` is the doc)."""
     async for event in _events(request, backend.events, None, limit):
         yield event
 
