@@ -8,7 +8,7 @@ import sys
 
 KERNELS = {
     "scanflow.deskew.kernels": ["beams_in_reference", "coverage", "interpolate_poses"],
-    "scanflow.maps.occupancy": ["_update_cells"],
+    "scanflow.maps.occupancy_kernels": ["update_cells"],
     "scanflow.maps.field": ["_splat_means"],
     "scanflow.matching.field_cost": ["_solve_kernel"],  # the front end's scan-to-map step
 }

@@ -27,14 +27,18 @@ from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from scanflow.maps.grid import CellBox, GridSpec, boxes_of, grown_box
-from scanflow.maps.raycast import ray_length, trace_ray
-
-HIT_UNITS_PER_CELL = 256  # hit offsets are stored in 1/256 of a cell
-HIT_COUNT_MAX = 255
+from scanflow.maps.occupancy_kernels import (
+    HIT_COUNT_MAX,
+    HIT_UNITS_PER_CELL,
+    accumulate_hits,
+    insert_many,
+    occupied_windows,
+    pooled_hit_means,
+    update_cells,
+)
 
 
 def _logit(p: float) -> float:
@@ -201,179 +205,6 @@ def _as_points(name: str, value: ArrayLike) -> NDArray[np.float64]:
     if bad.any():
         raise ValueError(f"{name} has {int(bad.sum())} non-finite rows, first {p[bad][0]}")
     return p
-
-
-@njit(cache=True)
-def _pooled_hit_means(log_odds, observed, hit_xy, hit_n, threshold, boxes, factor, row0, col0):  # type: ignore[no-untyped-def]
-    """See OccupancyGrid.occupied_hit_means_in: `boxes` (n, 4) of the coarse lattice counted
-    from the frame's first cell, (row0, col0) the frame's first fine cell in storage indices
-    (boxes may reach outside the storage: those cells are empty)."""
-    total = 0
-    for k in range(boxes.shape[0]):
-        total += (boxes[k, 2] - boxes[k, 0]) * (boxes[k, 3] - boxes[k, 1])
-    out = np.empty((total, 2))
-    n_out = 0
-    stored_rows, stored_cols = log_odds.shape
-    for k in range(boxes.shape[0]):
-        for cr in range(boxes[k, 0], boxes[k, 2]):
-            for cc in range(boxes[k, 1], boxes[k, 3]):
-                sx = sy = n = 0.0
-                for i in range(factor):
-                    r = row0 + cr * factor + i
-                    if r < 0 or r >= stored_rows:
-                        continue
-                    for j in range(factor):
-                        c = col0 + cc * factor + j
-                        if c < 0 or c >= stored_cols or not observed[r, c]:
-                            continue
-                        if log_odds[r, c] <= threshold:
-                            continue
-                        count = float(hit_n[r, c])
-                        if count > 0:
-                            sx += (hit_xy[0, r, c] + 0.5 * count) / HIT_UNITS_PER_CELL + j * count
-                            sy += (hit_xy[1, r, c] + 0.5 * count) / HIT_UNITS_PER_CELL + i * count
-                            n += count
-                        else:
-                            sx += 0.5 + j
-                            sy += 0.5 + i
-                            n += 1.0
-                if n > 0:
-                    out[n_out, 0] = cr + min(max(sy / (factor * n), 0.0), 1.0) - 0.5
-                    out[n_out, 1] = cc + min(max(sx / (factor * n), 0.0), 1.0) - 0.5
-                    n_out += 1
-    return out[:n_out]
-
-
-@njit(cache=True)
-def _accumulate_hits(hit_xy, hit_n, rows, cols, units):  # type: ignore[no-untyped-def]
-    """Add each hit's (x, y) offset units to its cell, halving a full cell's weight first."""
-    for k in range(rows.shape[0]):
-        r, c = rows[k], cols[k]
-        if hit_n[r, c] == HIT_COUNT_MAX:  # keep half the weight, same mean
-            half = HIT_COUNT_MAX // 2
-            hit_n[r, c] = half
-            hit_xy[0, r, c] = round(hit_xy[0, r, c] * half / HIT_COUNT_MAX)
-            hit_xy[1, r, c] = round(hit_xy[1, r, c] * half / HIT_COUNT_MAX)
-        hit_n[r, c] += 1
-        hit_xy[0, r, c] += units[k, 0]
-        hit_xy[1, r, c] += units[k, 1]
-
-
-@njit(cache=True, nogil=True)
-def _update_cells(  # type: ignore[no-untyped-def]
-    log_odds, observed, box, origin, hits, misses, miss_lo, hit_lo, lo_min, lo_max, threshold
-):
-    """One scan's update, in storage cells: every cell a beam to a hit passes (the hit
-    excluded) or a no-return beam reaches (its end included) gets `miss_lo` once, every hit
-    cell `hit_lo` once (and no miss), each clamped to [lo_min, lo_max] and marked observed.
-    Visits the beams' cells only, and a scratch mask of their bounding box `box` (row0, col0,
-    row1, col1) for "done already". Returns the (K, 2) cells whose occupied state (observed and
-    log-odds > threshold) flipped, row-major."""
-    row0, col0 = box[0], box[1]
-    done = np.zeros((box[2] - row0, box[3] - col0), dtype=np.uint8)  # 1 free, 2 hit, 3 hit done
-    for i in range(hits.shape[0]):
-        done[hits[i, 0] - row0, hits[i, 1] - col0] = 2
-    longest, total = 1, 0
-    for ends in (hits, misses):
-        for i in range(ends.shape[0]):
-            length = ray_length(origin[0], origin[1], ends[i, 0], ends[i, 1])
-            longest, total = max(longest, length), total + length
-    ray = np.empty((longest, 2), dtype=np.int64)
-    flipped = np.empty(total, dtype=np.int64)  # no cell is visited more than its rays visit it
-    n = _clear(log_odds, observed, done, row0, col0, origin, hits, 1, ray, miss_lo, lo_min,
-               lo_max, threshold, flipped, 0)
-    n = _clear(log_odds, observed, done, row0, col0, origin, misses, 0, ray, miss_lo, lo_min,
-               lo_max, threshold, flipped, n)
-    for i in range(hits.shape[0]):
-        r, c = hits[i, 0], hits[i, 1]
-        if _visit(log_odds, observed, done, row0, col0, r, c, 2, hit_lo, lo_min, lo_max,
-                  threshold):
-            flipped[n] = r * log_odds.shape[1] + c
-            n += 1
-    order = np.sort(flipped[:n])
-    cells = np.empty((n, 2), dtype=np.int64)
-    cells[:, 0] = order // log_odds.shape[1]
-    cells[:, 1] = order % log_odds.shape[1]
-    return cells
-
-
-@njit(cache=True, nogil=True)
-def _clear(  # type: ignore[no-untyped-def]
-    log_odds, observed, done, row0, col0, origin, ends, short, ray, miss_lo, lo_min, lo_max,
-    threshold, flipped, n,
-):
-    """The free-space part of `_update_cells`: the rays to `ends`, each but its last `short`
-    cells, clear every cell not done yet; flipped cells go on `flipped[n:]`, the new n is
-    returned."""
-    for i in range(ends.shape[0]):
-        count = trace_ray(ray, origin[0], origin[1], ends[i, 0], ends[i, 1])
-        for k in range(count - short):
-            r, c = ray[k, 0], ray[k, 1]
-            if _visit(log_odds, observed, done, row0, col0, r, c, 0, miss_lo, lo_min, lo_max,
-                      threshold):
-                flipped[n] = r * log_odds.shape[1] + c
-                n += 1
-    return n
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _visit(  # type: ignore[no-untyped-def]
-    log_odds, observed, done, row0, col0, r, c, waiting, delta, lo_min, lo_max, threshold
-):
-    """Update cell (r, c) by `delta`, clamped, if its scratch state is `waiting` (then it is
-    done: 1 after a miss, 3 after a hit); whether its occupied state flipped."""
-    if done[r - row0, c - col0] != waiting:
-        return False
-    done[r - row0, c - col0] = waiting + 1
-    before = observed[r, c] and log_odds[r, c] > threshold
-    value = min(max(log_odds[r, c] + delta, lo_min), lo_max)
-    log_odds[r, c] = value
-    observed[r, c] = True
-    return before != (value > threshold)
-
-
-@njit(cache=True, nogil=True)
-def _insert_many(  # type: ignore[no-untyped-def]
-    log_odds, observed, hit_xy, hit_n, origins, hits, hit_starts, misses, miss_starts, units,
-    miss_lo, hit_lo, lo_min, lo_max, threshold,
-):
-    """`_update_cells` then `_accumulate_hits` for each scan in turn, in storage cells: scan
-    s has origins[s], hits[hit_starts[s]:hit_starts[s + 1]] and likewise misses."""
-    box = np.empty(4, dtype=np.int64)
-    for s in range(origins.shape[0]):
-        h = hits[hit_starts[s]:hit_starts[s + 1]]
-        m = misses[miss_starts[s]:miss_starts[s + 1]]
-        if h.shape[0] == 0 and m.shape[0] == 0:
-            continue
-        box[0], box[1] = origins[s, 0], origins[s, 1]
-        box[2], box[3] = origins[s, 0], origins[s, 1]
-        for ends in (h, m):
-            for i in range(ends.shape[0]):
-                box[0], box[1] = min(box[0], ends[i, 0]), min(box[1], ends[i, 1])
-                box[2], box[3] = max(box[2], ends[i, 0]), max(box[3], ends[i, 1])
-        box[2] += 1
-        box[3] += 1
-        _update_cells(log_odds, observed, box, origins[s], h, m, miss_lo, hit_lo, lo_min,
-                      lo_max, threshold)
-        _accumulate_hits(hit_xy, hit_n, h[:, 0], h[:, 1], units[hit_starts[s]:hit_starts[s + 1]])
-
-
-@njit(cache=True)
-def _occupied_windows(log_odds, observed, threshold, boxes, row0, col0):  # type: ignore[no-untyped-def]
-    """See OccupancyGrid.occupied_in_boxes; (row0, col0) is the storage's first cell."""
-    sizes = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
-    starts = np.zeros(len(boxes) + 1, dtype=np.int64)
-    starts[1:] = np.cumsum(sizes)
-    out = np.zeros(starts[-1], dtype=np.bool_)
-    stored_rows, stored_cols = log_odds.shape
-    for k in range(len(boxes)):
-        width = boxes[k, 3] - boxes[k, 1]
-        for r in range(max(boxes[k, 0], row0), min(boxes[k, 2], row0 + stored_rows)):
-            at = starts[k] + (r - boxes[k, 0]) * width - boxes[k, 1]
-            sr = r - row0
-            for c in range(max(boxes[k, 1], col0), min(boxes[k, 3], col0 + stored_cols)):
-                out[at + c] = observed[sr, c - col0] and log_odds[sr, c - col0] > threshold
-    return out, starts
 
 
 def _quantised_hit_sums(
@@ -580,7 +411,7 @@ class OccupancyGrid:
         if self._storage is None:
             return np.zeros((0, 2))
         corner = np.array([frame.row0, frame.col0, frame.row0, frame.col0])
-        return _pooled_hit_means(
+        return pooled_hit_means(
             self._log_odds,
             self._observed,
             self._hit_xy,
@@ -633,7 +464,7 @@ class OccupancyGrid:
         changes dirty), where `occupied_in` per box would cost more in calls than in cells."""
         b = np.ascontiguousarray(boxes, dtype=np.int64).reshape(-1, 4)
         storage = self._storage or CellBox(0, 0, 0, 0)
-        return _occupied_windows(
+        return occupied_windows(
             self._log_odds,
             self._observed,
             np.float32(self.params.threshold_log_odds()),
@@ -724,7 +555,7 @@ class OccupancyGrid:
         corner = np.array([storage.row0, storage.col0])
         stored_hits = hit_cells - corner
         model = self._sensor_model()
-        flipped = _update_cells(
+        flipped = update_cells(
             self._log_odds,
             self._observed,
             np.array([box.row0, box.col0, box.row1, box.col1]) - np.tile(corner, 2),
@@ -736,7 +567,7 @@ class OccupancyGrid:
         # Fresh contiguous columns: numba compiles a strided view apart (a one-hit scan's is
         # also contiguous, so a view would compile twice).
         rows, cols = stored_hits[:, 0].copy(), stored_hits[:, 1].copy()
-        _accumulate_hits(self._hit_xy, self._hit_n, rows, cols, self._hit_units(hits, hit_cells))
+        accumulate_hits(self._hit_xy, self._hit_n, rows, cols, self._hit_units(hits, hit_cells))
 
         self._extent = box.union(self._extent)
         self.revision += 1
@@ -771,7 +602,7 @@ class OccupancyGrid:
         box = CellBox.around(np.concatenate((origin_cells[used], hit_cells, miss_ends)))
         storage = self._reserve(box)
         corner = np.array([storage.row0, storage.col0])
-        _insert_many(
+        insert_many(
             self._log_odds, self._observed, self._hit_xy, self._hit_n,
             origin_cells - corner, hit_cells - corner, b.hit_starts, miss_ends - corner,
             b.miss_starts, self._hit_units(b.hits, hit_cells), *self._sensor_model(),

@@ -13,9 +13,7 @@ from scanflow.maps.occupancy import (
     OccupancyParams,
     RayBatch,
     ScanRays,
-    _update_cells,
 )
-from scanflow.maps.raycast import ray_length, trace_ray
 
 
 def log_odds_at(grid: OccupancyGrid, xy) -> np.ndarray:
@@ -386,75 +384,3 @@ def test_from_arrays_checks_hit_sums():
         OccupancyGrid.from_arrays(lo, obs, box, 0.0, 0.0, hit_sums=np.zeros((3, 3, 2)))
     with pytest.raises(ValueError, match="hit_sums must be >= 0"):
         OccupancyGrid.from_arrays(lo, obs, box, 0.0, 0.0, hit_sums=-np.ones((3, 2, 3)))
-
-
-def masked_update(log_odds, observed, origin, hits, misses, params: OccupancyParams):
-    """The update as the grid made it before it touched only the beams' cells (until 2d18b1b):
-    boolean masks over the scan's whole bounding box, numpy arithmetic with the params as
-    Python floats. Storage cells; returns the flipped cells, row-major."""
-    every = np.concatenate((origin[None, :], hits, misses))
-    (r0, c0), (r1, c1) = every.min(axis=0), every.max(axis=0) + 1
-    free_mask = np.zeros((r1 - r0, c1 - c0), dtype=bool)
-    for ends, include_end in ((hits, False), (misses, True)):
-        for end in ends.tolist():
-            ray = np.empty((ray_length(*origin.tolist(), *end), 2), dtype=np.int64)
-            cells = ray[: trace_ray(ray, *origin.tolist(), *end)]  # test_raycast checks these
-            for r, c in cells if include_end else cells[:-1]:
-                free_mask[r - r0, c - c0] = True
-    hit_mask = np.zeros_like(free_mask)
-    hit_mask[hits[:, 0] - r0, hits[:, 1] - c0] = True
-    free_mask &= ~hit_mask
-    lo, ob = log_odds[r0:r1, c0:c1], observed[r0:r1, c0:c1]
-    threshold = params.threshold_log_odds()
-    before = ob & (lo > threshold)
-    lo[free_mask] += np.float32(params.miss_log_odds)
-    lo[hit_mask] += np.float32(params.hit_log_odds)
-    np.clip(lo, params.log_odds_min, params.log_odds_max, out=lo)
-    ob |= hit_mask | free_mask
-    rows, cols = np.nonzero(before != (ob & (lo > threshold)))
-    return np.column_stack((rows + r0, cols + c0))
-
-
-SIDE = 24
-cells_in = st.tuples(st.integers(0, SIDE - 1), st.integers(0, SIDE - 1))
-
-
-@settings(max_examples=300, deadline=None)
-@given(
-    seed=st.integers(0, 2**32 - 1),
-    origin=cells_in,
-    hits=st.lists(cells_in, max_size=40),
-    misses=st.lists(cells_in, max_size=10),
-    p_hit=st.floats(0.51, 0.99),
-    p_miss=st.floats(0.01, 0.49),
-    threshold=st.floats(0.05, 0.95),
-)
-def test_the_beams_cells_update_equals_the_bounding_box_masks_bit_for_bit(
-    seed, origin, hits, misses, p_hit, p_miss, threshold
-):
-    """Same log-odds bits, observed cells and flipped cells, on a grid whose values sit at the
-    clamps, at the threshold itself and a float32 step either side of it."""
-    params = OccupancyParams(p_hit=p_hit, p_miss=p_miss, occupied_threshold=threshold,
-                             log_odds_min=-1.5, log_odds_max=2.0)
-    at = np.float32(params.threshold_log_odds())
-    values = np.array([-1.5, 2.0, 0.0, at, np.nextafter(at, np.float32(9)),
-                       np.nextafter(at, np.float32(-9)), at - np.float32(params.hit_log_odds),
-                       at - np.float32(params.miss_log_odds)], dtype=np.float32)
-    rng = np.random.default_rng(seed)
-    log_odds = np.clip(rng.choice(values, (SIDE, SIDE)), -1.5, 2.0).astype(np.float32)
-    observed = rng.random((SIDE, SIDE)) < 0.7
-    o, h = np.array(origin, np.int64), np.array(hits, np.int64).reshape(-1, 2)
-    m = np.array(misses, np.int64).reshape(-1, 2)
-    want_lo, want_ob = log_odds.copy(), observed.copy()
-    want = masked_update(want_lo, want_ob, o, h, m, params)
-    every = np.concatenate((o[None, :], h, m))
-    box = np.concatenate((every.min(axis=0), every.max(axis=0) + 1))
-    got = _update_cells(
-        log_odds, observed, box, o, h, m, *(np.float32(v) for v in (
-            params.miss_log_odds, params.hit_log_odds, params.log_odds_min,
-            params.log_odds_max, params.threshold_log_odds(),
-        )),
-    )
-    assert log_odds.tobytes() == want_lo.tobytes()
-    np.testing.assert_array_equal(observed, want_ob)
-    np.testing.assert_array_equal(got, want)
