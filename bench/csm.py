@@ -21,7 +21,7 @@ import numpy as np
 from scanflow.io.carmen import load_keyframes
 from scanflow.maps.maxpool import MaxPoolStack
 from scanflow.matching import match
-from scanflow.matching.csm import build_candidates, search, stack_depth
+from scanflow.matching.csm_search import build_candidates, search, stack_depth
 from scanflow.matching.field_cost import points_field
 
 from bench.data import corrected_log

@@ -17,7 +17,7 @@ METHOD_KERNELS = {
     "scanflow.matching.covariance": ["_censi_terms"],
     "scanflow.matching.icp": ["_icp_kernel"],
     "scanflow.matching.ndt": ["_ndt_accumulate"],
-    "scanflow.matching.csm": ["_branch_and_bound", "_exhaustive"],
+    "scanflow.matching.csm_search": ["_branch_and_bound", "_exhaustive"],
 }
 
 SCRIPT = """

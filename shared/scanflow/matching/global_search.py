@@ -32,7 +32,7 @@ from scanflow.matching.api import (
     match,
     register_method,
 )
-from scanflow.matching.csm import (
+from scanflow.matching.csm_search import (
     MAX_TOP_CANDIDATES,
     build_candidates,
     check_search_size,

@@ -281,13 +281,3 @@ def test_a_search_that_found_a_pose_is_a_start_for_its_callers_whatever_its_cond
                match(scan + 1e6, room_map_points, method="csm")]
     assert [r.status for r in nothing] == [MatchStatus.TOO_FEW_POINTS, MatchStatus.NO_OVERLAP]
     assert not any(found_a_pose(r) for r in nothing)
-
-
-def test_the_search_kernels_let_other_threads_run() -> None:
-    """A wide search is seconds in one compiled call: it must not hold the GIL meanwhile (the
-    matcher answers a match request on one thread while another tracks every robot)."""
-    from scanflow.maps import maxpool
-    from scanflow.matching import csm
-
-    for kernel in (csm._exhaustive, csm._branch_and_bound, maxpool._quantise_into, maxpool._pool):
-        assert kernel.targetoptions.get("nogil") is True, kernel.py_func.__name__
