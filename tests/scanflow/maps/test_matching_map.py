@@ -12,7 +12,8 @@ from scanflow.maps.field import LikelihoodField
 from scanflow.maps.grid import CellBox, tile_boxes
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.maxpool import MaxPoolStack
-from scanflow.maps.ndt_cells import NDTCells, OverlappingCells, regularised_inverse
+from scanflow.maps.ndt_cells import NDTCells, OverlappingCells
+from scanflow.maps.ndt_moments import regularised_inverse
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
 from scanflow.maps.pyramid import TILE_CELLS
 from scanflow.matching import MatchStatus, match

@@ -2,13 +2,8 @@
 
 import numpy as np
 import pytest
-from scanflow.maps.ndt_cells import (
-    EIGEN_FLOOR_M2,
-    EIGEN_FLOOR_RATIO,
-    MIN_CELL_POINTS,
-    NDTCells,
-    OverlappingCells,
-)
+from scanflow.maps.ndt_cells import MIN_CELL_POINTS, NDTCells, OverlappingCells
+from scanflow.maps.ndt_moments import EIGEN_FLOOR_M2, EIGEN_FLOOR_RATIO
 
 
 def test_cells_hold_the_mean_and_inverse_covariance_of_their_points() -> None:
