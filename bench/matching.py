@@ -32,6 +32,10 @@ matches, so its spread bounds the direct match's own error from above; set next 
 matches' spread against the corrected poses, it shows how much of that is the matcher's.
 Odometry is left out: its chain equals its direct guess by construction. An error shared by
 every match of one scan (a distortion of the scan itself) cancels in the chain and is not seen.
+For a scanflow method the chain also splits its silently wrong share: "confirmed" where the
+chain is beyond 10 cm / 1 deg of the direct match as well (the matcher's own failures, or the
+chain's), "contra" where it agrees within 5 cm / 0.5 deg (the corrected poses' own error is the
+likelier cause: two independent estimates agree against them).
 """
 
 from __future__ import annotations
@@ -46,6 +50,7 @@ from dataclasses import dataclass
 from functools import reduce
 from operator import mul
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -149,9 +154,16 @@ def pose_of(estimate: Pose2D | MatchResult) -> Pose2D:
     return estimate.pose if isinstance(estimate, MatchResult) else estimate
 
 
-def run_matcher(
-    name: str, fn: Matcher, pairs: list[Pair], guesses: list[Pose2D]
-) -> tuple[dict, list[Pose2D]]:
+class Run(NamedTuple):
+    """One matcher over the pairs: its summary, its poses and, for a scanflow method, which
+    results were trusted (status ok); None for a peer or the odometry."""
+
+    summary: dict
+    poses: list[Pose2D]
+    trusted: NDArray[np.bool_] | None
+
+
+def run_matcher(name: str, fn: Matcher, pairs: list[Pair], guesses: list[Pose2D]) -> Run:
     """Errors and timing of one matcher over the pairs (with the given guesses), and its poses."""
     fn(pairs[0].source, pairs[0].target, guesses[0])  # warm-up, untimed
     trans, rot, times, cpu, trusted, poses = [], [], [], [], [], []
@@ -171,14 +183,19 @@ def run_matcher(
     out = summarise(trans_m, rot_deg, np.array(times), np.array(cpu))
     if trusted:
         out.update(trust_shares(trans_m, rot_deg, np.array(trusted)))
-    return out, poses
+    return Run(out, poses, np.array(trusted) if trusted else None)
 
 
 def closure(
     name: str, fn: Matcher, pairs: list[Pair], direct: list[Pose2D], frames: list[Frame],
-    gap: int,
+    gap: int, trusted: NDArray[np.bool_] | None = None,
 ) -> dict[str, float]:
-    """Agreement of each direct match with the chain of next-scan matches spanning its pair."""
+    """Agreement of each direct match with the chain of next-scan matches spanning its pair.
+
+    With `trusted` (the direct matches' ok flags), the silently wrong ones (trusted, beyond
+    10 cm / 1 deg of the truth) are split by the chain: "confirmed" when the chain is beyond
+    10 cm / 1 deg of the direct match too, "chain agrees" when it is within 5 cm / 0.5 deg (then
+    the truth's own error is the likelier cause)."""
     steps: dict[int, Pose2D] = {}
     for i in tqdm(sorted({p.first + k for p in pairs for k in range(gap)}), desc=f"{name} chain",
                   file=sys.stderr, leave=False):
@@ -190,6 +207,16 @@ def closure(
     out.update(trans_p50_m=float(np.median(apart[:, 0])), rot_p50_deg=float(np.median(apart[:, 1])))
     out.update(spread("closure", chains, direct))
     out.update(spread("truth", [p.truth for p in pairs], direct))
+    if trusted is not None:
+        tight, loose = THRESHOLDS
+        off = np.array([errors(p.truth, d) for p, d in zip(pairs, direct, strict=True)])
+        silent = trusted & ~within(off[:, 0], off[:, 1], loose)
+        out.update(
+            silently_wrong_confirmed=float(np.mean(silent & ~within(apart[:, 0], apart[:, 1],
+                                                                    loose))),
+            silently_wrong_chain_agrees=float(np.mean(silent & within(apart[:, 0], apart[:, 1],
+                                                                      tight))),
+        )
     return out
 
 
@@ -285,19 +312,26 @@ def format_table(results: dict[str, dict]) -> str:
 
 
 def format_closure(closures: dict[str, dict[str, float]], gap: int) -> str:
-    """The closure table: direct matches against their chains, and against the truth."""
+    """The closure table: direct matches against their chains, and against the truth; for a
+    scanflow method, its silently wrong share split by what the chain says."""
     lines = [
         f"\nclosure: direct match vs the chain of {gap} next-scan matches (no ground truth);"
-        " robust sigma per axis",
+        " robust sigma per axis; silently wrong (trusted, beyond 10cm/1d of the truth) that the"
+        " chain confirms (beyond 10cm/1d of it too) / contradicts (within 5cm/0.5d of it)",
         f"{'matcher':<18} {'5cm/0.5d':>8} {'10cm/1d':>8} {'t50 m':>7} {'r50 deg':>7} "
-        f"{'sig mm':>7} {'sig deg':>7} {'vs truth: sig mm':>17} {'sig deg':>7}",
+        f"{'sig mm':>7} {'sig deg':>7} {'vs truth: sig mm':>17} {'sig deg':>7} "
+        f"{'confirmed':>9} {'contra':>7}",
     ]
     for name, c in closures.items():
+        split = (
+            f"{c['silently_wrong_confirmed']:>9.1%} {c['silently_wrong_chain_agrees']:>7.1%}"
+            if "silently_wrong_confirmed" in c else f"{'-':>9} {'-':>7}"
+        )
         lines.append(
             f"{name:<18} {c['agree_5cm_0.5deg']:>8.1%} {c['agree_10cm_1deg']:>8.1%} "
             f"{c['trans_p50_m']:>7.3f} {c['rot_p50_deg']:>7.2f} "
             f"{c['closure_sigma_xy_m'] * 1e3:>7.1f} {c['closure_sigma_deg']:>7.3f} "
-            f"{c['truth_sigma_xy_m'] * 1e3:>17.1f} {c['truth_sigma_deg']:>7.3f}"
+            f"{c['truth_sigma_xy_m'] * 1e3:>17.1f} {c['truth_sigma_deg']:>7.3f} {split}"
         )
     return "\n".join(lines)
 
@@ -364,9 +398,10 @@ def main(argv: list[str] | None = None) -> None:
     results: dict[str, dict] = {}
     closures: dict[str, dict[str, float]] = {}
     for name, fn in runners.items():
-        results[name], poses = run_matcher(name, fn, pairs, odom)
+        run = run_matcher(name, fn, pairs, odom)
+        results[name] = run.summary
         if args.closure and name != "odometry":
-            closures[name] = closure(name, fn, pairs, poses, frames, args.gap)
+            closures[name] = closure(name, fn, pairs, run.poses, frames, args.gap, run.trusted)
     robust: dict[str, dict[str, float]] = {}
     robust_trust: dict[str, dict[str, dict[str, float]]] = {}
     if args.robust_pairs > 0:
@@ -378,7 +413,7 @@ def main(argv: list[str] | None = None) -> None:
             guesses = perturbed_guesses(subset, metres, degrees, args.seed)
             for name, fn in runners.items():
                 if name != "odometry":
-                    r, _ = run_matcher(f"{name} {key}", fn, subset, guesses)
+                    r = run_matcher(f"{name} {key}", fn, subset, guesses).summary
                     robust.setdefault(name, {})[key] = r["ok_10cm_1deg"]
                     if "trusted" in r:
                         robust_trust.setdefault(name, {})[key] = {

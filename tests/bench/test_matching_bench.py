@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from scanflow.geometry import Pose2D
+from scanflow.matching import MatchResult, MatchStatus
 from scanflow.sim import SimConfig, simulate
 
 from bench.data import corrected_log
@@ -62,7 +63,7 @@ def test_keyframe_pairs_index_truth_and_guess() -> None:
 def test_closure_of_a_consistent_matcher_is_exact() -> None:
     frames = frames_along(tour(13))
     pairs = keyframe_pairs(frames, 3, 1, None)
-    _, direct = run_matcher("odometry", odometry_matcher, pairs, [p.guess for p in pairs])
+    direct = run_matcher("odometry", odometry_matcher, pairs, [p.guess for p in pairs]).poses
     c = closure("odometry", odometry_matcher, pairs, direct, frames, 3)
     assert c["agree_5cm_0.5deg"] == c["agree_10cm_1deg"] == 1.0
     assert c["trans_p50_m"] < 1e-9 and c["rot_p50_deg"] < 1e-9
@@ -78,13 +79,40 @@ def test_closure_sees_a_bias_that_accumulates_along_the_chain() -> None:
 
     frames = frames_along(tour(13))
     pairs = keyframe_pairs(frames, 3, 1, None)
-    summary, direct = run_matcher("biased", biased, pairs, [p.guess for p in pairs])
+    summary, direct, _ = run_matcher("biased", biased, pairs, [p.guess for p in pairs])
     assert summary["rot_p50_deg"] == pytest.approx(0.3)
     c = closure("biased", biased, pairs, direct, frames, 3)
     assert c["rot_p50_deg"] == pytest.approx(0.6)
     assert c["agree_5cm_0.5deg"] == 0.0 and c["agree_10cm_1deg"] == 1.0
     # A constant offset has no spread, against the chains or against the truth.
     assert c["closure_sigma_deg"] < 1e-9 and c["truth_sigma_deg"] < 1e-9
+
+
+def test_the_chain_splits_the_silently_wrong_share() -> None:
+    """The corrected pose of keyframe 6 is 0.3 m off (the real motion is the odometry's): the
+    two pairs through it are silently wrong, but their chains agree with them. The direct match
+    of pair 9 -> 12 is 0.5 m off while its chain is right: confirmed."""
+    poses = tour(13)
+    frames = [Frame(f.points, f.true_pose * Pose2D(0.3, 0.0, 0.0) if k == 6 else f.true_pose,
+                    f.odom_pose) for k, f in enumerate(frames_along(poses))]
+
+    def at_guess(src: np.ndarray, tgt: np.ndarray, guess: Pose2D) -> MatchResult:
+        first, last = int(tgt[0, 0]) - 1, int(src[0, 0]) - 1  # frames_along's scan markers
+        wrong = (first, last) == (9, 12)
+        pose = guess * Pose2D(0.5, 0.0, 0.0) if wrong else guess
+        return MatchResult(pose, np.eye(3), 1.0, 1, True, MatchStatus.OK, "at_guess")
+
+    pairs = keyframe_pairs(frames, 3, 1, None)
+    assert [p.first for p in pairs] == [0, 3, 6, 9]
+    run = run_matcher("at_guess", at_guess, pairs, [p.guess for p in pairs])
+    assert run.summary["silently_wrong"] == 0.75 and run.trusted.all()
+    c = closure("at_guess", at_guess, pairs, run.poses, frames, 3, run.trusted)
+    assert c["silently_wrong_confirmed"] == 0.25
+    assert c["silently_wrong_chain_agrees"] == 0.5
+    untrusted = closure("at_guess", at_guess, pairs, run.poses, frames, 3, np.zeros(4, bool))
+    assert untrusted["silently_wrong_confirmed"] == untrusted["silently_wrong_chain_agrees"] == 0
+    assert "silently_wrong_confirmed" not in closure("at_guess", at_guess, pairs, run.poses,
+                                                     frames, 3)
 
 
 def test_simulated_keyframes_carry_exact_truth_and_the_wheel_odometry() -> None:
@@ -138,6 +166,8 @@ def test_bench_matching_json_with_closure_on_real_pairs() -> None:
     assert 0.0 <= c["agree_5cm_0.5deg"] <= c["agree_10cm_1deg"] <= 1.0
     assert all(math.isfinite(c[k]) and c[k] >= 0 for k in
                ("closure_sigma_xy_m", "closure_sigma_deg", "truth_sigma_xy_m", "truth_sigma_deg"))
+    split = c["silently_wrong_confirmed"] + c["silently_wrong_chain_agrees"]
+    assert 0.0 <= split <= report["results"]["plicp"]["silently_wrong"]
 
 
 def test_bench_matching_json_on_simulated_campus_pairs() -> None:
