@@ -62,7 +62,7 @@ from scanflow.sim import WORLDS, SimConfig, simulate
 from tqdm import tqdm
 
 from bench.lidar import add_lidar_option, sim_lidar_fields
-from bench.peers import available_peers
+from bench.peers import load_peers
 
 THRESHOLDS = ((0.05, 0.5), (0.10, 1.0))  # (metres, degrees)
 ROBUST_LEVELS = ((0.1, 5.0), (0.3, 15.0), (1.0, 30.0))
@@ -279,18 +279,26 @@ def perturbed_guesses(pairs: list[Pair], metres: float, degrees: float, seed: in
     ]
 
 
-def matchers(methods: list[str], peers: list[str]) -> dict[str, Matcher]:
-    """The matchers by name: scanflow `methods` (or odometry) and the installed `peers`; the
-    missing peers are named on stderr."""
-    found = available_peers()
-    missing = [p for p in peers if p not in found]
-    if missing:
-        print(f"peers not installed (pip install -e .[bench]): {missing}", file=sys.stderr)
+def matchers(
+    methods: list[str], peers: list[str] | None
+) -> tuple[dict[str, Matcher], dict[str, str]]:
+    """The matchers by name: scanflow `methods` (or odometry) and the `peers` (None: every one
+    that loads); and the peer libraries installed but not loaded, with why. Those, and a named
+    peer that is not available, are reported on stderr."""
+    loaded = load_peers()
+    wanted = list(loaded.found) if peers is None else peers
+    absent = [p for p in wanted if p not in loaded.found]
+    if peers is None or absent:
+        for library, reason in loaded.missing.items():
+            print(f"peer library {library} not loaded, its peers left out: {reason}",
+                  file=sys.stderr)
+    if absent:
+        print(f"peers not available (pip install -e .[bench]): {absent}", file=sys.stderr)
     out: dict[str, Matcher] = {}
     for m in methods:
         out[m] = odometry_matcher if m == "odometry" else scanflow_matcher(m)
-    out.update({p: found[p] for p in peers if p in found})
-    return out
+    out.update({p: loaded.found[p] for p in wanted if p in loaded.found})
+    return out, loaded.missing
 
 
 def format_table(results: dict[str, dict]) -> str:
@@ -377,7 +385,6 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--closure needs --gap >= 2 (a chain of next-scan matches), got {args.gap}")
     if args.sim_every < 1:
         parser.error(f"--sim-every must be >= 1, got {args.sim_every}")
-    peers = list(available_peers()) if args.peers is None else args.peers
     if args.sim:
         try:
             config = SimConfig(
@@ -393,7 +400,7 @@ def main(argv: list[str] | None = None) -> None:
     pairs = keyframe_pairs(frames, args.gap, args.stride, args.limit, start_step)
     if not pairs:
         parser.error(f"{label} gives no pairs at gap {args.gap}")
-    runners = matchers(args.methods, peers)
+    runners, peers_not_loaded = matchers(args.methods, args.peers)
     odom = [p.guess for p in pairs]
     results: dict[str, dict] = {}
     closures: dict[str, dict[str, float]] = {}
@@ -424,6 +431,7 @@ def main(argv: list[str] | None = None) -> None:
         "start_step": start_step, "pairs": len(pairs),
         "default_method": DEFAULT_METHOD, "results": results, "robustness_ok_10cm_1deg": robust,
         "robustness_trust": robust_trust, "closure": closures,
+        "peer_libraries_not_loaded": peers_not_loaded,
     }
     if args.sim:
         report["sim"] = {"world": args.sim, "duration_s": args.sim_duration_s,

@@ -4,14 +4,16 @@ Every adapter takes (source (N,2), target (M,2), guess Pose2D T_target_source) a
 estimated Pose2D. The 3D libraries get the 2D points as 3D clouds; plane ICP and the GICP family
 need a non-degenerate 3D neighbourhood (a flat slice has no usable covariance or normal), so for
 them each 2D point is extruded into three copies at z = -0.1, 0, +0.1 m. The result's rotation
-is projected back to the plane (yaw = atan2(R10, R00)). Peers are optional: `available_peers()`
-lists those whose library imports (pip install -e .[bench]).
+is projected back to the plane (yaw = atan2(R10, R00)). Peers are optional (pip install -e
+.[bench]): `load_peers()` gives those whose library imports and, for the others, why not.
+Open3D's wheel needs libusb-1.0 from the system (Debian: apt-get install libusb-1.0-0).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -102,12 +104,28 @@ def _small_gicp_peers() -> dict[str, PeerFn]:
     }
 
 
-def available_peers() -> dict[str, PeerFn]:
-    """Every peer whose library is installed, by name."""
-    peers: dict[str, PeerFn] = {}
-    for loader in (_open3d_peers, _small_gicp_peers):
+LIBRARIES: dict[str, Callable[[], dict[str, PeerFn]]] = {
+    "open3d": _open3d_peers,
+    "small_gicp": _small_gicp_peers,
+}
+
+
+class Peers(NamedTuple):
+    """The peers whose library loaded, by name, and why each other library did not load."""
+
+    found: dict[str, PeerFn]
+    missing: dict[str, str]  # library -> the import error, e.g. a system library it lacks
+
+
+def load_peers() -> Peers:
+    """Every peer of every library that imports. A library that is installed but cannot load
+    (Open3D without libusb-1.0 on the machine, say) is reported with its error, not dropped
+    silently from the comparison."""
+    found: dict[str, PeerFn] = {}
+    missing: dict[str, str] = {}
+    for library, loader in LIBRARIES.items():
         try:
-            peers.update(loader())
-        except ImportError:
-            continue
-    return peers
+            found.update(loader())
+        except ImportError as exc:  # OSError from a missing .so surfaces as ImportError
+            missing[library] = f"{type(exc).__name__}: {exc}"
+    return Peers(found, missing)

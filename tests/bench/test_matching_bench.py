@@ -162,6 +162,7 @@ def test_bench_matching_json_with_closure_on_real_pairs() -> None:
     assert report["pairs"] == 4 and report["start_step"] == 1
     assert set(report["results"]) == {"odometry", "plicp"}
     assert set(report["closure"]) == {"plicp"}  # odometry's chain is its guess
+    assert isinstance(report["peer_libraries_not_loaded"], dict)
     c = report["closure"]["plicp"]
     assert 0.0 <= c["agree_5cm_0.5deg"] <= c["agree_10cm_1deg"] <= 1.0
     assert all(math.isfinite(c[k]) and c[k] >= 0 for k in
