@@ -130,14 +130,13 @@ def masked_update(log_odds, observed, origin, hits, misses, params: OccupancyPar
     """The update as the grid made it before it touched only the beams' cells (until 2d18b1b):
     boolean masks over the scan's whole bounding box, numpy arithmetic with the params as
     Python floats. Storage cells; returns the flipped cells, row-major."""
-    every = np.concatenate((origin[None, :], hits, misses))
-    (r0, c0), (r1, c1) = every.min(axis=0), every.max(axis=0) + 1
+    r0, c0, r1, c1 = box_of(origin, hits, misses)
     free_mask = np.zeros((r1 - r0, c1 - c0), dtype=bool)
     for ends, include_end in ((hits, False), (misses, True)):
         for end in ends.tolist():
             ray = np.empty((ray_length(*origin.tolist(), *end), 2), dtype=np.int64)
-            cells = ray[: trace_ray(ray, *origin.tolist(), *end)]  # test_raycast checks these
-            for r, c in cells if include_end else cells[:-1]:
+            passed = ray[: trace_ray(ray, *origin.tolist(), *end)]  # test_raycast checks these
+            for r, c in passed if include_end else passed[:-1]:
                 free_mask[r - r0, c - c0] = True
     hit_mask = np.zeros_like(free_mask)
     hit_mask[hits[:, 0] - r0, hits[:, 1] - c0] = True
@@ -185,10 +184,8 @@ def test_the_beams_cells_update_equals_the_bounding_box_masks_bit_for_bit(
     m = np.array(misses, np.int64).reshape(-1, 2)
     want_lo, want_ob = log_odds.copy(), observed.copy()
     want = masked_update(want_lo, want_ob, o, h, m, params)
-    every = np.concatenate((o[None, :], h, m))
-    box = np.concatenate((every.min(axis=0), every.max(axis=0) + 1))
     got = update_cells(
-        log_odds, observed, box, o, h, m, *(np.float32(v) for v in (
+        log_odds, observed, box_of(o, h, m), o, h, m, *(np.float32(v) for v in (
             params.miss_log_odds, params.hit_log_odds, params.log_odds_min,
             params.log_odds_max, params.threshold_log_odds(),
         )),
