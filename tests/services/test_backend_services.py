@@ -18,12 +18,7 @@ from scanflow.geometry import Pose2D
 from scanflow.maps.export import save_npz
 from scanflow.pipeline import Pipeline
 from scanflow.scan import LaserScan
-from scanflow.wire import (
-    InitialPoseMessage,
-    MapInsertMessage,
-    MapRedrawMessage,
-    PoseEstimateMessage,
-)
+from scanflow.wire import InitialPoseMessage, MapInsertMessage, MapRedrawMessage
 
 from services.ingest.sources import source_events
 
@@ -207,33 +202,6 @@ def test_a_map_server_killed_before_the_redraw_catches_up_and_follows_it(
     assert mapserver.counters[caught_up] > 0, mapserver.counters
     assert mapserver.counters["redrawn"] == len(expected_redraws)
     assert "inserts_lost" not in mapserver.counters and "errors.insert" not in mapserver.counters
-
-
-def test_a_redraw_the_map_server_cannot_follow_is_counted_and_the_map_kept(launcher, bus, start):
-    """A map server without loop closure (a misconfigured deployment) refuses the matcher's
-    redraw, naming the setting, and keeps serving the map it had."""
-    start("mapserver")
-    insert_key = keys.map_key("robot", "insert")
-    scan = MapInsertMessage("robot", 0, 0.0, Pose2D(), np.array([[2.0, 0.0], [2.0, 0.5]]),
-                            np.zeros((0, 2)))
-    bus.put(insert_key, scan.encode())
-    bus.put(keys.pose("robot"), PoseEstimateMessage(
-        "robot", 0, 0.0, Pose2D(), np.eye(3), "tracked", "gn", 1, 1.0).encode())
-    bus.put(insert_key, MapRedrawMessage(
-        "robot", 0, Pose2D(0.5, 0.0, 0.0), np.array([0]), np.array([[0.5, 0.0, 0.0]]),
-        np.zeros(1), np.array([[0.5, 0.0, 0.0]])).encode())
-    bus.wait_until(
-        lambda: bus.stats("mapserver").counters.get("errors.insert", 0) == 1, 30.0,
-        "the redraw refused",
-    )
-    # The pose comes on a key of its own: it may be handled after the redraw.
-    bus.wait_until(lambda: bus.stats("mapserver").gauges.get("seq.robot/pose.last") == 0,
-                   10.0, "the pose handled")
-    (path,) = bus.get(keys.trajectory("robot"))
-    np.testing.assert_array_equal(path.poses, [[0.0, 0.0, 0.0]])
-    # The error is counted just before it is logged: wait for the line too.
-    bus.wait_until(lambda: "keeps no keyframes" in launcher.log_text("mapserver"), 10.0,
-                   "the refusal in the map server's log")
 
 
 def test_a_restarted_matcher_resumes_loop_closure_from_the_map_servers_keyframes(

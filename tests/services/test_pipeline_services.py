@@ -191,14 +191,6 @@ def test_an_operators_pose_on_the_bus_starts_the_robot_there(on_prior_map):
     assert_same_poses(poses, expected)
 
 
-def test_a_bad_prior_map_stops_the_matcher_naming_it(launcher, tmp_path):
-    missing = tmp_path / "nowhere.npz"
-    proc = launcher.start("matcher", SCANFLOW_FRONTEND_PRIOR_MAP=str(missing))
-    proc.wait(60.0)
-    assert proc.returncode != 0
-    assert f"prior_map: no file at {missing}" in launcher.log_text("matcher")
-
-
 def test_full_inboxes_hold_the_pipeline_back_without_deadlock(launcher, bus, start):
     """Inboxes far smaller than the credit window fill up and block their Zenoh links: deskew
     waits on the matcher (scans) while the matcher waits to publish the poses deskew takes

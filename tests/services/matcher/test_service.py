@@ -1,4 +1,4 @@
-"""Matcher pieces on a real, isolated Zenoh session (a peer with no endpoints)."""
+"""The matcher service: robots, resumes, resends and requests; a bad prior map stops it."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ import time
 import numpy as np
 import pytest
 from scanflow import keys
-from scanflow.backend import Mapper, SavedRun
+from scanflow.backend import Mapper
 from scanflow.backend.loops import ScanNode, draw_keyframes
 from scanflow.config import BackendSettings, FrontendSettings, MatcherSettings, ZenohSettings
-from scanflow.frontend import Frontend, FrontendOutput, FrontendStatus
+from scanflow.frontend import Frontend
 from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.maps.export import grid_from_npz_bytes, npz_arrays, save_npz, write_npz
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
@@ -34,8 +34,7 @@ from services.common.keyframes import keyframes_message
 from services.common.resend import FIRST, resend_selector
 from services.common.robots import RobotLimitError
 from services.matcher import service as service_module
-from services.matcher.recent import RecentInserts, keyframe_inserts, map_state
-from services.matcher.requests import answer
+from services.matcher.recent import RecentInserts
 from services.matcher.service import MatcherService
 
 LOOP_CLOSURE = BackendSettings.model_construct(loop_closure=True)
@@ -170,103 +169,6 @@ def test_a_robot_resumes_from_the_map_servers_one_answer_or_says_why_not(
         service.shell.close(flush_s=0.0)
 
 
-def test_recent_inserts_send_a_chain_again_or_name_what_they_keep() -> None:
-    recent = RecentInserts(3)
-    assert recent.last_seq is None
-    for seq, previous in ((0, None), (3, 0), (5, 3), (9, 5)):
-        recent.add(seq, previous, f"insert {seq}".encode())
-    assert recent.last_seq == 9
-    assert recent.between(0, 9) == [b"insert 3", b"insert 5", b"insert 9"]
-    assert recent.between(3, 5) == [b"insert 5"]
-    with pytest.raises(LookupError, match=r"after seq -1 through 3 .* seqs 3\.\.9"):
-        recent.between(-1, 3)  # the run's first is no longer kept
-    with pytest.raises(LookupError, match="through 7"):
-        recent.between(5, 7)  # no insert of seq 7
-    with pytest.raises(LookupError, match="the last 0 inserts: none"):
-        RecentInserts(0).between(-1, 0)
-
-
-def test_inserts_past_the_recent_ones_come_from_the_back_ends_keyframes() -> None:
-    """Without culling, every insert of a robot tracked with loop closure is a keyframe:
-    rebuilt at the pose it is drawn at, chained by seq; seqs it does not hold are named."""
-    seqs, poses = [2, 5, 9], np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.1], [2.0, 0.5, 0.2]])
-    nodes = [ScanNode(0.1 * s, np.full((3, 2), s, float), np.zeros((1, 2)), Pose2D(0.1, 0, 0))
-             for s in seqs]
-    saved = SavedRun(nodes, seqs, poses, np.array([0.2, 0.5, 0.9]), poses)
-    mapper = Mapper(Frontend(FrontendSettings()), LOOP_CLOSURE, saved)
-    inserts, culled = keyframe_inserts(mapper, "r", 2, 9)
-    assert [(m.seq, m.previous_seq) for m in inserts] == [(5, 2), (9, 5)] and culled == 0
-    assert [m.pose for m in inserts] == [Pose2D.from_array(p) for p in poses[1:]]
-    assert all(m.keyframe for m in inserts)
-    np.testing.assert_array_equal(inserts[1].points, nodes[2].points)
-    assert inserts[0].mount == Pose2D(0.1, 0, 0) and inserts[0].stamp_s == 0.5
-    assert [m.previous_seq for m in keyframe_inserts(mapper, "r", -1, 2)[0]] == [None]
-    with pytest.raises(LookupError, match=r"keyframes \(3: seqs 2\.\.9\) .* seq 10 \(through\)"):
-        keyframe_inserts(mapper, "r", 2, 10)
-
-
-@pytest.mark.parametrize("culled_first", [True, False], ids=["culled first", "keyframe first"])
-def test_a_resumed_back_end_takes_an_unknown_seq_from_before_its_restart(
-    culled_first: bool,
-) -> None:
-    """A resumed back end knows no culled seqs from before the restart: a map server whose
-    last insert is one of them (seq 11, culled then) is sent the keyframes after it. Seqs
-    since the restart (its first insert a culled one or a keyframe) must be known (13: no
-    insert)."""
-    seqs, poses = [2, 5, 9], np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.1], [2.0, 0.5, 0.2]])
-    nodes = [ScanNode(0.1 * s, np.full((3, 2), s, float), np.zeros((1, 2)), IDENTITY)
-             for s in seqs]
-    saved = SavedRun(nodes, seqs, poses, np.array([0.2, 0.5, 0.9]), poses)
-    mapper = Mapper(Frontend(FrontendSettings()), CULLING, saved)
-    assert mapper.resumed_keyframes == 3
-    assert keyframe_inserts(mapper, "r", 7, 9)[0][0].previous_seq == 7  # none since: any
-    far = [5.0, 0.0, 0.0]
-    for seq, pose in ((12, poses[2]), (14, far)) if culled_first else ((12, far), (14, far)):
-        mapper.add(_tracked(seq, Pose2D.from_array(pose)), nodes[0].points)
-    new, culled_seq = (14, 12) if culled_first else (12, 14)
-    assert mapper.keyframe_seqs == [2, 5, 9, new] and list(mapper.culled_seqs) == [culled_seq]
-    inserts, culled = keyframe_inserts(mapper, "r", 11, 14)
-    assert [(m.seq, m.previous_seq) for m in inserts] == [(new, 11)] and culled == 1
-    with pytest.raises(LookupError, match=r"seq 13 \(after\)"):
-        keyframe_inserts(mapper, "r", 13, 14)
-    fresh = Mapper(Frontend(FrontendSettings()), CULLING)  # not resumed: every seq is known
-    fresh.add(_tracked(0, IDENTITY), nodes[0].points)
-    with pytest.raises(LookupError, match=r"seq -3 \(after\)"):
-        keyframe_inserts(fresh, "r", -3, 0)
-
-
-def test_inserts_culled_as_keyframes_are_left_out_and_counted() -> None:
-    """Parked at two places (culling on): seqs 0 and 3 are keyframes, 1, 2 and 4 hang from
-    them. A resend rebuilds the keyframes, chained from `after` across the culled ones, and
-    says how many culled inserts it lacks; it accepts a culled seq at either end."""
-    mapper = Mapper(Frontend(FrontendSettings()), CULLING)
-    points = np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
-    for seq, x in enumerate((0.0, 0.0, 0.0, 1.0, 1.0)):
-        mapper.add(_tracked(seq, Pose2D(x, 0.0, 0.0)), points)
-    assert mapper.keyframe_seqs == [0, 3] and list(mapper.culled_seqs) == [1, 2, 4]
-    inserts, culled = keyframe_inserts(mapper, "r", 0, 4)
-    assert [(m.seq, m.previous_seq) for m in inserts] == [(3, 0)] and culled == 3
-    inserts, culled = keyframe_inserts(mapper, "r", 1, 3)
-    assert [(m.seq, m.previous_seq) for m in inserts] == [(3, 1)] and culled == 1
-    inserts, culled = keyframe_inserts(mapper, "r", -1, 2)
-    assert [(m.seq, m.previous_seq) for m in inserts] == [(0, None)] and culled == 2
-    assert keyframe_inserts(mapper, "r", 1, 2) == ([], 1)
-    with pytest.raises(LookupError, match=r"culled inserts \(3\) do not hold seq 5"):
-        keyframe_inserts(mapper, "r", 0, 5)
-
-
-CULLING = LOOP_CLOSURE.model_copy(update={"cull_m": 0.3, "cull_deg": 10.0})
-
-
-def _tracked(seq: int, pose: Pose2D) -> FrontendOutput:
-    """An insert the front end tracked on its map (one the back end may cull)."""
-    return FrontendOutput(
-        seq=seq, stamp_s=0.1 * seq, pose=pose, covariance=np.eye(3) * 1e-4,
-        status=FrontendStatus.TRACKED, method="gn", iterations=3, score=0.8, message="",
-        inserted=True, prediction_source="odometry",
-    )
-
-
 def feed(service: MatcherService, duration_s: float) -> None:
     """The simulator's scans of robot "r", deskewed as the deskew service does, handled."""
     stage = DeskewStage()
@@ -365,27 +267,6 @@ def test_a_gap_with_culled_inserts_gets_the_whole_map_and_the_keyframes() -> Non
         service.shell.close(flush_s=0.0)
 
 
-def test_the_whole_maps_path_is_the_last_redraws_then_the_front_ends() -> None:
-    """The path as the map server has it: corrected at the last redraw (its path through the
-    redraw's scan), then the estimates the front end made since."""
-    frontend = Frontend(FrontendSettings())
-    for k in range(5):
-        frontend.trajectory.append(float(k), Pose2D(float(k), 0.0, 0.0))
-    recent = RecentInserts(2)
-    redrawn = np.array([[0.0, 1.0, 0.0], [1.0, 1.0, 0.0], [2.0, 1.0, 0.0]])
-    redraw = MapRedrawMessage("r", 2, Pose2D(), np.zeros(0, np.int64), np.zeros((0, 3)),
-                              np.arange(3.0), redrawn)
-    recent.tracked(2, True, redraw)
-    recent.tracked(4, False)
-    state = map_state("r", frontend, recent)
-    np.testing.assert_array_equal(state.stamps_s, np.arange(5.0))
-    np.testing.assert_array_equal(state.poses[:3], redrawn)
-    np.testing.assert_array_equal(state.poses[3:], [[3.0, 0.0, 0.0], [4.0, 0.0, 0.0]])
-    assert (state.seq, state.insert_seq, state.keyframes) == (4, 2, None)
-    with pytest.raises(LookupError, match="has put no scan into its map"):
-        map_state("r", frontend, RecentInserts(2))
-
-
 def test_a_robot_resumed_on_a_prior_map_keeps_drawing_on_it(tmp_path) -> None:
     """A restarted matcher on a prior map rebuilds the back end from the map server's
     keyframes on that prior map: its redraws keep the prior map's walls."""
@@ -409,21 +290,6 @@ def test_a_robot_resumed_on_a_prior_map_keeps_drawing_on_it(tmp_path) -> None:
             mapper.nodes, mapper.graph.poses, mapper.params).grid.occupied_mask().sum()
     finally:
         service.shell.close(flush_s=0.0)
-
-
-@pytest.mark.parametrize(
-    ("options", "named"),
-    [
-        ({"no_such_option": 1}, "unknown option 'no_such_option' for method 'plicp'"),
-        ({"max_iterations": "many"}, "option max_iterations of method 'plicp' must be"),
-        ({"max_step_m": 0.0}, "option max_step_m must be > 0"),
-    ],
-)
-def test_a_match_request_with_a_bad_option_is_answered_with_its_name(options, named) -> None:
-    """Not every request comes through the gateway: the matcher's answer names the option."""
-    points = np.random.default_rng(0).uniform(-3, 3, (40, 2))
-    reply = answer(MatchRequest("plicp", points, points, options=options), lambda _r: None)
-    assert reply.error.startswith("MatchInputError: ") and named in reply.error
 
 
 @pytest.mark.parametrize(
@@ -503,3 +369,13 @@ def test_a_robot_met_mid_stream_waits_for_a_map_server_not_up_yet(tmp_path, capl
             in caplog.text
     finally:
         service.shell.close(flush_s=0.0)
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_a_bad_prior_map_stops_the_matcher_naming_it(launcher, tmp_path):
+    missing = tmp_path / "nowhere.npz"
+    proc = launcher.start("matcher", SCANFLOW_FRONTEND_PRIOR_MAP=str(missing))
+    proc.wait(60.0)
+    assert proc.returncode != 0
+    assert f"prior_map: no file at {missing}" in launcher.log_text("matcher")

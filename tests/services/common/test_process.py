@@ -1,7 +1,8 @@
-"""Process set-up: the local launch's CPU plan and a service pinning itself to its CPUs."""
+"""Process set-up: the settings check at start, the CPU plan, a service pinning itself to CPUs."""
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -139,3 +140,21 @@ def test_io_cpus_the_process_cannot_have_are_named():
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert result.returncode != 0
     assert f"cpus [{missing}] are not available" in result.stderr
+
+
+@pytest.mark.parametrize(("service", "name", "value"), [
+    ("router", "SCANFLOW_ROUTER_QUEUE_SIZE", "0"),
+    ("ingest", "SCANFLOW_INGEST_RATE", "fast"),
+    ("deskew", "SCANFLOW_DESKEW_ODOM_WAIT_S", "-1"),
+    ("matcher", "SCANFLOW_FRONTEND_MIN_SCORE", "nan"),
+    ("mapserver", "SCANFLOW_BACKEND_LOOP_CLOSURE", "perhaps"),
+    ("gateway", "SCANFLOW_ZENOH_MODE", "satellite"),
+])
+def test_a_service_with_a_bad_setting_stops_at_start_naming_it(service, name, value):
+    """One line naming the variable, before any session is opened (no router runs here)."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("SCANFLOW_")}
+    done = subprocess.run([sys.executable, "-m", f"services.{service}"], env={**env, name: value},
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 1
+    assert f"{service}: bad settings: {name}={value!r}" in done.stderr
+    assert "Traceback" not in done.stderr

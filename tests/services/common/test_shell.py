@@ -1,15 +1,17 @@
-"""The service shell on a real, isolated Zenoh session (a peer with no endpoints)."""
+"""The service shell: worker, lanes and queries on a real session, robot filter, stats replies."""
 
 from __future__ import annotations
 
 import logging
 import threading
 import time
+from types import SimpleNamespace
 
+from scanflow import keys
 from scanflow.config import DeskewSettings, MatcherSettings, ZenohSettings
 
 from services.common.launch import free_port
-from services.common.shell import ServiceShell
+from services.common.shell import ServiceShell, robots_only
 from services.common.zsession import open_session
 
 
@@ -111,3 +113,21 @@ def test_a_side_query_is_answered_while_a_slow_query_holds_the_query_thread() ->
     finally:
         shell.close(flush_s=0.0)
         router.close()
+
+
+def test_a_query_for_the_services_keys_passes_robot_queryables_by():
+    """A metrics scrape (stats/*/*) also reaches `*/map/resend`: not a robot named 'stats'."""
+    seen = []
+    handler = robots_only(seen.append, "site/sf")
+    for key in ("site/sf/stats/matcher/0", "site/sf/health/deskew/0", "site/sf/r1/map/resend",
+                "site/sf/statsbot/initial_pose"):
+        handler(SimpleNamespace(key_expr=key))
+    assert [q.key_expr for q in seen] == ["site/sf/r1/map/resend", "site/sf/statsbot/initial_pose"]
+
+
+def test_wildcard_stats_query_gets_one_reply_per_service_instance(start, bus):
+    start("deskew", SCANFLOW_DESKEW_INSTANCE="0")
+    start("deskew", "deskew-1", SCANFLOW_DESKEW_INSTANCE="1")
+    replies = bus.get(keys.stats("*", "*"), timeout_s=5.0)
+    answered = sorted((r.service, r.instance) for r in replies)
+    assert answered == [("deskew", "0"), ("deskew", "1"), ("router", "0")]

@@ -108,20 +108,6 @@ def test_zero_length_sweeps_are_not_held_for_the_matchers_pose(launcher, bus, st
         np.testing.assert_array_equal(message.points, deskew(scan).points, strict=True)
 
 
-def test_ingest_waits_for_a_subscriber_before_publishing(launcher, bus, start):
-    deskewed = bus.record(keys.deskewed_scan())
-    launcher.start(
-        "ingest",
-        SCANFLOW_INGEST_WINDOW="0",
-        SCANFLOW_INGEST_DRAIN_TIMEOUT_S="0.5",
-        SCANFLOW_INGEST_SIM_DURATION_S="1",
-    )
-    bus.wait_until(lambda: "ingest/0" in bus.alive(), 30.0, "ingest up")
-    start("deskew")
-    bus.wait_until(lambda: len(deskewed) == 10, 30.0, "all 10 scans, none published into nothing")
-    assert [m.seq for m in deskewed] == list(range(10))
-
-
 def test_a_map_redraws_correction_moves_the_velocity_prior_with_the_frame(launcher, bus, start):
     """Without odometry the prior is the matcher's poses. A pose that carries a redraw's frame
     correction is in the new frame: the prior moves with it (as the in-process pipeline's),

@@ -1,0 +1,21 @@
+"""The map server's replies: a region query's cells and bounds."""
+
+from __future__ import annotations
+
+import pytest
+
+from services.mapserver import replies
+
+
+def test_a_region_apart_from_the_map_has_no_cells_and_bad_bounds_are_named(new_robot, insert):
+    robot = new_robot()
+    robot.insert(insert(0))
+    inside = replies.region(robot, (0.0, -1.0, 2.5, 1.5))
+    assert inside.occupancy.size > 0
+    for far in ((1000.0, 1000.0, 1001.0, 1001.0), (-900.0, -900.0, -899.0, -899.0),
+                (1000.0, 0.0, 1001.0, 0.5)):
+        assert replies.region(robot, far).occupancy.shape == (0, 0)
+    with pytest.raises(ValueError, match="must be finite"):
+        replies.region(robot, (float("nan"), 0.0, 1.0, 1.0))
+    with pytest.raises(ValueError, match="x0 <= x1"):
+        replies.region(robot, (2.0, 0.0, 1.0, 1.0))

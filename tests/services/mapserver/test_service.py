@@ -1,0 +1,286 @@
+"""The map server service: snapshots, replays, resends and whole maps taken from a matcher."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scanflow import keys
+from scanflow.config import BackendSettings, MapServerSettings, ZenohSettings
+from scanflow.geometry import Pose2D
+from scanflow.maps.export import npz_arrays, npz_bytes
+from scanflow.wire import MapInsertMessage, MapRedrawMessage, MapStateMessage, PoseEstimateMessage
+
+from services.mapserver.keyframes import Keyframes
+from services.mapserver.service import MapServer
+
+
+def test_a_snapshot_that_cannot_be_written_is_named_and_the_others_still_are(
+    tmp_path, caplog, insert, pose
+):
+    server = MapServer(MapServerSettings(data_dir=str(tmp_path)),
+                       ZenohSettings(mode="peer", connect=[]))
+    try:
+        for robot_id in ("a", "b"):
+            server.handle("insert", replace(insert(0), robot_id=robot_id))
+            server.handle("pose", replace(pose(0), robot_id=robot_id))
+        (tmp_path / "a.snapshot.npz").mkdir()  # the file cannot be replaced
+        server.snapshot()
+        assert server.shell.counters.get("snapshots_failed") == 1
+        assert server.shell.counters.get("snapshots") == 1
+        assert "robot a: snapshot not written" in caplog.text
+        assert (tmp_path / "b.snapshot.npz").is_file()
+        server.snapshot()  # tried again, still failing, still not fatal
+        assert server.shell.counters.get("snapshots_failed") == 2
+    finally:
+        server.shell.close(flush_s=0.0)
+
+
+@pytest.mark.parametrize("first", ["insert", "pose"])
+def test_a_replay_after_a_restart_from_the_snapshot_replaces_the_resumed_run(
+    tmp_path, first, insert, pose, tracker_map
+):
+    """The map server resumed a robot from its snapshot, then the source starts again from seq 0
+    (`scanflow up` run twice on one data dir): the new run replaces the old map and path,
+    whichever stream shows it first (an audit saw both runs' paths and maps merged)."""
+    settings = (MapServerSettings(data_dir=str(tmp_path)), ZenohSettings(mode="peer", connect=[]))
+    server = MapServer(*settings)
+    try:
+        for seq in range(3):
+            at = Pose2D(5.0 + seq, 0.0, 0.0)
+            server.handle("insert", insert(seq, at))
+            server.handle("pose", pose(seq, at))
+        server.snapshot()
+    finally:
+        server.shell.close(flush_s=0.0)
+    server = MapServer(*settings)
+    try:
+        robot = server.robots["r"]
+        assert robot.last_seq == 2 and len(robot.trajectory.poses) == 3
+        updates = {"insert": insert(0, Pose2D()), "pose": pose(0, Pose2D())}
+        second = "pose" if first == "insert" else "insert"
+        server.handle(first, updates[first])
+        server.handle(second, updates[second])
+        robot = server.robots["r"]
+        assert robot.trajectory.poses.tolist() == [[0.0, 0.0, 0.0]]
+        assert robot.last_seq == 0 and robot.last_insert_seq == 0
+        np.testing.assert_array_equal(robot.map.grid.log_odds,
+                                      tracker_map([0]).log_odds)
+    finally:
+        server.shell.close(flush_s=0.0)
+
+
+def test_inserts_missed_that_no_matcher_sends_again_are_counted_and_named(tmp_path, caplog, insert):
+    """No matcher answers the resend query (an isolated session): the gap is logged with its
+    seqs and counted, and the insert that showed it still goes in."""
+    server = MapServer(
+        MapServerSettings(data_dir=str(tmp_path), resend_timeout_s=0.2),
+        ZenohSettings(mode="peer", connect=[]),
+    )
+    try:
+        server.handle("insert", insert(0))
+        server.handle("insert", replace(insert(2), previous_seq=0))  # chained: no query
+        assert "inserts_lost" not in server.shell.counters.snapshot()
+        server.handle("insert", replace(insert(9), previous_seq=5))
+        robot = server.robots["r"]
+        assert robot.last_insert_seq == 9 and robot.map.revision == 3
+        assert server.shell.counters.get("inserts_lost") == 1
+        assert "inserts after seq 2 through 5 never came" in caplog.text
+    finally:
+        server.shell.close(flush_s=0.0)
+
+
+def test_a_resend_query_that_fails_loses_the_gap_not_the_insert(tmp_path, caplog, insert) -> None:
+    """The side session cannot open (no router) or the query is refused: the gap is counted
+    and named with the reason, and the insert that showed it still goes in."""
+    server = MapServer(MapServerSettings(data_dir=str(tmp_path)),
+                       ZenohSettings(mode="peer", connect=[]))
+
+    def unreachable(selector: str, timeout_s: float):
+        raise RuntimeError("cannot open a Zenoh session")
+
+    server.shell.get = unreachable
+    try:
+        server.handle("insert", insert(0))
+        server.handle("insert", replace(insert(4), previous_seq=2))
+        assert server.robots["r"].last_insert_seq == 4
+        assert server.shell.counters.get("inserts_lost") == 1
+        assert "the query failed: cannot open a Zenoh session" in caplog.text
+    finally:
+        server.shell.close(flush_s=0.0)
+
+
+def test_a_resend_that_stops_short_is_a_loss_counted(tmp_path, caplog, insert) -> None:
+    """A chain of inserts that stops short of the gap's end is not taken: a matcher whose
+    back end culled some of the missing inserts sends its whole map instead."""
+    server = MapServer(MapServerSettings(data_dir=str(tmp_path)),
+                       ZenohSettings(mode="peer", connect=[]))
+    asked = []
+
+    def matcher(selector: str, timeout_s: float):
+        asked.append(selector)
+        return [replace(insert(3), previous_seq=0).encode()], []
+
+    server.shell.get = matcher
+    try:
+        server.handle("insert", insert(0))
+        server.handle("insert", replace(insert(5), previous_seq=4))
+        robot = server.robots["r"]
+        assert len(asked) == 1 and asked[0].endswith("r/map/resend?after=0;through=4")
+        assert robot.last_insert_seq == 5 and robot.map.revision == 2
+        assert server.shell.counters.get("inserts_lost") == 1
+        assert "1 came, not the chain" in caplog.text
+    finally:
+        server.shell.close(flush_s=0.0)
+
+
+def state_server(tmp_path, answer: bytes) -> tuple[MapServer, list[str]]:
+    """A map server whose resend queries get `answer` (as a matcher past its recent inserts
+    and without a back end would give)."""
+    server = MapServer(MapServerSettings(data_dir=str(tmp_path)),
+                       ZenohSettings(mode="peer", connect=[]))
+    asked: list[str] = []
+
+    def matcher(selector: str, timeout_s: float):
+        asked.append(selector)
+        return [answer], []
+
+    server.shell.get = matcher
+    return server, asked
+
+
+def test_a_matchers_whole_map_stands_in_for_the_inserts_it_no_longer_keeps(
+    tmp_path, caplog, insert, pose, tracker_map
+):
+    """The map server missed inserts 3..8, and the matcher keeps only its last few: it sends
+    its map (inserts 0..10) and path (scans 0..11) instead. The map and the path become the
+    matcher's; inserts and poses of the scans they hold, still on their way, are skipped;
+    later ones go on as before, and a replay from seq 0 still restarts the robot."""
+    path = np.column_stack((0.1 * np.arange(12), np.zeros(12), np.zeros(12)))
+    state = MapStateMessage(
+        "r", 11, 10, npz_bytes(npz_arrays(tracker_map([0, 2, 3, 5, 8, 9, 10]))),
+        0.1 * np.arange(12), path,
+    )
+    server, asked = state_server(tmp_path, state.encode())
+    try:
+        for seq in (0, 2):
+            server.handle("insert", replace(insert(seq, Pose2D(0.1 * seq, 0.0, 0.0)),
+                                            previous_seq=None if seq == 0 else 0))
+        for seq in (0, 1, 12):  # the pose subscriber runs ahead of the inserts' one
+            server.handle("pose", pose(seq, Pose2D(5.0, 5.0, 0.0)))
+        server.handle("insert", replace(insert(9, Pose2D(0.1 * 9, 0.0, 0.0)), previous_seq=8))
+        robot = server.robots["r"]
+        assert len(asked) == 1 and asked[0].endswith("r/map/resend?after=2;through=8")
+        assert server.shell.counters.get("map_states_taken") == 1
+        assert "inserts_lost" not in server.shell.counters.snapshot()
+        assert "took its whole map (every insert through seq 10)" in caplog.text
+        np.testing.assert_array_equal(robot.map.grid.log_odds,
+                                      tracker_map([0, 2, 3, 5, 8, 9, 10]).log_odds)
+        assert robot.last_insert_seq == 10 and robot.map.revision == 3
+        # The matcher's path, then the pose of scan 12 that came before it.
+        np.testing.assert_array_equal(robot.trajectory.poses[:12], path)
+        assert robot.trajectory.poses[12].tolist() == [5.0, 5.0, 0.0]
+        server.handle("insert", replace(insert(10, Pose2D(0.1 * 10, 0.0, 0.0)), previous_seq=9))
+        assert server.shell.counters.get("inserts_held") == 2  # 9 (that asked) and 10
+        server.handle("insert", replace(insert(12, Pose2D(0.1 * 12, 0.0, 0.0)), previous_seq=10))
+        np.testing.assert_array_equal(robot.map.grid.log_odds,
+                                      tracker_map([0, 2, 3, 5, 8, 9, 10, 12]).log_odds)
+        assert len(asked) == 1
+        server.handle("insert", insert(0))  # a replay
+        assert robot.last_insert_seq == 0 and robot.held is None
+    finally:
+        server.shell.close(flush_s=0.0)
+
+
+@pytest.mark.parametrize(
+    ("answer", "reason"),
+    [
+        (MapStateMessage("r", 6, 6, b"", np.zeros(0), np.zeros((0, 3))).encode(),
+         "not one of 'r' through 8"),
+        (MapStateMessage("q", 9, 9, b"", np.zeros(0), np.zeros((0, 3))).encode(),
+         "a map of robot 'q' through insert 9 came"),
+        (MapStateMessage("r", 9, 9, b"junk", np.zeros(0), np.zeros((0, 3))).encode(),
+         "the matcher's map of r: not a readable .npz"),
+        (b"\x93not a message", "not valid msgpack"),
+    ],
+    ids=["short", "another robot", "broken map", "junk"],
+)
+def test_a_map_state_that_does_not_fit_is_a_loss_named_not_taken(
+    tmp_path, caplog, answer: bytes, reason: str, insert
+) -> None:
+    server, _ = state_server(tmp_path, answer)
+    try:
+        server.handle("insert", insert(0))
+        server.handle("insert", replace(insert(9), previous_seq=8))
+        robot = server.robots["r"]
+        assert server.shell.counters.get("inserts_lost") == 1
+        assert "map_states_taken" not in server.shell.counters.snapshot()
+        assert reason in caplog.text
+        assert robot.last_insert_seq == 9 and robot.map.revision == 2 and robot.held is None
+    finally:
+        server.shell.close(flush_s=0.0)
+
+
+def test_a_whole_map_with_keyframes_replaces_the_kept_ones_and_holds_redraws_before_it(
+    tmp_path, insert, redraw, tracker_map,
+) -> None:
+    """With loop closure the matcher's whole map carries its keyframes: they replace the kept
+    ones, a redraw it holds that comes after it is skipped, and the next redraw, naming
+    those keyframes and one inserted since, is followed."""
+    kept = Keyframes()
+    for seq in (0, 3, 7):
+        kept.add(insert(seq, Pose2D(0.1 * seq, 0.0, 0.0)))
+    state = MapStateMessage(
+        "r", 9, 9, npz_bytes(npz_arrays(tracker_map([0, 3, 5, 7, 9]))), 0.1 * np.arange(10),
+        np.zeros((10, 3)), kept.message("r"),
+    )
+    server = MapServer(MapServerSettings(data_dir=str(tmp_path)),
+                       ZenohSettings(mode="peer", connect=[]),
+                       backend_settings=BackendSettings(loop_closure=True))
+    server.shell.get = lambda selector, timeout_s: ([state.encode()], [])
+    try:
+        server.handle("insert", insert(0))
+        server.handle("insert", replace(insert(9, Pose2D(0.1 * 9, 0.0, 0.0)), previous_seq=8))
+        robot = server.robots["r"]
+        assert robot.keyframes is not None and robot.keyframes.seqs == [0, 3, 7]
+        assert robot.last_insert_seq == 9
+        server.handle("insert", redraw([0, 3, 7], [Pose2D()] * 3, np.zeros((8, 3)), 7))
+        assert server.shell.counters.get("redraws_held") == 1
+        server.handle("insert", replace(insert(10, Pose2D(1.0, 0.0, 0.0)), previous_seq=9))
+        assert robot.keyframes.seqs == [0, 3, 7, 10]
+        server.handle("insert", redraw([0, 3, 7, 10], [Pose2D()] * 4, np.zeros((11, 3)), 10))
+        assert server.shell.counters.get("redrawn") == 1
+        assert "errors.insert" not in server.shell.counters.snapshot()
+    finally:
+        server.shell.close(flush_s=0.0)
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+@pytest.mark.second_lane
+def test_a_redraw_the_map_server_cannot_follow_is_counted_and_the_map_kept(launcher, bus, start):
+    """A map server without loop closure (a misconfigured deployment) refuses the matcher's
+    redraw, naming the setting, and keeps serving the map it had."""
+    start("mapserver")
+    insert_key = keys.map_key("robot", "insert")
+    scan = MapInsertMessage("robot", 0, 0.0, Pose2D(), np.array([[2.0, 0.0], [2.0, 0.5]]),
+                            np.zeros((0, 2)))
+    bus.put(insert_key, scan.encode())
+    bus.put(keys.pose("robot"), PoseEstimateMessage(
+        "robot", 0, 0.0, Pose2D(), np.eye(3), "tracked", "gn", 1, 1.0).encode())
+    bus.put(insert_key, MapRedrawMessage(
+        "robot", 0, Pose2D(0.5, 0.0, 0.0), np.array([0]), np.array([[0.5, 0.0, 0.0]]),
+        np.zeros(1), np.array([[0.5, 0.0, 0.0]])).encode())
+    bus.wait_until(
+        lambda: bus.stats("mapserver").counters.get("errors.insert", 0) == 1, 30.0,
+        "the redraw refused",
+    )
+    # The pose comes on a key of its own: it may be handled after the redraw.
+    bus.wait_until(lambda: bus.stats("mapserver").gauges.get("seq.robot/pose.last") == 0,
+                   10.0, "the pose handled")
+    (path,) = bus.get(keys.trajectory("robot"))
+    np.testing.assert_array_equal(path.poses, [[0.0, 0.0, 0.0]])
+    # The error is counted just before it is logged: wait for the line too.
+    bus.wait_until(lambda: "keeps no keyframes" in launcher.log_text("mapserver"), 10.0,
+                   "the refusal in the map server's log")
