@@ -273,16 +273,6 @@ def test_detect_and_open_any_log(bag: Path) -> None:
     assert len(payloads) == 9
 
 
-def test_detect_errors(tmp_path: Path) -> None:
-    with pytest.raises(FileNotFoundError, match="missing"):
-        detect_format(tmp_path / "missing")
-    with pytest.raises(ValueError, match=r"metadata\.yaml"):
-        detect_format(tmp_path)
-    text = tmp_path / "x.log"
-    text.write_text("ODOM 0 0 0 0 0 0 1 h 1\n")
-    assert detect_format(text) == "carmen"
-
-
 def test_broken_bag_raises_a_format_error(tmp_path: Path) -> None:
     path = tmp_path / "broken.bag"
     path.write_bytes(b"#ROSBAG V2.0\n" + b"\x00" * 64)

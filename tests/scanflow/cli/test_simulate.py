@@ -1,3 +1,7 @@
+"""`scanflow simulate`: the simulator and deskewer in-process, summarised as JSON or refused."""
+
+from __future__ import annotations
+
 import json
 
 from scanflow.cli import _register, app

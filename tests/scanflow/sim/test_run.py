@@ -1,3 +1,7 @@
+"""simulate(SimConfig): seeded runs, consistent frames, odometry, and true motion distortion."""
+
+from __future__ import annotations
+
 import math
 from itertools import islice
 
