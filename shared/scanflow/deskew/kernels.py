@@ -50,8 +50,10 @@ def coverage(
     if end_s > stamps[hi - 1] + margin_s:
         return AFTER_NEWEST, end_s - stamps[hi - 1], hi - 1
     first = _segment(stamps, lo, hi, start_s)
-    last = _segment(stamps, lo, hi, end_s) + 1
-    for i in range(first, last):
+    last = _segment(stamps, lo, hi, end_s)
+    if last > lo and stamps[last] >= end_s:
+        last -= 1  # a sweep ending on a sample does not bridge the segment after it
+    for i in range(first, last + 1):
         if stamps[i + 1] - stamps[i] > max_gap_s:
             return GAP, stamps[i + 1] - stamps[i], i
     return COVERED, 0.0, lo

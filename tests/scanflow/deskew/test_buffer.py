@@ -63,6 +63,19 @@ def test_extrapolation_limited_by_margin_and_gaps_refused():
     assert "at least two" in OdometryBuffer().coverage_gap(0.0, 0.1)
 
 
+def test_a_sweep_ending_or_starting_on_a_sample_needs_no_segment_beyond_it():
+    buffer = OdometryBuffer(max_gap_s=0.2)
+    for t in (0.0, 0.1, 0.6, 0.7, 0.8):
+        buffer.add(t, Pose2D(t, 0.0, 0.0))
+    # The 0.5 s gap lies after the sweep [0, 0.1] and before [0.6, 0.8]: neither bridges it.
+    assert buffer.coverage_gap(0.0, 0.1) is None
+    assert buffer.coverage_gap(0.6, 0.8) is None
+    assert buffer.coverage_gap(0.1, 0.1) is None
+    np.testing.assert_allclose(buffer.poses_at(np.array([0.0, 0.1]))[0], [0.0, 0.1])
+    assert "gap of 0.5000 s" in buffer.coverage_gap(0.05, 0.1000001)
+    assert "gap of 0.5000 s" in buffer.coverage_gap(0.0999999, 0.6)
+
+
 def test_buffer_keeps_growing_correctly_past_its_initial_capacity(
     circle_pose: Callable[[float], Pose2D],
 ):
