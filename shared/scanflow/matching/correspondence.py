@@ -35,17 +35,6 @@ def adaptive_gate_m(distances_m: NDArray[np.float64], floor_m: float, ceiling_m:
     return min(max(gate, floor_m), ceiling_m)
 
 
-def trimmed_mask(distances_m: NDArray[np.float64], keep_fraction: float) -> NDArray[np.bool_]:
-    """Keep the `keep_fraction` closest pairs (trimmed ICP, Chetverikov 2002)."""
-    if not 0.0 < keep_fraction <= 1.0:
-        raise ValueError(f"keep_fraction must be in (0, 1], got {keep_fraction}")
-    keep = max(1, math.ceil(keep_fraction * len(distances_m)))
-    if keep >= len(distances_m):
-        return np.isfinite(distances_m)
-    cut = np.partition(distances_m, keep - 1)[keep - 1]
-    return distances_m <= cut
-
-
 # What compiled lookups take: (points, order, starts, origin_x_m, origin_y_m, cell_m, cols, rows).
 GridArrays = tuple[
     NDArray[np.float64], NDArray[np.int64], NDArray[np.int64], float, float, float, int, int

@@ -8,7 +8,6 @@ from scanflow.geometry import Pose2D
 from scanflow.matching import DEFAULT_METHOD, MatchInputError, MatchStatus, available_methods, match
 from scanflow.matching.api import as_points, target_points
 from scanflow.matching.checks import analyse_hessian, line_hessian
-from scanflow.matching.covariance import least_squares_covariance
 from scanflow.scan import LaserScan
 from scanflow.sim import cast_rays, get_world
 
@@ -75,13 +74,6 @@ def test_map_target_uses_occupied_points() -> None:
 def test_target_without_points_is_a_clear_error() -> None:
     with pytest.raises(MatchInputError, match="occupied_points"):
         target_points(object())
-
-
-def test_covariance_unknown_when_not_estimable() -> None:
-    assert np.all(np.isinf(np.diag(least_squares_covariance(np.eye(3), 1.0, 3))))
-    assert np.all(np.isinf(np.diag(least_squares_covariance(np.zeros((3, 3)), 1.0, 100))))
-    cov = least_squares_covariance(np.diag([4.0, 4.0, 1.0]), 9.7, 100)
-    assert np.allclose(cov, np.diag([0.025, 0.025, 0.1]))
 
 
 def test_corridor_hessian_weak_direction_is_along_the_walls() -> None:

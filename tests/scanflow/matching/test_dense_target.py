@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 from scanflow.geometry import Pose2D
 from scanflow.matching import match
-from scanflow.matching.correspondence import GridIndex, target_lines, thin_dense_target
 from scanflow.sim import get_world, static_scan
 
 SOURCE_POSE = Pose2D(2.5, 2.0, 0.2)
@@ -49,20 +48,3 @@ def test_a_dense_source_is_judged_like_a_sparse_one(method: str, beams: int) -> 
     err = r.pose.relative_to(TRUTH)
     assert r.ok, r.message
     assert err.translation_norm() < 0.005 and abs(err.theta) < math.radians(0.3)
-
-
-@pytest.mark.parametrize("beams", [180, 360, 720])
-def test_scans_with_beams_half_a_degree_apart_or_more_are_not_thinned(beams: int) -> None:
-    target = scan_points(TARGET_POSE, 2, beams=beams)
-    assert thin_dense_target(target) is target
-
-
-def test_a_dense_scan_is_averaged_to_line_like_fits() -> None:
-    dense = scan_points(TARGET_POSE, 2, beams=20_000)
-    thinned = thin_dense_target(dense)
-    # 0.4 deg bins: ~900 points around, each the mean of ~20 beams.
-    assert 800 < len(thinned) < 1000
-    raw_ok = target_lines(GridIndex.build(dense)).ok.mean()
-    thinned_ok = target_lines(GridIndex.build(thinned)).ok.mean()
-    assert raw_ok < 0.1 and thinned_ok > 0.9
-    assert thin_dense_target(dense, below_deg=0.0) is dense

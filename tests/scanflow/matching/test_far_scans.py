@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 from scanflow.geometry import Pose2D
 from scanflow.matching import match
-from scanflow.matching.correspondence import GridIndex, target_lines
 from scanflow.sim import get_world, static_scan
 
 ANGLES = np.radians(np.arange(-90.0, 90.5, 1.0))
@@ -39,15 +38,3 @@ def test_far_sparse_scans_are_matched(method: str, stop: int) -> None:
     err = r.pose.relative_to(motion)
     assert r.ok, f"{r.status}: {r.message}"
     assert err.translation_norm() < 0.05 and abs(err.theta) < math.radians(0.2)
-
-
-def test_a_far_walls_points_get_lines_only_when_read_as_one_scan() -> None:
-    """Points 1 deg apart along a wall 40 m away (0.7 m apart): no neighbour within the fixed
-    0.5 m, one within the surface gap at their range."""
-    bearings = np.radians(np.arange(-10.0, 10.5, 1.0))
-    wall = np.column_stack((np.full(bearings.size, 40.0), 40.0 * np.tan(bearings)))
-    grid = GridIndex.build(wall)
-    assert not target_lines(grid).ok.any()
-    lines = target_lines(grid, seen_from_origin=True)
-    assert lines.ok.all()
-    np.testing.assert_allclose(np.abs(lines.normals[:, 0]), 1.0, atol=1e-9)

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 from scanflow.geometry import Pose2D
 from scanflow.matching import MatchStatus, match
-from scanflow.matching.field_cost import converged_step, field_cost, linearise, points_field
 
 
 def perturbed(rng: np.random.Generator, pose: Pose2D, sigma_m: float, sigma_rad: float) -> Pose2D:
@@ -35,47 +34,6 @@ def test_scan_to_scan(method, room, caster) -> None:
     r = match(source, target, Pose2D(), method=method)
     err = r.pose.relative_to(truth)
     assert r.ok and err.translation_norm() < 0.03 and abs(err.theta) < math.radians(0.5)
-
-
-def test_jacobian_matches_finite_differences(room_map_points, room, caster) -> None:
-    field = points_field(room_map_points, 0.05, 0.1)
-    pts = caster(room, Pose2D(0.3, 0.2, 0.4))
-    pose = np.array([0.33, 0.17, 0.41])
-    lin = linearise(field, pts, pose)
-    eps = 1e-6
-    num = [
-        (field_cost(field, pts, pose + eps * e) - field_cost(field, pts, pose - eps * e))
-        / (2 * eps)
-        for e in np.eye(3)
-    ]
-    # d(sum r^2)/dpose = 2 J^T r
-    np.testing.assert_allclose(2 * lin.gradient, num, rtol=1e-3, atol=1e-3)
-
-
-def test_compiled_linearisation_equals_the_sampled_field(room_map_points) -> None:
-    """Cost, hits, J^T J and J^T r from one compiled pass equal LikelihoodField.sample's,
-    points off the grid included (value 0, no gradient)."""
-    field = points_field(room_map_points, 0.05, 0.1)
-    rng = np.random.default_rng(2)
-    pts = np.vstack((rng.uniform(-5, 5, (300, 2)), [[40.0, 0.0], [0.0, -40.0]]))
-    pose = np.array([0.05, -0.02, 0.1])
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    moved = pts @ np.array([[c, s], [-s, c]]) + pose[:2]
-    value, grad = field.sample(moved)
-    d_theta = np.column_stack((-s * pts[:, 0] - c * pts[:, 1], c * pts[:, 0] - s * pts[:, 1]))
-    jac = -np.column_stack((grad, (grad * d_theta).sum(axis=1)))
-    r = 1.0 - value
-    lin = linearise(field, pts, pose)
-    assert lin.cost == pytest.approx(r @ r, rel=1e-12)
-    assert lin.hits == np.count_nonzero(value)
-    np.testing.assert_allclose(lin.hessian, jac.T @ jac, rtol=1e-10, atol=1e-9)
-    np.testing.assert_allclose(lin.gradient, jac.T @ r, rtol=1e-10, atol=1e-9)
-
-
-def test_convergence_needs_small_translation_and_small_absolute_rotation() -> None:
-    assert converged_step(np.array([1e-5, 0.0, -1e-5]), 1e-3, 1e-3)
-    assert not converged_step(np.array([1e-5, 0.0, -0.2]), 1e-3, 1e-3)  # the seed's bug
-    assert not converged_step(np.array([0.01, 0.0, 0.0]), 1e-3, 1e-3)
 
 
 @pytest.mark.parametrize("method", ["gn", "lm"])

@@ -1,37 +1,14 @@
-"""Point-to-point ICP's outlier rules (trimming, adaptive gate), its statuses and its covariance's
-calibration (its accuracy on simulated scans is tested with plicp's in test_plicp.py)."""
+"""Point-to-point ICP: outliers (gross ones, trimming), its statuses and its covariance's
+calibration (its accuracy on simulated scans is tested with plicp's in test_plicp.py, the
+adaptive gate in test_correspondence.py)."""
+
+import math
 
 import numpy as np
-import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 from scanflow.geometry import Pose2D
 from scanflow.matching import MatchStatus, match
-from scanflow.matching.correspondence import adaptive_gate_m, trimmed_mask
 
 from .conftest import simulated_nees
-
-
-@settings(max_examples=60, deadline=None)
-@given(n=st.integers(1, 200), frac=st.floats(0.05, 1.0), seed=st.integers(0, 2**31))
-def test_trimming_keeps_the_closest_fraction(n: int, frac: float, seed: int) -> None:
-    d = np.random.default_rng(seed).exponential(1.0, n)
-    keep = trimmed_mask(d, frac)
-    assert keep.sum() >= min(n, int(np.ceil(frac * n)))
-    if keep.any() and (~keep).any():
-        assert d[keep].max() <= d[~keep].min()
-
-
-def test_trimming_rejects_a_bad_fraction() -> None:
-    with pytest.raises(ValueError, match="keep_fraction"):
-        trimmed_mask(np.ones(3), 0.0)
-
-
-def test_gate_follows_the_robust_spread_within_bounds() -> None:
-    assert adaptive_gate_m(np.full(10, 0.01), 0.15, 1.0) == 0.15
-    assert adaptive_gate_m(np.full(10, 10.0), 0.15, 1.0) == 1.0
-    assert np.isclose(adaptive_gate_m(np.full(10, 0.1), 0.15, 1.0), 3 * 1.4826 * 0.1)
-    assert adaptive_gate_m(np.zeros(0), 0.15, 1.0) == 1.0
 
 
 def test_gross_outliers_do_not_move_the_solution() -> None:
@@ -45,6 +22,25 @@ def test_gross_outliers_do_not_move_the_solution() -> None:
     r = match(source, walls, truth * Pose2D(0.02, 0.02, 0.005), method="icp")
     assert r.ok and r.pose.relative_to(truth).translation_norm() < 0.01
     assert r.inliers <= 300
+
+
+def test_trimming_drops_clutter_inside_the_gate() -> None:
+    """A wall of clutter 6 cm in front of a real wall (a fifth of the scan) lies inside every
+    gate: only trimming the farthest pairs keeps it from pulling the pose."""
+    rng = np.random.default_rng(5)
+    t = np.linspace(0, 6, 150)
+    z, six = np.zeros(150), np.full(150, 6.0)
+    walls = np.r_[np.c_[t, z], np.c_[z, t], np.c_[t, six], np.c_[six, t]]
+    truth = Pose2D(0.1, -0.05, 0.03)
+    seen = walls[::2] + rng.normal(0, 0.003, (300, 2))
+    clutter = seen[:75] + np.array([0.0, 0.06])
+    source = truth.inverse().transform_points(np.r_[seen, clutter])
+    guess = truth * Pose2D(0.02, 0.02, 0.005)
+    kept_all = match(source, walls, guess, method="icp", keep_fraction=1.0)
+    trimmed = match(source, walls, guess, method="icp", keep_fraction=0.75)
+    assert kept_all.pose.relative_to(truth).translation_norm() > 0.01
+    assert trimmed.ok and trimmed.pose.relative_to(truth).translation_norm() < 0.004
+    assert trimmed.inliers <= math.ceil(0.75 * len(source))
 
 
 def test_disjoint_sets_report_no_overlap() -> None:

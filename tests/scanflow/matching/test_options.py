@@ -9,7 +9,7 @@ import pytest
 from scanflow.geometry import Pose2D
 from scanflow.matching import MatchInputError, available_methods, match
 from scanflow.matching.api import method_options
-from scanflow.matching.inputs import MAX_ITERATIONS, require_positive
+from scanflow.matching.inputs import MAX_ITERATIONS
 from scanflow.matching.plicp import match_plicp
 
 METHODS = available_methods()
@@ -150,10 +150,3 @@ def test_a_method_called_directly_checks_its_ranges_too(room, caster) -> None:
     scan = caster(room, Pose2D())
     with pytest.raises(MatchInputError, match="max_step_m must be > 0"):
         match_plicp(scan, scan, Pose2D(), max_step_m=0.0)
-
-
-def test_require_names_the_first_bad_option_and_skips_unset_ones() -> None:
-    require_positive(a=1.0, b=None)
-    for bad in (0.0, -1.0, math.nan, "x"):
-        with pytest.raises(MatchInputError, match=r"option b must be > 0"):
-            require_positive(a=1.0, b=bad)

@@ -1,16 +1,12 @@
-"""Point-to-line ICP on simulated scans: accuracy, degeneracy, bad input, covariance calibration,
-the target line fits, and the compiled grid lookup against scipy's KD-tree."""
+"""Point-to-line ICP on simulated scans: accuracy, degeneracy, bad input, covariance calibration
+(the target line fits and the compiled grid lookup are tested in test_correspondence.py)."""
 
 import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 from scanflow.geometry import Pose2D
 from scanflow.matching import MatchStatus, match
-from scanflow.matching.correspondence import GridIndex, grid_k_nearest, target_lines
-from scipy.spatial import cKDTree
 
 from .conftest import scan_points, simulated_nees
 
@@ -70,38 +66,3 @@ def test_covariance_is_calibrated_nees_near_three() -> None:
     nees = simulated_nees("plicp")
     assert len(nees) >= 50
     assert 1.5 < float(np.mean(nees)) < 6.0
-
-
-def test_line_fit_uses_the_neighbours_within_the_fit_radius() -> None:
-    """Dense wall points get a many-point line; an isolated pair the two-point fallback."""
-    wall = np.column_stack((np.linspace(0.0, 2.0, 41), np.zeros(41)))
-    pair = np.array([[5.0, 5.0], [5.3, 5.3]])
-    lines = target_lines(GridIndex.build(np.vstack((wall, pair))), k=8, fit_radius_m=0.2)
-    counts = np.sum(lines.neighbours >= 0, axis=1)
-    assert counts[20] == 8 and np.all(counts[-2:] == 2)
-    assert np.allclose(np.abs(lines.normals[:41, 1]), 1.0) and lines.ok.all()
-    assert np.isclose(abs(lines.normals[-1] @ (pair[1] - pair[0])), 0.0)
-
-
-@settings(max_examples=40, deadline=None)
-@given(
-    seed=st.integers(0, 2**31),
-    gate=st.floats(0.05, 2.0),
-    k=st.sampled_from([1, 3, 8]),
-    cell=st.sampled_from([0.05, 0.25, 1.0]),
-)
-def test_grid_k_nearest_matches_kdtree(seed: int, gate: float, k: int, cell: float) -> None:
-    """The ring search (which stops early) finds the same k nearest as scipy's KD-tree."""
-    rng = np.random.default_rng(seed)
-    pts = rng.uniform(-10, 10, (200, 2))
-    queries = rng.uniform(-11, 11, (50, 2))
-    grid = GridIndex.build(pts, cell)
-    dist, _ = cKDTree(pts).query(queries, k=k, distance_upper_bound=gate)
-    dist = dist.reshape(len(queries), k)
-    best_d2, best_j = np.empty(k), np.empty(k, dtype=np.int64)
-    for q, d in zip(queries, dist, strict=True):
-        found = grid_k_nearest(grid.arrays, q[0], q[1], gate, best_d2, best_j)
-        expected = d[np.isfinite(d)]
-        assert found == len(expected) and np.all(best_j[found:] == -1)
-        assert np.allclose(np.sqrt(best_d2[:found]), expected, rtol=1e-12, atol=0.0)
-        assert np.allclose(np.hypot(*(pts[best_j[:found]] - q).T), expected, rtol=1e-12, atol=0.0)
