@@ -2,7 +2,7 @@
 whose callback sleeps (a service whose worker stalls, its inbox full), with Zenoh's own 5 s
 before a blocked link is closed next to scanflow's `SCANFLOW_ZENOH_BLOCK_CLOSE_S` (60 s).
 
-    python -m bench.link_stall [--stall-s 7] [--messages 20000] [--json]
+    python -m bench.link_stall [--stall-s 7] [--messages 20000] [--drain-s 10] [--json]
 
 Every session is opened by `services.common.zsession.open_session`, as the services open
 theirs; only `block_close_s` differs between the two runs.
@@ -26,9 +26,15 @@ ZENOH_DEFAULT_S = 5.0
 KEY = "scanflow-bench/stall"
 
 
-def run(block_close_s: float, stall_s: float, messages: int, size: int) -> dict[str, Any]:
+def run(
+    block_close_s: float, stall_s: float, messages: int, size: int, drain_s: float = 10.0
+) -> dict[str, Any]:
     """Publish `messages` of `size` bytes as fast as the link takes them; the reader sleeps
-    `stall_s` on its first. How many came, and how long the writer was held back."""
+    `stall_s` on its first. How many came, and how long the writer was held back.
+
+    The count is read when the last message has come, or `drain_s` past the stall when it never
+    does (its link was closed): enough for the reader to drain what it had queued.
+    """
     endpoint = f"tcp/127.0.0.1:{free_port()}"
 
     def settings(**fields: Any) -> ZenohSettings:
@@ -58,7 +64,7 @@ def run(block_close_s: float, stall_s: float, messages: int, size: int) -> dict[
         for i in range(messages):
             publisher.put(f"{i:08d}".encode() + bytes(size - 8))
         publish_s = time.perf_counter() - t0
-        last.wait(stall_s + 30.0)
+        last.wait(stall_s + drain_s)
         subscriber.undeclare()
         publisher.undeclare()
     finally:
@@ -79,10 +85,12 @@ def main() -> None:
     parser.add_argument("--stall-s", type=float, default=7.0)
     parser.add_argument("--messages", type=int, default=20_000)
     parser.add_argument("--size", type=int, default=8_000, help="bytes per message")
+    parser.add_argument("--drain-s", type=float, default=10.0,
+                        help="how long past the stall to wait for a last message that may be lost")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
     results = [
-        run(close_s, args.stall_s, args.messages, args.size)
+        run(close_s, args.stall_s, args.messages, args.size, args.drain_s)
         for close_s in (ZENOH_DEFAULT_S, ZenohSettings().block_close_s)
     ]
     report = {"stall_s": args.stall_s, "messages": args.messages, "size": args.size,
