@@ -24,6 +24,8 @@ from services.gateway.app import create_app
 from services.gateway.backend import ZenohBackend
 
 API_KEY = "test-key"
+# A small valid scan for POST /robots/{robot}/scans (ingest and its numbering).
+INGEST_SCAN = {"ranges_m": [1.0, 2.0], "angle_min_rad": 0.0, "angle_increment_rad": 0.1}
 
 
 class Peer:

@@ -59,3 +59,11 @@ def test_a_robot_over_the_limit_gets_no_seq():
     assert store.next_seq("a", "scan", None) == 0
     assert store.next_seq("b", "scan", 5) is None
     assert refused == ["b"] and not store.known("b")
+
+
+def test_replayed_stream_restarts_the_cache(client, publish_poses):
+    publish_poses("r1", [(10.0, 0.0, 0.0, 0.0), (11.0, 1.0, 0.0, 0.0)])
+    publish_poses("r1", [(10.0, 9.0, 0.0, 0.0)], seq0=0)
+    robots = client.get("/api/v1/robots").json()["robots"]
+    (r1,) = [r for r in robots if r["robot_id"] == "r1"]
+    assert r1["restarts"] == 1 and r1["poses_cached"] == 1 and r1["last_pose"]["x_m"] == 9.0

@@ -14,7 +14,7 @@ from scanflow.wire import InitialPoseMessage, TrajectoryMessage
 
 from services.common.robots import RobotLimitError
 
-from .conftest import estimate, eventually
+from ..conftest import estimate, eventually
 
 
 def test_latest_pose_comes_from_the_bus(client, publish_poses):
@@ -28,10 +28,6 @@ def test_latest_pose_comes_from_the_bus(client, publish_poses):
 def test_unknown_robot_is_404_naming_it(client):
     r = client.get("/api/v1/robots/nobody/pose")
     assert r.status_code == 404 and "nobody" in r.json()["detail"]
-
-
-def test_reserved_robot_id_is_refused(client):
-    assert client.get("/api/v1/robots/stats/pose").status_code == 422
 
 
 def test_pose_at_time_interpolates_in_se2(client, publish_poses):
@@ -79,14 +75,6 @@ def test_pose_before_the_cache_uses_the_map_server(client, peer, publish_poses):
     peer.answer(keys.trajectory("r3"), lambda q: TrajectoryMessage("r3", stamps, poses).encode())
     body = client.get("/api/v1/robots/r3/pose", params={"t": 1.0}).json()
     assert body["x_m"] == pytest.approx(1.0) and body["status"] == "trajectory"
-
-
-def test_replayed_stream_restarts_the_cache(client, publish_poses):
-    publish_poses("r1", [(10.0, 0.0, 0.0, 0.0), (11.0, 1.0, 0.0, 0.0)])
-    publish_poses("r1", [(10.0, 9.0, 0.0, 0.0)], seq0=0)
-    robots = client.get("/api/v1/robots").json()["robots"]
-    (r1,) = [r for r in robots if r["robot_id"] == "r1"]
-    assert r1["restarts"] == 1 and r1["poses_cached"] == 1 and r1["last_pose"]["x_m"] == 9.0
 
 
 def test_an_operators_pose_reaches_the_tracker_and_comes_back_as_taken(client, peer, auth):

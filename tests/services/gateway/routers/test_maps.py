@@ -1,0 +1,56 @@
+"""GET /robots/{robot}/map and map.{png,pgm,yaml}: metadata, the whole map, a region."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+from PIL import Image
+from scanflow import keys
+from scanflow.maps.grid import GridSpec
+from scanflow.wire import MapImageMessage, MapMetaMessage, MapRegionMessage
+
+META = MapMetaMessage.from_spec("r1", GridSpec(-1.0, -2.0, 0.5, 4, 6), revision=3, stamp_s=5.0)
+
+
+def test_map_meta_and_png(client, peer):
+    png = io.BytesIO()
+    Image.new("L", (6, 4), 254).save(png, format="PNG")
+    peer.answer(keys.map_key("r1", "meta"), lambda q: META.encode())
+    peer.answer(keys.map_key("r1", "image"), lambda q: MapImageMessage(
+        "r1", 3, q.parameters.get("format"), png.getvalue()).encode())
+    meta = client.get("/api/v1/robots/r1/map").json()
+    assert (meta["rows"], meta["cols"], meta["width_m"], meta["revision"]) == (4, 6, 3.0, 3)
+    r = client.get("/api/v1/robots/r1/map.png")
+    assert r.headers["content-type"] == "image/png" and r.content == png.getvalue()
+    assert r.headers["x-map-revision"] == "3"
+
+
+def test_map_region_is_exported_by_the_library(client, peer):
+    occupancy = np.full((2, 3), -1, np.int8)
+    occupancy[0, 0] = 100
+    occupancy[1, :] = 0
+    seen = []
+
+    def region(query):
+        seen.append(dict(query.parameters))
+        return MapRegionMessage(META, 1, 2, occupancy).encode()
+
+    peer.answer(keys.map_key("r1", "region"), region)
+    r = client.get("/api/v1/robots/r1/map.pgm", params={"x0": 0, "y0": -1.5, "x1": 1, "y1": -1})
+    assert r.status_code == 200 and r.content.startswith(b"P5")
+    assert seen[0] == {"x0": "0.0", "y0": "-1.5", "x1": "1.0", "y1": "-1.0"}
+    yaml = client.get("/api/v1/robots/r1/map.yaml", params={"x0": 0, "y0": -1.5, "x1": 1, "y1": -1})
+    assert "origin: [0.0, -1.5, 0.0]" in yaml.text and "resolution: 0.5" in yaml.text
+    png = client.get("/api/v1/robots/r1/map.png", params={"x0": 0, "y0": -1.5, "x1": 1, "y1": -1})
+    pixels = np.asarray(Image.open(io.BytesIO(png.content)))
+    assert pixels.shape == (2, 3) and pixels[1, 0] == 0 and pixels[0, 2] == 254  # y up
+
+
+def test_partial_region_and_missing_map(client, peer):
+    r = client.get("/api/v1/robots/r1/map.png", params={"x0": 0})
+    assert r.status_code == 422 and "x0, y0, x1, y1" in r.json()["detail"]
+    peer.answer(keys.map_key("r9", "meta"), lambda q: (_ for _ in ()).throw(
+        LookupError("no map for robot 'r9'")))
+    r = client.get("/api/v1/robots/r9/map")
+    assert r.status_code == 404 and "r9" in r.json()["detail"]

@@ -1,0 +1,85 @@
+"""create_app: routers, guard_reads, error handlers, the OpenAPI schema and the web page."""
+
+from __future__ import annotations
+
+import logging
+
+from fastapi.testclient import TestClient
+from scanflow.config import GatewaySettings, ZenohSettings
+
+from services.gateway.app import STATIC_DIR, create_app
+
+from .conftest import eventually
+
+
+def test_reads_are_open_without_guard_reads(client):
+    assert client.get("/api/v1/robots").status_code == 200
+    assert client.get("/metrics").status_code == 200
+    operation = client.get("/openapi.json").json()["paths"]["/api/v1/robots"]["get"]
+    assert "security" not in operation
+
+
+def test_a_bad_body_is_a_422_naming_the_field_without_echoing_the_input(client, auth):
+    body = {"stamp_s": "secret-looking-input", "pose": {}}
+    r = client.post("/api/v1/robots/r1/odometry", json=body, headers=auth)
+    assert r.status_code == 422
+    (error,) = r.json()["detail"]
+    assert set(error) == {"loc", "msg", "type"} and error["loc"] == ["body", "stamp_s"]
+    assert "secret-looking-input" not in r.text
+
+
+def test_a_backend_error_is_answered_with_its_status_and_reason(client):
+    r = client.get("/api/v1/robots/r1/map")  # no map server on the bus
+    assert r.status_code == 503 and "no service answers" in r.json()["detail"]
+
+
+def test_the_schema_lists_the_body_models_routes_read_by_hand(client):
+    schemas = client.get("/openapi.json").json()["components"]["schemas"]
+    for name in ("MatchIn", "ScanIn", "OdometryIn", "PoseIn", "VelocityIn"):
+        assert name in schemas, name
+    assert "$defs" not in schemas["MatchIn"]
+    assert client.app.openapi() is client.app.openapi()  # built once
+
+
+def test_the_web_page_and_its_files_are_served(client):
+    page = client.get("/")
+    assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
+    assert page.content == (STATIC_DIR / "index.html").read_bytes()
+    assert client.get("/static/app.js").status_code == 200
+
+
+def test_the_body_cap_of_the_settings_applies(backend, auth):
+    tight = GatewaySettings(api_key="test-key", max_body_bytes=1024)
+    with TestClient(create_app(tight, backend)) as c:
+        r = c.post("/api/v1/robots/r1/odometry", content=b"{" + b" " * 1024 + b"}", headers=auth)
+    assert r.status_code == 413 and "max_body_bytes=1024" in r.json()["detail"]
+
+
+def test_without_a_backend_the_app_opens_and_closes_its_own_session(peer, zenoh_port):
+    z = ZenohSettings(mode="peer", connect=[f"tcp/127.0.0.1:{zenoh_port}"])
+    app = create_app(GatewaySettings(api_key="k"), zenoh_settings=z)
+    with TestClient(app) as c:
+        eventually(lambda: c.get("/api/v1/health").json()["zenoh"]["peers"], "the test peer")
+        backend = app.state.backend
+    assert backend.session_info()["open"] is False
+
+
+def test_an_unset_api_key_is_warned_about(backend, caplog):
+    caplog.set_level(logging.WARNING, logger="scanflow.gateway")
+    with TestClient(create_app(GatewaySettings(api_key=None), backend)):
+        pass
+    assert any("SCANFLOW_GATEWAY_API_KEY is not set" in r.getMessage() for r in caplog.records)
+
+
+def test_guard_reads_puts_the_key_on_every_endpoint(backend, settings, auth):
+    from fastapi.testclient import TestClient
+
+    from services.gateway.app import create_app
+
+    guarded = settings.model_copy(update={"guard_reads": True})
+    with TestClient(create_app(guarded, backend)) as c:
+        assert c.get("/api/v1/robots").status_code == 401
+        assert c.get("/metrics").status_code == 401
+        assert c.get("/api/v1/robots", headers=auth).status_code == 200
+        operation = c.get("/openapi.json").json()["paths"]["/api/v1/robots"]["get"]
+        assert operation["security"] == [{"APIKeyHeader": []}]
