@@ -349,6 +349,15 @@ def test_round_trip_is_exact(type_name: str) -> None:
 # ---------------------------------------------------------------- dispatch and field checks
 
 
+def test_a_second_message_class_with_a_taken_type_name_is_refused() -> None:
+    """Two classes under one type name would make decoding ambiguous: the second is refused
+    when it is defined, naming the type, and the registered class still decodes."""
+    with pytest.raises(TypeError, match="wire type 'scan' is registered twice"):
+        type("Impostor", (wire.Message,), {"TYPE": "scan"})
+    scan = wire.ScanMessage(LaserScan(np.ones(3), 0.0, 0.1))
+    assert type(wire.decode_any(scan.encode())) is wire.ScanMessage
+
+
 def test_unknown_and_mismatched_types_are_schema_errors(
     payload: Callable[..., bytes], scan_message: wire.ScanMessage
 ) -> None:
