@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 from scanflow.geometry import Pose2D
@@ -52,37 +54,16 @@ def tracker_map(seqs: list[int]) -> OccupancyGrid:
     return robot.map.grid
 
 
-@pytest.fixture(name="new_robot")
-def new_robot_fixture():
-    """`new_robot` (above), for the tests of this folder."""
-    return new_robot
+def _exposed(helper: Callable[..., object]) -> Callable[[], Callable[..., object]]:
+    """A fixture named after `helper` that hands the tests of this folder the helper itself."""
+
+    def fixture() -> Callable[..., object]:
+        return helper
+
+    fixture.__doc__ = f"`{helper.__name__}` (above), for the tests of this folder."
+    return pytest.fixture(name=helper.__name__)(fixture)
 
 
-@pytest.fixture(name="insert")
-def insert_fixture():
-    """`insert` (above), for the tests of this folder."""
-    return insert
-
-
-@pytest.fixture(name="pose")
-def pose_fixture():
-    """`pose` (above), for the tests of this folder."""
-    return pose
-
-
-@pytest.fixture(name="redraw")
-def redraw_fixture():
-    """`redraw` (above), for the tests of this folder."""
-    return redraw
-
-
-@pytest.fixture(name="kept_robot")
-def kept_robot_fixture():
-    """`kept_robot` (above), for the tests of this folder."""
-    return kept_robot
-
-
-@pytest.fixture(name="tracker_map")
-def tracker_map_fixture():
-    """`tracker_map` (above), for the tests of this folder."""
-    return tracker_map
+# pytest finds fixtures among a conftest's module attributes: one per helper above.
+for _helper in (new_robot, insert, pose, redraw, kept_robot, tracker_map):
+    globals()[f"{_helper.__name__}_fixture"] = _exposed(_helper)

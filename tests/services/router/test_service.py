@@ -45,15 +45,7 @@ def test_a_router_relays_reports_its_health_and_stops_cleanly(launcher, bus) -> 
     assert bus.wait_until(lambda: "router/0" in bus.alive(), 10.0, "the router's health token")
     stats = bus.stats("router")
     assert stats is not None and (stats.service, stats.instance) == ("router", "0")
-    other = open_session(ZenohSettings(connect=[f"tcp/127.0.0.1:{launcher.zenoh_port}"]))
-    try:
-        got: list[bytes] = []
-        sub = other.declare_subscriber("scanflow/test/relay", lambda s: got.append(
-            s.payload.to_bytes()))
-        bus.wait_until(lambda: _relayed(bus, got, "scanflow/test/relay"), 10.0, "a relayed put")
-        sub.undeclare()
-    finally:
-        other.close()
+    _heard_through(bus, launcher.zenoh_port, "scanflow/test/relay", 10.0)
     assert launcher.stop("router") == 0
     assert "router listening on" in launcher.log_text("router")
 
@@ -69,21 +61,24 @@ def test_a_router_joins_the_routers_it_is_told_to_connect_to(launcher, bus) -> N
         SCANFLOW_ROUTER_INSTANCE="1",
     )
     wait_for_port(port)
-    far = open_session(ZenohSettings(connect=[f"tcp/127.0.0.1:{port}"]))
-    try:
-        got: list[bytes] = []
-        sub = far.declare_subscriber("scanflow/test/joined", lambda s: got.append(
-            s.payload.to_bytes()))
-        bus.wait_until(lambda: _relayed(bus, got, "scanflow/test/joined"), 15.0, "a joined put")
-        assert bus.wait_until(lambda: "router/1" in bus.alive(), 10.0, "router 1 seen from 0")
-        sub.undeclare()
-    finally:
-        far.close()
+    _heard_through(bus, port, "scanflow/test/joined", 15.0)
+    assert bus.wait_until(lambda: "router/1" in bus.alive(), 10.0, "router 1 seen from 0")
     assert launcher.stop("router2") == 0
 
 
-def _relayed(bus, got: list[bytes], key: str) -> bool:
-    """Put one payload on `key` through `bus`; True once a subscriber got any (routes take a
-    moment to form, so the caller polls)."""
-    bus.session.put(key, b"hello", congestion_control=zenoh.CongestionControl.BLOCK)
-    return b"hello" in got
+def _heard_through(bus, port: int, key: str, timeout_s: float) -> None:
+    """A client of the router on `port` hears a put that `bus` makes on `key`. Routes take a
+    moment to form, so `bus` puts again on every poll until one arrives."""
+    listener = open_session(ZenohSettings(connect=[f"tcp/127.0.0.1:{port}"]))
+    try:
+        got: list[bytes] = []
+        sub = listener.declare_subscriber(key, lambda s: got.append(s.payload.to_bytes()))
+
+        def relayed() -> bool:
+            bus.session.put(key, b"hello", congestion_control=zenoh.CongestionControl.BLOCK)
+            return b"hello" in got
+
+        bus.wait_until(relayed, timeout_s, f"a put on {key} heard through port {port}")
+        sub.undeclare()
+    finally:
+        listener.close()
