@@ -270,7 +270,7 @@ class BagReader:
                 robot = self.robot_id or _topic_robot(conn.topic)
                 bag_time_s = time_ns * 1e-9
                 try:
-                    msg = reader.deserialize(raw, conn.msgtype)
+                    msg = _deserialize(reader, raw, conn.msgtype)
                     if conn.msgtype == SCAN_TYPE:
                         frame = msg.header.frame_id or DEFAULT_FRAME_ID
                         if frame not in mounts:  # a tilted frame raises, uncached, every time
@@ -325,7 +325,7 @@ class BagReader:
         override: bool,
     ) -> None:
         try:
-            tree.add(reader.deserialize(raw, conn.msgtype), override=override)
+            tree.add(_deserialize(reader, raw, conn.msgtype), override=override)
         except ValueError as exc:
             self._report(f"{conn.topic} @ {time_ns * 1e-9:.9f} s: {exc}")
 
@@ -347,6 +347,14 @@ class BagReader:
             self.errors.append(reason)
 
 
+def _deserialize(reader: AnyReader, raw: bytes, msgtype: str) -> Any:
+    """The message in `raw`; ValueError (reported like any bad message) when it is damaged."""
+    try:
+        return reader.deserialize(raw, msgtype)
+    except AnyReaderError as exc:
+        raise ValueError(f"cannot deserialize {msgtype}: {exc}") from None
+
+
 def _first_scan_frames(reader: AnyReader, connections: Sequence[Connection]) -> set[str]:
     """The frame of each scan topic's first message: the frames the pre-pass must place."""
     frames = set()
@@ -355,7 +363,7 @@ def _first_scan_frames(reader: AnyReader, connections: Sequence[Connection]) -> 
             continue
         for _, _, raw in reader.messages(connections=[conn]):
             with suppress(ValueError):  # the main pass reports a broken message
-                frames.add(reader.deserialize(raw, SCAN_TYPE).header.frame_id or DEFAULT_FRAME_ID)
+                frames.add(_deserialize(reader, raw, SCAN_TYPE).header.frame_id or DEFAULT_FRAME_ID)
             break
     return frames
 

@@ -287,7 +287,8 @@ BAG_KINDS = ["ros1", "ros2-sqlite3", "ros2-mcap"]
 
 
 def write_records(tmp_path: Path, kind: str, records: list[tuple[str, str, float, Build]]) -> Path:
-    """A bag of one kind holding (topic, type, bag time, message builder) records."""
+    """A bag of one kind holding (topic, type, bag time, message builder) records (a builder
+    may return the raw bytes to store)."""
     tmp_path.mkdir(parents=True, exist_ok=True)
     if kind == "ros1":
         store = get_typestore(Stores.ROS1_NOETIC)
@@ -305,7 +306,9 @@ def write_records(tmp_path: Path, kind: str, records: list[tuple[str, str, float
         for topic, msgtype, stamp, build in records:
             if topic not in conns:
                 conns[topic] = writer.add_connection(topic, msgtype, typestore=store)
-            writer.write(conns[topic], int(stamp * 1e9), serialize(build(factory), msgtype))
+            message = build(factory)
+            data = message if isinstance(message, bytes) else serialize(message, msgtype)
+            writer.write(conns[topic], int(stamp * 1e9), data)
     return writer.path
 
 
@@ -511,3 +514,38 @@ def test_any_level_or_flipped_chain_places_the_scan_plane_exactly(links: list) -
     want = base_points(np.arctan2(points[:, 1], points[:, 0]), np.hypot(*points.T), chain)
     np.testing.assert_allclose(mount.pose.transform_points(sensor), want, atol=1e-9)
     assert mount.mirrored == (chain[2, 2] < 0)
+
+
+def _cut(build: Build, msgtype: str, ros1: bool) -> Build:
+    """`build`'s message serialized, then cut to its first 20 bytes: a damaged message."""
+
+    def cut(f: MessageFactory) -> bytes:
+        serialize = f.store.serialize_ros1 if ros1 else f.store.serialize_cdr
+        return bytes(serialize(build(f), msgtype)[:20])
+
+    return cut
+
+
+@pytest.mark.parametrize("kind", BAG_KINDS)
+@pytest.mark.parametrize(
+    ("topic", "msgtype", "stamp", "build"),
+    [
+        ("/scan", SCAN, 99.9, lambda f: f.scan(99.9, np.ones(N_BEAMS), 0.0, "laser")),  # 1st
+        ("/scan", SCAN, 100.05, lambda f: f.scan(100.05, np.ones(N_BEAMS), 0.0, "laser")),
+        ("/tf_static", TF, 99.0, lambda f: f.static_tf(99.0, CHAIN)),
+    ],
+)
+def test_a_message_that_does_not_deserialize_is_reported_and_skipped(
+    tmp_path: Path, kind: str, topic: str, msgtype: str, stamp: float, build: Build
+) -> None:
+    """A damaged message (cut short) is a bad record, not the end of the bag (without an
+    Odometry topic a tf_static message is read twice, for the mounts and as possible
+    odometry: both report it)."""
+    damaged = (topic, msgtype, stamp, _cut(build, msgtype, kind == "ros1"))
+    records = sorted([*scans_and_odometry(), damaged], key=lambda r: r[2])
+    path = write_records(tmp_path, kind, records)
+    scans, reader = read_scans(path)
+    assert len(scans) == 3 and reader.error_count >= 1
+    assert all(e.startswith(f"{topic} @ {stamp:.2f}") for e in reader.errors)
+    with pytest.raises(BagFormatError, match=f"{topic} @ {stamp:.2f}"):
+        list(read_bag(path, strict=True))
