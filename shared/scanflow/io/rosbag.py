@@ -90,8 +90,12 @@ def stamp_to_s(stamp: Any) -> float:
 
 
 def yaw_from_quaternion(q: Any) -> float:
-    """Heading (rotation about z) of a quaternion with fields x, y, z, w."""
-    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+    """Heading (rotation about z) of a quaternion with fields x, y, z, w, of any norm (as tf2
+    normalises them); ValueError when it is zero."""
+    w, x, y, z = q.w, q.x, q.y, q.z
+    if not w * w + x * x + y * y + z * z > 0.0:
+        raise ValueError(f"quaternion is zero or not finite: {q}")
+    return math.atan2(2.0 * (w * z + x * y), w * w + x * x - y * y - z * z)
 
 
 def _bare_frame(frame_id: str) -> str:

@@ -27,6 +27,7 @@ from scanflow.io.rosbag import (
     BagScan,
     TransformTree,
     read_bag,
+    yaw_from_quaternion,
 )
 
 SCAN, ODOM, TF = "sensor_msgs/msg/LaserScan", "nav_msgs/msg/Odometry", "tf2_msgs/msg/TFMessage"
@@ -549,3 +550,23 @@ def test_a_message_that_does_not_deserialize_is_reported_and_skipped(
     assert all(e.startswith(f"{topic} @ {stamp:.2f}") for e in reader.errors)
     with pytest.raises(BagFormatError, match=f"{topic} @ {stamp:.2f}"):
         list(read_bag(path, strict=True))
+
+
+@given(
+    st.floats(-3.0, 3.0),
+    st.tuples(st.floats(-0.2, 0.2), st.floats(-0.2, 0.2)),
+    st.floats(0.5, 2.0),
+)
+def test_yaw_of_a_quaternion_does_not_depend_on_its_norm(
+    yaw: float, roll_pitch: tuple[float, float], scale: float
+) -> None:
+    """Recorded quaternions are not always of norm 1 (float32 fields, drivers' own maths);
+    their yaw is that of the rotation they stand for, as tf2 normalises them."""
+    x, y, z, w = (scale * c for c in quaternion_xyzw(*roll_pitch, yaw))
+    q = SimpleNamespace(x=x, y=y, z=z, w=w)
+    assert yaw_from_quaternion(q) == pytest.approx(yaw, abs=1e-9)
+
+
+def test_a_zero_quaternion_has_no_yaw() -> None:
+    with pytest.raises(ValueError, match="quaternion"):
+        yaw_from_quaternion(SimpleNamespace(x=0.0, y=0.0, z=0.0, w=0.0))
