@@ -184,7 +184,8 @@ class KeyframesMessage(Message):
         for counts, rows in (("hit_counts", "hits"), ("miss_counts", "misses")):
             c = check_array(counts, getattr(self, counts), np.int64, (n,))
             r = check_array(rows, getattr(self, rows), np.float64, (None, 2))
-            if np.any(c < 0) or int(c.sum()) != len(r):
+            # Each count within the rows first: a sum of huge ones wraps around int64.
+            if np.any(c < 0) or np.any(c > len(r)) or int(c.sum()) != len(r):
                 raise MessageError(f"{counts} must be >= 0 and add up to the rows of {rows}")
             checked.update({counts: c, rows: r})
         for name, value in checked.items():

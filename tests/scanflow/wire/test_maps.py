@@ -57,3 +57,20 @@ def test_keyframes_split_back_into_their_scans() -> None:
         "r", np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)),
         np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0, np.int64), np.zeros((0, 2)),
     ).scans() == []
+
+
+def test_keyframe_counts_that_wrap_around_int64_are_refused(payload: Callable[..., bytes]) -> None:
+    """Four counts of 2**62 add up to 2**64, 0 in int64: they must not pass for the 0 rows."""
+    none, n = np.zeros((0, 2)), 4
+    msg = wire.KeyframesMessage(
+        "r", np.arange(n), np.zeros(n), np.zeros((n, 3)), np.zeros((n, 3)),
+        np.zeros(n, np.int64), none, np.zeros(n, np.int64), none,
+    )  # fmt: skip
+    wrapping = wire.codec.encode_array(np.full(n, 2**62), "<i8")
+    with pytest.raises(wire.SchemaError, match="hit_counts must be >= 0 and add up"):
+        wire.decode_any(payload(msg, hit_counts=wrapping))
+    with pytest.raises(wire.MessageError, match="miss_counts must be >= 0 and add up"):
+        wire.KeyframesMessage(
+            "r", np.arange(n), np.zeros(n), np.zeros((n, 3)), np.zeros((n, 3)),
+            np.zeros(n, np.int64), none, np.full(n, 2**62), none,
+        )  # fmt: skip
