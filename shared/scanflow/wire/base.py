@@ -184,6 +184,7 @@ def check_array(
 def check_seqs(name: str, values: ArrayLike) -> NDArray[np.int64]:
     """Scan seqs of a list of keyframes: int64, >= 0 and strictly increasing."""
     seqs = check_array(name, values, np.int64, (None,))
-    if seqs.size and (seqs[0] < 0 or np.any(np.diff(seqs) <= 0)):
+    # Neighbours compared, not differenced: np.diff wraps around int64 (1 then -2**63).
+    if seqs.size and (seqs[0] < 0 or np.any(seqs[1:] <= seqs[:-1])):
         raise MessageError(f"{name} must be >= 0 and strictly increasing")
     return seqs

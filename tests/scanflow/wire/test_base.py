@@ -463,6 +463,21 @@ def test_a_seq_past_max_count_is_malformed(
     wire.decode_any(payload(scan_message, seq=wire.MAX_COUNT))
 
 
+
+@pytest.mark.parametrize("seqs", [[1, -(2**63)], [5, 7, -(2**63) + 3]])
+def test_keyframe_seqs_whose_difference_wraps_around_int64_are_refused(
+    seqs: list[int], payload: Callable[..., bytes]
+) -> None:
+    """A negative seq after a positive one: the int64 difference wraps to a positive one."""
+    msg = wire.MapRedrawMessage(
+        "r", 0, Pose2D(), np.arange(len(seqs)), np.zeros((len(seqs), 3)), np.zeros(0),
+        np.zeros((0, 3)),
+    )  # fmt: skip
+    bad = wire.codec.encode_array(np.array(seqs, np.int64), "<i8")
+    with pytest.raises(wire.SchemaError, match="keyframe_seqs must be >= 0 and strictly"):
+        wire.decode_any(payload(msg, keyframe_seqs=bad))
+
+
 @pytest.mark.parametrize(
     ("build", "pattern"),
     [
