@@ -102,7 +102,10 @@ class LaserScan:
         if abs(self.angle_increment_rad) > 2 * math.pi:  # 0: a fixed beam sampled in time
             raise ScanError(f"angle_increment_rad must be at most a turn, got "
                             f"{self.angle_increment_rad}")
-        rmax = _numbers("range_max_m", self.range_max_m, np.float64).item()
+        rmax_array = _numbers("range_max_m", self.range_max_m, np.float64)
+        if rmax_array.ndim != 0:
+            raise ScanError(f"range_max_m must be one number, got shape {rmax_array.shape}")
+        rmax = rmax_array.item()
         if math.isnan(rmax):
             raise ScanError("range_max_m must not be NaN")
         object.__setattr__(self, "range_max_m", rmax)

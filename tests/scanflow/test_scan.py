@@ -86,6 +86,8 @@ def test_every_beam_is_valid_no_return_or_error(ranges: np.ndarray, range_max_m:
         ({"beam_time_offsets_s": ["t"] * 4}, "beam_time_offsets_s must be numbers"),
         ({"angle_min_rad": "left"}, "angle_min_rad must be a number"),
         ({"range_max_m": "far"}, "range_max_m must be numbers"),
+        ({"range_max_m": [10.0, 20.0]}, "range_max_m must be one number"),
+        ({"range_max_m": np.array([10.0])}, "range_max_m must be one number"),
         ({"angle_increment_rad": 1e300}, "angle_increment_rad must be at most a turn"),
         ({"seq": 1.7}, "seq must be an integer"),
         ({"seq": True}, "seq must be an integer"),
