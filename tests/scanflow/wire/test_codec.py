@@ -114,6 +114,19 @@ def test_non_bytes_input_is_a_decode_error() -> None:
         wire.decode_any("scan")  # type: ignore[arg-type]
 
 
+
+def test_a_payload_decodes_the_same_from_any_buffer_it_comes_in() -> None:
+    """decode takes bytes, bytearray or any memoryview: one of 4-byte items included."""
+    payloads = (wire.MapImageMessage("r", 1, "png", b"x" * k).encode() for k in range(4))
+    data = next(d for d in payloads if len(d) % 4 == 0)
+    expected = wire.decode_any(data)
+    for buffer in (bytearray(data), memoryview(data), memoryview(data).cast("I")):
+        assert wire.decode_any(buffer).data == expected.data
+    big = memoryview(bytes(wire.MAX_PAYLOAD_BYTES + 4)).cast("I")
+    with pytest.raises(wire.PayloadTooLarge, match="over MAX_PAYLOAD_BYTES"):
+        wire.decode_any(big)
+
+
 def _big_deskewed(n: int) -> wire.DeskewedScanMessage:
     return wire.DeskewedScanMessage("r", 0, 0.0, np.zeros((n, 2)), "", False, n, 0)
 
