@@ -79,12 +79,12 @@ def unpack_message(data: Any, bulk_types: Container[str] = ()) -> tuple[str, Fie
     big payloads are refused before anything is unpacked."""
     if not isinstance(data, bytes | bytearray | memoryview):
         raise DecodeError(f"payload must be bytes, got {type(data).__name__}")
+    size = memoryview(data).nbytes
+    if size > MAX_BULK_BYTES:
+        raise PayloadTooLarge(f"payload is {size} bytes, over {_limit(True)}")
     if memoryview(data).itemsize != 1:  # msgpack reads only buffers of bytes
         data = memoryview(data).tobytes()
-    size = memoryview(data).nbytes
     if size > MAX_PAYLOAD_BYTES:
-        if size > MAX_BULK_BYTES:
-            raise PayloadTooLarge(f"payload is {size} bytes, over {_limit(True)}")
         tag = _leading_type(data)
         if tag not in bulk_types:
             bulky = ", ".join(sorted(bulk_types)) or "none"
