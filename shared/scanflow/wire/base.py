@@ -15,7 +15,14 @@ from numpy.typing import ArrayLike, NDArray
 
 from scanflow import keys
 from scanflow.geometry import Pose2D
-from scanflow.wire.codec import Fields, clip, pack_message, short, unpack_message
+from scanflow.wire.codec import (
+    MAX_STR_BYTES,
+    Fields,
+    clip,
+    pack_message,
+    short,
+    unpack_message,
+)
 from scanflow.wire.errors import DecodeError, MessageError, SchemaError
 from scanflow.wire.schema import Schema, decode_fields, encode_fields
 
@@ -123,11 +130,15 @@ def check_pose(name: str, value: Any) -> Pose2D:
 
 
 def check_text(name: str, value: str, allow_empty: bool = False) -> str:
-    """`value` when it is a string, non-empty unless `allow_empty`; else MessageError."""
+    """`value` when it is a string, non-empty unless `allow_empty`, and one a reader takes (at
+    most MAX_STR_BYTES in UTF-8); else MessageError."""
     if not isinstance(value, str) or (not value and not allow_empty):
         raise MessageError(
-            f"{name} must be a {'' if allow_empty else 'non-empty '}string, got {value!r}"
+            f"{name} must be a {'' if allow_empty else 'non-empty '}string, got {short(value)}"
         )
+    # 4 bytes per character at most: only a long string is encoded to be measured.
+    if len(value) * 4 > MAX_STR_BYTES and len(value.encode()) > MAX_STR_BYTES:
+        raise MessageError(f"{name} is over MAX_STR_BYTES={MAX_STR_BYTES} bytes in UTF-8")
     return value
 
 

@@ -26,7 +26,7 @@ from scanflow.wire.base import (
     check_robot_id,
     check_text,
 )
-from scanflow.wire.codec import Fields, Scalar, encode_array, short
+from scanflow.wire.codec import Fields, Scalar, clip, encode_array, short
 from scanflow.wire.errors import MessageError, SchemaError
 from scanflow.wire.scans import scan_from_fields, scan_to_fields
 from scanflow.wire.schema import (
@@ -323,7 +323,8 @@ class MatchResponse(Message):
 
     @classmethod
     def from_error(cls, error: str, method: str = "") -> Self:
-        """A request that could not be served (bad input, no map): identity pose, no information."""
+        """A request that could not be served (bad input, no map): identity pose, no information;
+        the error text clipped (an exception's text may quote a long input)."""
         return cls(
             pose=Pose2D(),
             covariance=_no_information(),
@@ -332,8 +333,8 @@ class MatchResponse(Message):
             converged=False,
             status=ERROR_STATUS,
             method=method,
-            message=error,
-            error=error or "unspecified error",
+            message=clip(error),
+            error=clip(error) or "unspecified error",
         )
 
 

@@ -579,3 +579,14 @@ def test_keyframe_seqs_whose_difference_wraps_around_int64_are_refused(
 def test_building_bad_messages_names_the_field(build: Any, pattern: str) -> None:
     with pytest.raises(wire.MessageError, match=pattern):
         build()
+
+
+def test_a_text_field_a_reader_would_refuse_is_refused_when_built() -> None:
+    from scanflow.wire.codec import MAX_STR_BYTES
+
+    # The limit is in UTF-8 bytes: "é" takes two, so half as many characters reach it.
+    fits = "é" * (MAX_STR_BYTES // 2)
+    assert wire.ServiceStatsMessage.decode(wire.ServiceStatsMessage(fits, "i", 1.0).encode())
+    for over in ("x" * (MAX_STR_BYTES + 1), "é" * (MAX_STR_BYTES // 2 + 1)):
+        with pytest.raises(wire.MessageError, match="service is over MAX_STR_BYTES"):
+            wire.ServiceStatsMessage(over, "i", 1.0)

@@ -47,3 +47,13 @@ def test_an_operators_pose_beyond_max_position_is_malformed(payload: Callable[..
     with pytest.raises(wire.MessageError, match="beyond"):
         wire.InitialPoseMessage("r", Pose2D(0.0, -2e6, 0.0))
     wire.InitialPoseMessage("r", Pose2D(wire.MAX_POSITION_M, 0.0, 0.0))
+
+
+def test_an_error_response_quoting_a_long_input_still_decodes() -> None:
+    from scanflow.wire.codec import MAX_ERROR_CHARS, MAX_STR_BYTES
+
+    error = f"MatchInputError: unknown method {'x' * MAX_STR_BYTES!r}"
+    response = wire.MatchResponse.decode(wire.MatchResponse.from_error(error, "icp").encode())
+    assert response.error.startswith("MatchInputError: unknown method 'xxx")
+    assert len(response.error) <= MAX_ERROR_CHARS + 3
+    assert len(response.message) <= MAX_ERROR_CHARS + 3
