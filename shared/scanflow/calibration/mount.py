@@ -151,6 +151,16 @@ def estimate_mount(
             f"{len(robot)} of {given} pairs agree on their rotation within "
             f"{math.degrees(max_rotation_gap_rad):.1f} deg; need {MIN_PAIRS}"
         ))
+    keep = np.ones(len(robot), dtype=bool)
+    for _ in range(5):  # fit, trim against the fit, until the kept set settles
+        t, phi = _fit(robot[keep], sensor[keep])
+        residual = _residuals(robot, sensor, t, phi)
+        trimmed = residual <= max(3.0 * float(np.median(residual[keep])), TRIM_FLOOR_M)
+        if np.count_nonzero(trimmed) < MIN_PAIRS or np.array_equal(trimmed, keep):
+            break
+        keep = trimmed
+    robot, sensor = robot[keep], sensor[keep]
+    # Observability of the pairs kept: trimming can drop every turn (or every straight stretch).
     turning = float(np.sum(4.0 * np.sin(sensor[:, 2] / 2.0) ** 2))
     if turning < MIN_TURNING:
         return failed(MountStatus.NO_TURNING, (
@@ -163,15 +173,6 @@ def estimate_mount(
             f"the lidar hardly moved (sum of squared translations {driving:.4f} m^2 < "
             f"{MIN_DRIVING_M2}): the mount's yaw cannot be told; drive straight stretches"
         ))
-    keep = np.ones(len(robot), dtype=bool)
-    for _ in range(5):  # fit, trim against the fit, until the kept set settles
-        t, phi = _fit(robot[keep], sensor[keep])
-        residual = _residuals(robot, sensor, t, phi)
-        trimmed = residual <= max(3.0 * float(np.median(residual[keep])), TRIM_FLOOR_M)
-        if np.count_nonzero(trimmed) < MIN_PAIRS or np.array_equal(trimmed, keep):
-            break
-        keep = trimmed
-    robot, sensor = robot[keep], sensor[keep]
     t, phi = _fit(robot, sensor)
     rms = float(np.sqrt(np.mean(_residuals(robot, sensor, t, phi) ** 2)))
     std_xy, std_yaw = _std(robot, sensor, phi, rms)

@@ -89,3 +89,15 @@ def test_bad_input_is_named() -> None:
         estimate_mount(drive(5, 0), drive(4, 0))
     with pytest.raises(ValueError, match="finite"):
         estimate_mount([Pose2D(math.nan, 0.0, 0.0)], [Pose2D()])
+
+
+def test_trimming_away_every_turn_is_reported_not_fitted() -> None:
+    # Long exact straight stretches and a few noisy turns: the turns' residuals are many times
+    # the (straight) median, so trimming drops them and the kept pairs cannot tell t_X.
+    mount, rng = Pose2D(0.25, -0.1, math.radians(12.0)), np.random.default_rng(0)
+    robot = [Pose2D(0.3, 0.0, 0.0)] * 40 + [Pose2D(0.1, 0.0, 0.3 * (-1) ** k) for k in range(6)]
+    sensor = seen_by(mount, robot)
+    sensor[40:] = [b * Pose2D(*rng.normal(0.0, [0.03, 0.03, 0.0])) for b in sensor[40:]]
+    found = estimate_mount(robot, sensor)
+    assert found.status is MountStatus.NO_TURNING, found
+    assert "drive turns" in found.message
