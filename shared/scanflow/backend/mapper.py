@@ -357,7 +357,10 @@ class Mapper:
             return False
         if abs(other.older - closure.older) > 2 * s.submap_half_nodes + 1:
             return False
-        gap = other_correction.relative_to(correction)
+        # Each correction is in its own keyframe's frame: carried over to this keyframe's by
+        # the motion between them, so a turn between the two changes nothing.
+        motion = self.graph.pose(closure.newer).relative_to(self.graph.pose(other.newer))
+        gap = (motion.inverse() * other_correction * motion).relative_to(correction)
         return gap.translation_norm() <= s.confirm_m and abs(gap.theta) <= math.radians(
             s.confirm_deg
         )

@@ -449,3 +449,31 @@ def test_a_redraw_while_culled_moves_the_front_end_with_the_keyframe_it_hangs_fr
     on = correction * back * Pose2D(0.0, 5.0, 0.0)
     assert mapper.add(output(len(drive.drifted) + 1, on.to_array()), drive.scans[5]).node
     np.testing.assert_allclose(mapper._travelled_m[-1], odometer + 5.0, atol=1e-9)
+
+
+def test_two_exact_closures_of_a_turning_robot_agree(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The robot comes back drifted by one rigid motion (0.4 m, 3 deg) and turns 30 deg on
+    the spot between two keyframes. Exact closures of both imply the same correction of the
+    estimates, so the second confirms the first and both enter the graph, whichever way the
+    two keyframes face."""
+    drift = Pose2D(0.3, -0.25, math.radians(3.0))  # T_estimate_truth of the revisit
+    out_and_back = [(0.4 * k, 0.0, 0.0) for k in range(32)] + [(12.4, 0.5, math.pi)]
+    out_and_back += [(12.0 - 0.4 * k, 1.0, math.pi) for k in range(29)]
+    truth = [Pose2D(*p) for p in out_and_back]
+    truth += [Pose2D(0.1, 0.1, 0.0), Pose2D(0.1, 0.1, math.radians(30.0))]
+    estimates = truth[:-2] + [drift * t for t in truth[-2:]]
+    k1, k2 = len(truth) - 2, len(truth) - 1
+    monkeypatch.setattr(
+        "scanflow.backend.mapper.loop_candidates",
+        lambda poses, travelled, k, settings: [0] if k in (k1, k2) else [],
+    )
+    mapper = Mapper(Frontend(default_settings()), SETTINGS)
+
+    def exact(nodes, poses, j, k):  # type: ignore[no-untyped-def]
+        return LoopClosure(j, k, truth[k].relative_to(truth[j]), np.eye(3) * 1e-6, 0.9)
+
+    mapper.detector.verify = exact  # type: ignore[method-assign]
+    points = np.array([[1.0, 0.0], [0.0, 1.0]])
+    for seq, pose in enumerate(estimates):
+        mapper.add(output(seq, pose.to_array()), points)
+    assert [(c.older, c.newer) for c in mapper.closures] == [(0, k1), (0, k2)]
