@@ -288,13 +288,18 @@ class Mapper:
         """Keyframes chained at their saved poses (the closures that placed them are in those
         poses; the chain keeps them together), every earlier scan hung from the last keyframe
         at or before it."""
+        stamps = np.asarray(saved.stamps_s, dtype=np.float64)
+        path = np.asarray(saved.path, dtype=np.float64)
+        if path.shape != (len(stamps), 3):
+            raise ValueError(
+                f"saved.path must have shape ({len(stamps)}, 3), a pose per stamp, got "
+                f"{path.shape}"
+            )
         self.resumed_keyframes = len(saved.seqs)
         for node, seq, pose in zip(saved.nodes, saved.seqs, saved.poses, strict=True):
             self.nodes.append(node)
             self.keyframe_seqs.append(int(seq))
             self._chain(Pose2D.from_array(pose))
-        stamps = np.asarray(saved.stamps_s, dtype=np.float64)
-        path = np.asarray(saved.path, dtype=np.float64).reshape(-1, 3)
         if self.nodes:
             keyframe_stamps = np.array([n.stamp_s for n in self.nodes])
             nodes = np.maximum(np.searchsorted(keyframe_stamps, stamps, side="right") - 1, 0)

@@ -9,7 +9,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from scanflow.backend import LoopClosure, Mapper, SavedRun
+from scanflow.backend import LoopClosure, Mapper, SavedRun, ScanNode
 from scanflow.backend.loops import draw_keyframes
 from scanflow.config import BackendSettings
 from scanflow.frontend import (
@@ -477,3 +477,14 @@ def test_two_exact_closures_of_a_turning_robot_agree(monkeypatch: pytest.MonkeyP
     for seq, pose in enumerate(estimates):
         mapper.add(output(seq, pose.to_array()), points)
     assert [(c.older, c.newer) for c in mapper.closures] == [(0, k1), (0, k2)]
+
+
+@pytest.mark.parametrize("keyframes", [0, 1])
+def test_a_saved_path_without_a_pose_per_stamp_is_refused(drive: Drive, keyframes: int) -> None:
+    """A saved run whose path and stamps differ in length is named at once, not kept as a
+    path that no longer lines up with its stamps (or left to numpy to trip over)."""
+    nodes = [ScanNode(0.0, drive.scans[0], np.zeros((0, 2)), IDENTITY)][:keyframes]
+    for path in (np.zeros((2, 3)), np.zeros((3, 2))):
+        saved = SavedRun(nodes, [0][:keyframes], drive.truth[:keyframes], np.arange(3.0), path)
+        with pytest.raises(ValueError, match=r"path must have shape \(3, 3\)"):
+            Mapper(Frontend(default_settings()), SETTINGS, saved)
