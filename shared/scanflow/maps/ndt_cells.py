@@ -47,7 +47,11 @@ def _check_cell_size(cell_size_m: float) -> None:
 
 def _checked_points(points: NDArray[np.float64], cell_size_m: float) -> NDArray[np.float64]:
     _check_cell_size(cell_size_m)
-    return np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    bad = ~np.isfinite(p).all(axis=1)
+    if bad.any():
+        raise ValueError(f"points has {int(bad.sum())} non-finite rows, first {p[bad][0]}")
+    return p
 
 
 @dataclass(frozen=True, eq=False)

@@ -68,3 +68,13 @@ def test_overlapping_cells_of_nothing_are_empty() -> None:
 def test_bad_cell_size_is_rejected() -> None:
     with pytest.raises(ValueError, match="cell_size_m"):
         NDTCells.from_points(np.zeros((5, 2)), 0.0)
+
+
+@pytest.mark.parametrize("build", [NDTCells.from_points, OverlappingCells.from_points])
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_non_finite_points_are_refused_by_name(build, bad: float) -> None:
+    """A NaN or infinite point is a ValueError naming it (OverlappingCells sized its block
+    arrays from it and the compiled loop wrote out of bounds: a segmentation fault)."""
+    pts = np.array([[0.1, 0.2], [bad, 0.3], [0.4, 0.5]])
+    with pytest.raises(ValueError, match=r"points has 1 non-finite row"):
+        build(pts, 0.5)
