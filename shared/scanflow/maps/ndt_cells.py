@@ -76,6 +76,8 @@ class NDTCells:
         ox, oy = offset_m
         if len(p):
             lo = np.floor((p.min(axis=0) - (ox, oy)) / cell_size_m) * cell_size_m + (ox, oy)
+            # Rounded, that corner can land just above the lowest point: one cell lower then.
+            lo -= cell_size_m * (np.floor((p.min(axis=0) - lo) / cell_size_m) < 0)
             hi = p.max(axis=0)
         else:
             lo = hi = np.array([ox, oy])

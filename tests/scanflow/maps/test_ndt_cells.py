@@ -78,3 +78,20 @@ def test_non_finite_points_are_refused_by_name(build, bad: float) -> None:
     pts = np.array([[0.1, 0.2], [bad, 0.3], [0.4, 0.5]])
     with pytest.raises(ValueError, match=r"points has 1 non-finite row"):
         build(pts, 0.5)
+
+
+def test_points_just_below_a_cell_border_are_kept() -> None:
+    """-127.70000000000002 / 0.1 rounds to -1277 exactly: the grid's first column began at
+    -127.7, just above the lowest point, which fell outside every cell and was dropped (here
+    with its cell: three points at one spot gave no cell at all)."""
+    pts = np.full((MIN_CELL_POINTS, 2), [-127.70000000000002, 0.05])
+    cells = NDTCells.from_points(pts, 0.1)
+    assert len(cells) == 1 and cells.counts[0] == MIN_CELL_POINTS
+    assert (cells.lookup(pts) == 0).all()
+    rng = np.random.default_rng(5)
+    for size in (0.1, 0.3, 0.7):
+        for _ in range(300):  # lowest points on or beside a border of the lattice
+            x = np.nextafter(rng.integers(-3000, 3000) * size, rng.choice([-np.inf, np.inf]))
+            low = np.array([[x, 0.0], [x + 0.25 * size, 0.1 * size], [x, 0.2 * size]])
+            got = NDTCells.from_points(low, size)
+            assert (got.spec.contains(got.spec.world_to_cell(low))).all(), (size, x)
