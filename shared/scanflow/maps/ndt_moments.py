@@ -18,11 +18,11 @@ EIGEN_FLOOR_M2 = 1e-4  # and >= (1 cm)^2
 
 
 @njit(cache=True)
-def _add_point(x, y, origin_x, origin_y, size, rows, cols, span, index, moments, touched, n):  # type: ignore[no-untyped-def]
-    """Add (x, y) to the moments of each block holding it (see sparse_moments); returns the
-    new number of blocks touched."""
-    col = math.floor((x - origin_x) / size)
-    row = math.floor((y - origin_y) / size)
+def _add_point(  # type: ignore[no-untyped-def]
+    x, y, row, col, origin_x, origin_y, size, rows, cols, span, index, moments, touched, n
+):
+    """Add (x, y), which lies in cell (row, col), to the moments of each block holding that
+    cell (see sparse_moments); returns the new number of blocks touched."""
     for r in range(max(row - span + 1, 0), min(row, rows - 1) + 1):
         for c in range(max(col - span + 1, 0), min(col, cols - 1) + 1):
             flat = r * cols + c
@@ -76,28 +76,39 @@ def sparse_moments(points, origin_x, origin_y, size, rows, cols, span, min_point
     touched = np.empty(capacity, dtype=np.int64)
     n = 0
     for i in range(points.shape[0]):
+        x, y = points[i, 0], points[i, 1]
         n = _add_point(
-            points[i, 0], points[i, 1], origin_x, origin_y, size, rows, cols, span,
-            index, moments, touched, n,
+            x, y, math.floor((y - origin_y) / size), math.floor((x - origin_x) / size),
+            origin_x, origin_y, size, rows, cols, span, index, moments, touched, n,
         )  # fmt: skip
     return _kept_blocks(index, moments, touched, n, min_points)
 
 
 @njit(cache=True)
-def _mask_moments(mask, row0, col0, res, origin_x, origin_y, size, rows, cols, span, min_points):  # type: ignore[no-untyped-def]
+def _mask_moments(  # type: ignore[no-untyped-def]
+    mask, row0, col0, res, block_row0, block_col0, size, rows, cols, span, min_points
+):
     """sparse_moments of the centres of the set cells of `mask`, a window from cell (row0,
-    col0) of the lattice of `res` cells with its corner at the origin (no list of the cells)."""
+    col0) of the lattice of `res` cells with its corner at the origin (no list of the cells),
+    for the blocks from (block_row0, block_col0) of the lattice of `size` cells.
+
+    A centre's cell of that lattice is floor((fine + 0.5) * res / size), whatever the box (as
+    `_LatticeBlocks._bins` marks it dirty): from the box's corner, rounding put a centre on a
+    cell border in either cell depending on the box."""
     index = np.full(rows * cols, -1, dtype=np.int64)
     moments = np.zeros((rows * cols, 6))
     touched = np.empty(rows * cols, dtype=np.int64)
+    origin_x, origin_y, scale = block_col0 * size, block_row0 * size, res / size
     n = 0
     for i in range(mask.shape[0]):
         y = (row0 + i + 0.5) * res
+        row = math.floor((row0 + i + 0.5) * scale) - block_row0
         for j in range(mask.shape[1]):
             if mask[i, j]:
                 n = _add_point(
-                    (col0 + j + 0.5) * res, y, origin_x, origin_y, size, rows, cols, span,
-                    index, moments, touched, n,
+                    (col0 + j + 0.5) * res, y, row,
+                    math.floor((col0 + j + 0.5) * scale) - block_col0,
+                    origin_x, origin_y, size, rows, cols, span, index, moments, touched, n,
                 )  # fmt: skip
     return _kept_blocks(index, moments, touched, n, min_points)
 
@@ -123,8 +134,8 @@ def boxes_moments(masks, starts, fine, blocks, res, size, span, min_points):  # 
         shape = (fine[k, 2] - fine[k, 0], fine[k, 3] - fine[k, 1])
         mask = masks[starts[k] : starts[k] + shape[0] * shape[1]].reshape(shape)
         index, kept, _ = _mask_moments(
-            mask, fine[k, 0], fine[k, 1], res, c0 * size, r0 * size, size, r1 - r0, c1 - c0,
-            span, min_points,
+            mask, fine[k, 0], fine[k, 1], res, r0, c0, size, r1 - r0, c1 - c0, span,
+            min_points,
         )  # fmt: skip
         for i in range((r1 - r0) * (c1 - c0)):
             row, col = i // (c1 - c0), i % (c1 - c0)

@@ -1,9 +1,18 @@
 """NDTCells: per-cell moments, eigenvalue floor, lookups and the four shifted grids."""
 
+import math
+
 import numpy as np
 import pytest
-from scanflow.maps.ndt_cells import MIN_CELL_POINTS, NDTCells, OverlappingCells
+from scanflow.maps.ndt_cells import (
+    MIN_CELL_POINTS,
+    GridNDTCells,
+    GridOverlappingCells,
+    NDTCells,
+    OverlappingCells,
+)
 from scanflow.maps.ndt_moments import EIGEN_FLOOR_M2, EIGEN_FLOOR_RATIO
+from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
 
 
 def test_cells_hold_the_mean_and_inverse_covariance_of_their_points() -> None:
@@ -95,3 +104,48 @@ def test_points_just_below_a_cell_border_are_kept() -> None:
             low = np.array([[x, 0.0], [x + 0.25 * size, 0.1 * size], [x, 0.2 * size]])
             got = NDTCells.from_points(low, size)
             assert (got.spec.contains(got.spec.world_to_cell(low))).all(), (size, x)
+
+
+def _by_location(cells: NDTCells | OverlappingCells, anchor: np.ndarray, step_m: float):
+    """(lattice (row, col) of each cell or block from the anchor, its count, its mean), sorted."""
+    corner = (
+        (cells.spec.origin_y_m, cells.spec.origin_x_m)
+        if isinstance(cells, NDTCells)
+        else (cells.origin_y_m, cells.origin_x_m)
+    )
+    start = np.round((np.array(corner) - anchor[::-1]) / step_m).astype(np.int64)
+    rc = np.argwhere(cells.index >= 0)
+    k = cells.index[rc[:, 0], rc[:, 1]]
+    rc += start
+    order = np.lexsort((rc[:, 1], rc[:, 0]))
+    return rc[order], cells.counts[k[order]], cells.means[k[order]]
+
+
+@pytest.mark.parametrize(
+    ("resolution_m", "kind", "cell_size_m"),
+    [(0.1, GridOverlappingCells, 0.3), (0.04, GridNDTCells, 0.3), (0.02, GridNDTCells, 0.15)],
+)
+def test_blocks_kept_current_equal_blocks_built_anew_when_borders_cross_cell_centres(
+    resolution_m: float, kind: type, cell_size_m: float
+) -> None:
+    """Where a lattice line runs through fine cell centres (half-cells of 1.5 fine cells), the
+    refresh binned each centre from the corner of whichever box it recomputed, so rounding put
+    one on either side of the line: a refresh counted it in a block another box had counted it
+    in already, or in a block its flip had not marked dirty."""
+    rng = np.random.default_rng(11)
+    grid = OccupancyGrid(OccupancyParams(resolution_m, p_hit=0.7, p_miss=0.3),
+                         initial_capacity_cells=4)
+    kept = kind(grid, cell_size_m)
+    for _ in range(12):
+        centre = rng.uniform(-4.0, 4.0, 2)
+        a = np.linspace(-math.pi, math.pi, 90, endpoint=False)
+        d = np.column_stack((np.cos(a), np.sin(a)))
+        walls = centre + d * (rng.uniform(0.5, 3.0) / np.abs(d).max(axis=1))[:, None]
+        kept.mark_dirty(grid.insert_scan(walls, centre).occupied_cells)
+        kept.cells()
+    step = cell_size_m if kind is GridNDTCells else 0.5 * cell_size_m
+    got = _by_location(kept.cells(), np.zeros(2), step)
+    want = _by_location(kind(grid, cell_size_m).cells(), np.zeros(2), step)
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+    np.testing.assert_allclose(got[2], want[2], rtol=0, atol=1e-9)
