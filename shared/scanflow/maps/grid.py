@@ -58,7 +58,10 @@ class GridSpec:
         else:
             lo = p.min(axis=0) - margin_m
             hi = p.max(axis=0) + margin_m
-        lo = np.floor(lo / resolution_m) * resolution_m
+        need = lo
+        lo = np.floor(need / resolution_m) * resolution_m
+        # Rounded, that corner can land just above the lowest point: one cell lower then.
+        lo -= resolution_m * (np.floor((need - lo) / resolution_m) < 0)
         cols = math.ceil((hi[0] - lo[0]) / resolution_m) + 1
         rows = math.ceil((hi[1] - lo[1]) / resolution_m) + 1
         return GridSpec(float(lo[0]), float(lo[1]), resolution_m, rows, cols)

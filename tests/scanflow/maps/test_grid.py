@@ -7,6 +7,7 @@ from hypothesis import strategies as st
 from scanflow.maps.grid import (
     BoxUnion,
     CellBox,
+    GridSpec,
     boxes_of,
     clipped,
     disjoint_cover,
@@ -138,3 +139,18 @@ def test_box_union_takes_the_union_of_what_was_added(parts):
     assert not union and union.take().shape == (0, 4)
     assert boxes_of(None).shape == (0, 4) and boxes_of(CellBox(1, 2, 1, 5)).shape == (0, 4)
     assert boxes_of(CellBox(1, 2, 3, 5)).tolist() == [[1, 2, 3, 5]]
+
+
+def test_covering_holds_a_lowest_point_just_below_a_cell_border() -> None:
+    """-127.70000000000002 / 0.1 rounds to -1277 exactly: with no margin the grid began at
+    -127.7, just above the point, which fell in column -1 of its own covering grid (a
+    likelihood field from that point was 0 everywhere)."""
+    point = np.array([[-127.70000000000002, 0.05]])
+    spec = GridSpec.covering(point, 0.1, 0.0)
+    assert spec.contains(spec.world_to_cell(point)).all()
+    rng = np.random.default_rng(2)
+    for resolution_m in (0.05, 0.1, 0.3):
+        x = np.nextafter(rng.integers(-3000, 3000, 300) * resolution_m, -np.inf)
+        for row in np.column_stack((x, x[::-1])):
+            spec = GridSpec.covering(row[None, :], resolution_m, 0.0)
+            assert spec.contains(spec.world_to_cell(row)).all(), (resolution_m, row)
