@@ -52,6 +52,9 @@ class GridSpec:
     def covering(points: NDArray[np.float64], resolution_m: float, margin_m: float) -> GridSpec:
         """The smallest resolution-aligned grid holding the points plus a margin."""
         p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        bad = ~np.isfinite(p).all(axis=1)
+        if bad.any():
+            raise ValueError(f"points has {int(bad.sum())} non-finite rows, first {p[bad][0]}")
         if p.size == 0:
             lo = np.array([-margin_m, -margin_m])
             hi = np.array([margin_m, margin_m])

@@ -2,6 +2,7 @@
 box sets (tiles, disjoint covers, unions) that views track their changes with."""
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scanflow.maps.grid import (
@@ -154,3 +155,10 @@ def test_covering_holds_a_lowest_point_just_below_a_cell_border() -> None:
         for row in np.column_stack((x, x[::-1])):
             spec = GridSpec.covering(row[None, :], resolution_m, 0.0)
             assert spec.contains(spec.world_to_cell(row)).all(), (resolution_m, row)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_covering_refuses_non_finite_points_by_name(bad: float) -> None:
+    """It raised 'cannot convert float NaN to integer' (or infinity) from math.ceil."""
+    with pytest.raises(ValueError, match=r"points has 1 non-finite row"):
+        GridSpec.covering(np.array([[0.0, 0.0], [bad, 1.0]]), 0.05, 1.0)
