@@ -12,7 +12,25 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
+
+
+def finite_rows(name: str, points: NDArray[np.float64]) -> NDArray[np.float64]:
+    """`points` (N, 2) when every row is finite; else ValueError naming `name` and a bad row."""
+    bad = ~np.isfinite(points).all(axis=1)
+    if bad.any():
+        raise ValueError(f"{name} has {int(bad.sum())} non-finite rows, first {points[bad][0]}")
+    return points
+
+
+def corner_below(
+    lowest: NDArray[np.float64], step_m: float, offset_m: ArrayLike = 0.0
+) -> NDArray[np.float64]:
+    """The highest lattice corner offset + k * step at or below `lowest`, per axis. floor(x /
+    step) * step can round to just above x (x = -127.70000000000002, step 0.1): one step lower
+    then, so that x never falls in the cell before a grid's first."""
+    corner = np.floor((lowest - offset_m) / step_m) * step_m + offset_m
+    return corner - step_m * (lowest < corner)
 
 
 @dataclass(frozen=True, slots=True)
@@ -51,20 +69,14 @@ class GridSpec:
     @staticmethod
     def covering(points: NDArray[np.float64], resolution_m: float, margin_m: float) -> GridSpec:
         """The smallest resolution-aligned grid holding the points plus a margin."""
-        p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-        bad = ~np.isfinite(p).all(axis=1)
-        if bad.any():
-            raise ValueError(f"points has {int(bad.sum())} non-finite rows, first {p[bad][0]}")
+        p = finite_rows("points", np.asarray(points, dtype=np.float64).reshape(-1, 2))
         if p.size == 0:
             lo = np.array([-margin_m, -margin_m])
             hi = np.array([margin_m, margin_m])
         else:
             lo = p.min(axis=0) - margin_m
             hi = p.max(axis=0) + margin_m
-        need = lo
-        lo = np.floor(need / resolution_m) * resolution_m
-        # Rounded, that corner can land just above the lowest point: one cell lower then.
-        lo -= resolution_m * (np.floor((need - lo) / resolution_m) < 0)
+        lo = corner_below(lo, resolution_m)
         cols = math.ceil((hi[0] - lo[0]) / resolution_m) + 1
         rows = math.ceil((hi[1] - lo[1]) / resolution_m) + 1
         return GridSpec(float(lo[0]), float(lo[1]), resolution_m, rows, cols)

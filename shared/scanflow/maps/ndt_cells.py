@@ -25,7 +25,9 @@ from scanflow.maps.grid import (
     CellBox,
     GridSpec,
     boxes_of,
+    corner_below,
     disjoint_cover,
+    finite_rows,
     grown_box,
     tile_boxes,
 )
@@ -47,11 +49,7 @@ def _check_cell_size(cell_size_m: float) -> None:
 
 def _checked_points(points: NDArray[np.float64], cell_size_m: float) -> NDArray[np.float64]:
     _check_cell_size(cell_size_m)
-    p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    bad = ~np.isfinite(p).all(axis=1)
-    if bad.any():
-        raise ValueError(f"points has {int(bad.sum())} non-finite rows, first {p[bad][0]}")
-    return p
+    return finite_rows("points", np.asarray(points, dtype=np.float64).reshape(-1, 2))
 
 
 @dataclass(frozen=True, eq=False)
@@ -75,9 +73,7 @@ class NDTCells:
         p = _checked_points(points, cell_size_m)
         ox, oy = offset_m
         if len(p):
-            lo = np.floor((p.min(axis=0) - (ox, oy)) / cell_size_m) * cell_size_m + (ox, oy)
-            # Rounded, that corner can land just above the lowest point: one cell lower then.
-            lo -= cell_size_m * (np.floor((p.min(axis=0) - lo) / cell_size_m) < 0)
+            lo = corner_below(p.min(axis=0), cell_size_m, (ox, oy))
             hi = p.max(axis=0)
         else:
             lo = hi = np.array([ox, oy])

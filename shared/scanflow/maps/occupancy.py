@@ -29,7 +29,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scanflow.maps.grid import CellBox, GridSpec, boxes_of, grown_box
+from scanflow.maps.grid import CellBox, GridSpec, boxes_of, finite_rows, grown_box
 from scanflow.maps.occupancy_kernels import (
     HIT_COUNT_MAX,
     HIT_UNITS_PER_CELL,
@@ -200,11 +200,7 @@ def _shaped(name: str, value: ArrayLike) -> NDArray[np.float64]:
 
 
 def _as_points(name: str, value: ArrayLike) -> NDArray[np.float64]:
-    p = _shaped(name, value)
-    bad = ~np.isfinite(p).all(axis=1)
-    if bad.any():
-        raise ValueError(f"{name} has {int(bad.sum())} non-finite rows, first {p[bad][0]}")
-    return p
+    return finite_rows(name, _shaped(name, value))
 
 
 def _quantised_hit_sums(

@@ -11,6 +11,7 @@ from scanflow.maps.grid import (
     GridSpec,
     boxes_of,
     clipped,
+    corner_below,
     disjoint_cover,
     grown_box,
     tile_boxes,
@@ -162,3 +163,24 @@ def test_covering_refuses_non_finite_points_by_name(bad: float) -> None:
     """It raised 'cannot convert float NaN to integer' (or infinity) from math.ceil."""
     with pytest.raises(ValueError, match=r"points has 1 non-finite row"):
         GridSpec.covering(np.array([[0.0, 0.0], [bad, 1.0]]), 0.05, 1.0)
+
+
+@given(
+    st.floats(-1e4, 1e4, allow_nan=False),
+    st.sampled_from([0.01, 0.04, 0.05, 0.1, 0.3, 0.5, 2.0]),
+    st.floats(-1.0, 1.0, allow_nan=False),
+)
+def test_corner_below_is_the_lattice_corner_at_or_below_the_point(
+    x: float, step: float, offset: float
+) -> None:
+    corner = float(corner_below(np.array([x]), step, offset)[0])
+    assert corner <= x  # never above, whatever floor's rounding does
+    assert x - corner < step * (1 + 1e-9)  # and the highest such corner
+    k = (corner - offset) / step
+    assert abs(k - round(k)) < 1e-6  # on the lattice offset + k * step
+
+
+def test_corner_below_steps_down_where_rounding_lands_above() -> None:
+    x = -127.70000000000002
+    assert np.floor(x / 0.1) * 0.1 > x  # the rounding this guards against
+    assert corner_below(np.array([x]), 0.1)[0] <= x
