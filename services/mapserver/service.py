@@ -158,17 +158,23 @@ class MapServer:
         `through`, asked for again; logged and counted (`inserts_lost`) when it cannot send
         them all: the map then lacks those scans. A matcher past its recent inserts sends the
         back end's keyframes when they are all of them, else its whole map and path
-        (MapStateMessage), which replace this robot's."""
+        (MapStateMessage), which replace this robot's. Called under the lock, which it lets go
+        while it asks."""
         after = robot.last_insert_seq
         if through <= after:
             return
         key = keys.map_key(robot.robot_id, "resend", self.shell.prefix)
+        # The worker alone changes the maps, and they are whole here: the queries that read
+        # them go on while it waits for the matcher (up to resend_timeout_s).
+        self.lock.release()
         try:  # the message that showed the gap goes in whatever happens here
             payloads, errors = self.shell.get(
                 resend_selector(key, after, through), self.settings.resend_timeout_s
             )
         except (zenoh.ZError, RuntimeError) as exc:  # no side session, a refused query
             payloads, errors = [], [f"the query failed: {exc}"]
+        finally:
+            self.lock.acquire()
         try:
             messages = [decode_any(p) for p in payloads]
             if messages and isinstance(messages[0], MapStateMessage):

@@ -284,3 +284,32 @@ def test_a_redraw_the_map_server_cannot_follow_is_counted_and_the_map_kept(launc
     # The error is counted just before it is logged: wait for the line too.
     bus.wait_until(lambda: "keeps no keyframes" in launcher.log_text("mapserver"), 10.0,
                    "the refusal in the map server's log")
+
+
+def test_map_queries_are_not_held_up_while_the_matcher_sends_inserts_again(
+    tmp_path, insert
+) -> None:
+    """Asking the matcher for missed inserts waits up to resend_timeout_s (a whole map can take
+    seconds to build and send): the lock the map, trajectory and resume queries take is free
+    meanwhile, and the robot's map holds everything taken before the gap."""
+    server = MapServer(MapServerSettings(data_dir=str(tmp_path)),
+                       ZenohSettings(mode="peer", connect=[]))
+    free_while_asked = []
+
+    def slow_matcher(selector: str, timeout_s: float):
+        free_while_asked.append(server.lock.acquire(blocking=False))
+        if free_while_asked[-1]:
+            assert server.robots["r"].last_insert_seq == 0  # what a query reads meanwhile
+            server.lock.release()
+        return [replace(insert(3), previous_seq=0).encode()], []
+
+    server.shell.get = slow_matcher
+    try:
+        server.handle("insert", insert(0))
+        server.handle("insert", replace(insert(4), previous_seq=3))
+        assert free_while_asked == [True]
+        robot = server.robots["r"]
+        assert robot.last_insert_seq == 4 and robot.map.revision == 3
+        assert server.shell.counters.get("inserts_resent") == 1
+    finally:
+        server.shell.close(flush_s=0.0)
