@@ -205,7 +205,7 @@ class DeskewService:
     def _pending(self) -> int:
         return sum(
             len(r.pending) + (0 if r.previous is None else len(r.previous.pending))
-            for r in self.robots.values()
+            for r in list(self.robots.values())  # a copy: the worker may admit a robot now
         )
 
     def run(self) -> None:

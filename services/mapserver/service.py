@@ -279,8 +279,9 @@ class MapServer:
         self.shell.serve(key_of("*"), handler)
 
     def _gauges(self) -> dict[str, float]:
-        gauges: dict[str, float] = {"robots": len(self.robots)}
-        for robot in self.robots.values():
+        robots = list(self.robots.values())  # a copy: the worker may admit a robot meanwhile
+        gauges: dict[str, float] = {"robots": len(robots)}
+        for robot in robots:
             r = robot.robot_id
             gauges.update({
                 f"{r}.revision": robot.map.revision,

@@ -3,17 +3,21 @@
 from __future__ import annotations
 
 import math
+import sys
+import threading
 import time
 
 import numpy as np
 import pytest
 from scanflow import keys
+from scanflow.config import DeskewSettings, ZenohSettings
 from scanflow.deskew import OdometryBuffer, deskew
 from scanflow.geometry import Pose2D
 from scanflow.pipeline import DeskewStage
 from scanflow.scan import LaserScan, Odometry
 from scanflow.wire import DeskewedScanMessage, OdometryMessage, PoseEstimateMessage, ScanMessage
 
+from services.deskew.service import DeskewService, _Robot
 from services.ingest.sources import source_events
 
 pytestmark = [pytest.mark.integration]
@@ -173,3 +177,34 @@ def test_a_run_started_again_at_once_keeps_each_runs_odometry() -> None:
     for message, (_, points) in zip(out, expected, strict=True):
         assert message.source_used == "odometry", message.seq
         np.testing.assert_array_equal(message.points, points, strict=True)
+
+
+def test_stats_gathered_while_robots_are_admitted_do_not_fail() -> None:
+    """The stats queryable runs on a Zenoh thread while the worker admits robots: the pending
+    count it gathers must not trip over the robots' dict growing (the stats query would go
+    unanswered)."""
+    service = DeskewService(DeskewSettings(max_robots=100_000),
+                            ZenohSettings(mode="peer", connect=[]))
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # hand the GIL over often: the race shows at once
+    failures: list[Exception] = []
+    done = threading.Event()
+
+    def scrape() -> None:
+        while not done.is_set():
+            try:
+                service.shell.stats()
+            except RuntimeError as exc:
+                failures.append(exc)
+
+    scraper = threading.Thread(target=scrape)
+    scraper.start()
+    try:
+        for i in range(20_000):  # what the worker does as each new robot's first message comes
+            service.robots.setdefault(f"r{i}", _Robot())
+    finally:
+        done.set()
+        scraper.join()
+        sys.setswitchinterval(interval)
+        service.shell.close(flush_s=0.0)
+    assert failures == []

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+import threading
 from dataclasses import replace
 
 import numpy as np
@@ -13,6 +15,7 @@ from scanflow.maps.export import npz_arrays, npz_bytes
 from scanflow.wire import MapInsertMessage, MapRedrawMessage, MapStateMessage, PoseEstimateMessage
 
 from services.mapserver.keyframes import Keyframes
+from services.mapserver.robot import RobotMap
 from services.mapserver.service import MapServer
 
 
@@ -313,3 +316,35 @@ def test_map_queries_are_not_held_up_while_the_matcher_sends_inserts_again(
         assert server.shell.counters.get("inserts_resent") == 1
     finally:
         server.shell.close(flush_s=0.0)
+
+
+def test_stats_gathered_while_robots_are_admitted_do_not_fail(tmp_path) -> None:
+    """The stats queryable runs on a Zenoh thread while the worker admits robots: the per-robot
+    gauges it gathers must not trip over the robots' dict growing (the stats query would go
+    unanswered)."""
+    server = MapServer(MapServerSettings(data_dir=str(tmp_path), max_robots=100_000),
+                       ZenohSettings(mode="peer", connect=[]))
+    robot = server.robots.setdefault("r0", RobotMap("r0", server.new_grid))
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # hand the GIL over often: the race shows at once
+    failures: list[Exception] = []
+    done = threading.Event()
+
+    def scrape() -> None:
+        while not done.is_set():
+            try:
+                server.shell.stats()
+            except RuntimeError as exc:
+                failures.append(exc)
+
+    scraper = threading.Thread(target=scrape)
+    scraper.start()
+    try:
+        for i in range(20_000):  # as the worker does for each new robot's first message
+            server.robots[f"r{i}"] = robot
+    finally:
+        done.set()
+        scraper.join()
+        sys.setswitchinterval(interval)
+        server.shell.close(flush_s=0.0)
+    assert failures == []
