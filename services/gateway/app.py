@@ -16,6 +16,7 @@ from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel
 from scanflow.config import GatewaySettings, ZenohSettings
+from scanflow.wire import DecodeError
 
 from services.gateway.backend import BackendError, ZenohBackend
 from services.gateway.deps import require_key
@@ -65,6 +66,7 @@ def create_app(
         app.include_router(router, dependencies=reads)
     app.add_exception_handler(BackendError, _backend_error)  # type: ignore[arg-type]
     app.add_exception_handler(RequestValidationError, _invalid)  # type: ignore[arg-type]
+    app.add_exception_handler(DecodeError, _unreadable_reply)  # type: ignore[arg-type]
     app.add_middleware(BodyLimit, max_body_bytes=settings.max_body_bytes)
     app.add_middleware(RequestTiming, metrics=app.state.metrics)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
@@ -79,6 +81,15 @@ def create_app(
 
 async def _backend_error(_request: Request, exc: BackendError) -> JSONResponse:
     return JSONResponse({"detail": exc.reason}, status_code=exc.status_code)
+
+
+async def _unreadable_reply(request: Request, exc: DecodeError) -> JSONResponse:
+    """502 for a service's answer the gateway cannot decode (bodies' DecodeErrors are 422s
+    before this: read_body)."""
+    log.warning("unreadable answer from the bus for %s: %s", request.url.path, exc)
+    return JSONResponse(
+        {"detail": f"a service's answer is unreadable: {exc}"}, status_code=502
+    )
 
 
 async def _invalid(_request: Request, exc: RequestValidationError) -> JSONResponse:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 
 from fastapi.testclient import TestClient
+from scanflow import keys
 from scanflow.config import GatewaySettings, ZenohSettings
 
 from services.gateway.app import STATIC_DIR, create_app
@@ -83,3 +84,13 @@ def test_guard_reads_puts_the_key_on_every_endpoint(backend, settings, auth):
         assert c.get("/api/v1/robots", headers=auth).status_code == 200
         operation = c.get("/openapi.json").json()["paths"]["/api/v1/robots"]["get"]
         assert operation["security"] == [{"APIKeyHeader": []}]
+
+
+def test_an_unreadable_answer_from_a_service_is_a_502_naming_it(peer, backend, settings):
+    """A service that answers with bytes the gateway cannot decode (another schema version
+    in a rolling upgrade, a broken service) is a bad gateway, named, not a bare 500."""
+    peer.answer(keys.map_key("r1", "meta"), lambda q: b"\x00not msgpack")
+    with TestClient(create_app(settings, backend), raise_server_exceptions=False) as c:
+        r = c.get("/api/v1/robots/r1/map")
+    assert r.status_code == 502
+    assert "unreadable" in r.json()["detail"] and "msgpack" in r.json()["detail"]
