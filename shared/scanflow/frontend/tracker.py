@@ -209,7 +209,10 @@ class Frontend:
         no_return_m: ArrayLike | None = None,
         mount: Pose2D = IDENTITY,
     ) -> FrontendOutput:
-        """Track one scan (see the module docstring); never raises for bad scan content."""
+        """Track one scan (see the module docstring); never raises for bad scan content.
+        ValueError for a non-finite `stamp_s`, before anything is changed."""
+        if not math.isfinite(stamp_s):
+            raise ValueError(f"stamp_s must be finite, got {stamp_s!r}")
         points = as_points(points_m, "points_m")
         misses = np.zeros((0, 2)) if no_return_m is None else as_points(no_return_m, "no_return_m")
         prediction = self._predict(stamp_s, odom_pose)

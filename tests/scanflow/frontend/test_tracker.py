@@ -214,6 +214,29 @@ def test_garbage_scan_is_rejected_and_map_untouched(
     assert error(out.pose, truth[4])[0] < 0.02
 
 
+@pytest.mark.parametrize("stamp_s", [math.nan, math.inf, -math.inf])
+def test_a_non_finite_stamp_is_refused_before_it_touches_the_state(
+    settings: FrontendSettings, scan_at: Scanner, stamp_s: float
+) -> None:
+    """A scan at a NaN or infinite stamp cannot be tracked (nor put on the trajectory): it is
+    refused by name before the match, so the next scans go on exactly as if it never came."""
+    truth = straight_path(START, 0.1, 8)
+    odom = odometry_with_drift(truth, 1.0)
+    clean, refused = (Frontend(settings, initial_pose=START_IN_MAP) for _ in range(2))
+    for frontend in (clean, refused):
+        run(frontend, scan_at, truth[:6], odom[:6])
+    revision = refused.map.revision
+    with pytest.raises(ValueError, match="stamp_s"):
+        refused.process(scan_at(truth[6]), stamp_s, odom[6], 6)
+    assert len(refused.trajectory) == 6 and refused.map.revision == revision
+    # A rejected scan next: its covariance grows from the last accepted match's, not from the
+    # refused scan's.
+    outs = [frontend.process(np.zeros((0, 2)), 0.7, odom[7], 7) for frontend in (clean, refused)]
+    assert all(o.status is FrontendStatus.TOO_FEW_POINTS for o in outs)
+    np.testing.assert_array_equal(outs[1].covariance, outs[0].covariance)
+    assert outs[1].pose == outs[0].pose
+
+
 def test_odometry_jump_is_ignored(
     settings: FrontendSettings, scan_at: Scanner
 ) -> None:
