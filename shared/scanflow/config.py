@@ -318,6 +318,15 @@ class GatewaySettings(ProcessSettings):
     )
 
 
+# `scanflow.matching`'s methods, written out so that a misspelt one is refused when settings
+# load, not at the first scan (config stays free of the matchers' imports; a test keeps this
+# list equal to `available_methods()`).
+MatchMethod = Literal[
+    "csm", "csm+plicp", "csm_exhaustive", "global", "gn", "gn+plicp", "icp", "lm", "ndt",
+    "plicp", "svd",
+]
+
+
 class FrontendSettings(Section):
     """The scan-to-map tracking front end (SCANFLOW_FRONTEND_*): method, checks, motion filter.
 
@@ -327,12 +336,12 @@ class FrontendSettings(Section):
 
     model_config = SettingsConfigDict(env_prefix="SCANFLOW_FRONTEND_")
 
-    method: str = Field(
+    method: MatchMethod = Field(
         "gn",
         description="scan-to-map method (scanflow.matching name); 'gn+plicp' drifts far less "
         "but is less robust on sparse long-range scans (README, Front end)",
     )
-    fallback_method: str = Field(
+    fallback_method: Literal[MatchMethod, ""] = Field(
         "csm", description="global-window search that seeds `method` when it fails; '' = none"
     )
     fallback_linear_m: float = Field(1.0, gt=0.0, description="fallback search half-width")
@@ -436,7 +445,7 @@ class BackendSettings(Section):
     )
     linear_m: float = Field(1.0, gt=0.0, description="search window half-width around the guess")
     angular_deg: float = Field(20.0, gt=0.0, description="search window half-angle")
-    method: str = Field("gn", description="refines the search's best pose on the submap")
+    method: MatchMethod = Field("gn", description="refines the search's best pose on the submap")
     min_score: float = Field(0.5, description="lowest refined match score kept as a closure")
     max_position_std_m: float = Field(0.1, gt=0.0, description="largest sqrt(var x/y) kept")
     max_heading_std_deg: float = Field(2.0, gt=0.0, description="largest heading std kept")

@@ -227,3 +227,29 @@ def test_the_ingest_simulator_offers_every_built_in_world() -> None:
 
     choices = get_args(config.IngestSettings.model_fields["sim_world"].annotation)
     assert sorted(choices) == sorted(WORLDS)
+
+
+def test_the_method_settings_offer_every_matching_method() -> None:
+    """The written-out list is `scanflow.matching`'s registry (config stays free of its imports)."""
+    from typing import get_args
+
+    from scanflow.matching import available_methods
+
+    assert sorted(get_args(config.MatchMethod)) == available_methods()
+
+
+def test_a_misspelt_method_is_refused_when_settings_load(monkeypatch) -> None:
+    """Named at start-up, not by the first scan the front end matches (or the first fallback,
+    or the first loop closure)."""
+    monkeypatch.setenv("SCANFLOW_FRONTEND_METHOD", "gn_plicp")
+    monkeypatch.setenv("SCANFLOW_FRONTEND_FALLBACK_METHOD", "cms")
+    monkeypatch.setenv("SCANFLOW_BACKEND_METHOD", "nd")
+    with pytest.raises(config.SettingsError) as error:
+        config.check_environment(config.FrontendSettings, config.BackendSettings)
+    for name in ("FRONTEND_METHOD='gn_plicp'", "FALLBACK_METHOD='cms'", "BACKEND_METHOD='nd'"):
+        assert name in str(error.value)
+    monkeypatch.setenv("SCANFLOW_FRONTEND_FALLBACK_METHOD", "")
+    monkeypatch.setenv("SCANFLOW_FRONTEND_METHOD", "gn+plicp")
+    monkeypatch.setenv("SCANFLOW_BACKEND_METHOD", "ndt")
+    loaded = config.check_environment(config.FrontendSettings, config.BackendSettings)
+    assert loaded[config.FrontendSettings].fallback_method == ""

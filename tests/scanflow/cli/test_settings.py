@@ -40,7 +40,8 @@ def test_docs_settings_md_is_the_commands_output():
 def test_the_reference_names_each_variable_and_its_default():
     text = reference_markdown()
     assert "| `SCANFLOW_GATEWAY_PORT` | int, >= 1, <= 65535 | `8000` |" in text
-    assert "| `SCANFLOW_FRONTEND_METHOD` | str | `gn` |" in text
+    assert "| `SCANFLOW_FRONTEND_METHOD` | csm \\| csm+plicp \\| csm_exhaustive" in text
+    assert "\\| plicp \\| svd | `gn` |" in text
     assert ("| `SCANFLOW_ZENOH_CONNECT` | list (comma-separated or JSON) | `tcp/127.0.0.1:7447` |"
             in text)
     assert "`SCANFLOW_<SERVICE>_LOG_LEVEL` | DEBUG \\| INFO \\| WARNING \\| ERROR | `INFO`" in text
