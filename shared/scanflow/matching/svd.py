@@ -45,7 +45,8 @@ def rigid_transform_svd(
 
 
 def point_hessian(points: NDArray[np.float64], weights: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Gauss-Newton Hessian of sum w |R p + t - q|^2 at the solution (left perturbation)."""
+    """Gauss-Newton Hessian of sum w |R p + t - q|^2 in the pose's (x, y, theta), given the
+    rotated source points R p (d(R p + t)/dtheta = R' p turns them about the source's origin)."""
     w_sum = float(weights.sum())
     sx, sy = weights @ points
     sq = float(weights @ np.sum(points * points, axis=1))
@@ -84,7 +85,7 @@ def match_svd(
     pose = rigid_transform_svd(source[used], target[used], w[used])
     moved = pose.transform_points(source[used])
     sq = np.sum((moved - target[used]) ** 2, axis=1)
-    hessian = point_hessian(moved, w[used])
+    hessian = point_hessian(moved - [pose.x, pose.y], w[used])
     cov = least_squares_covariance(hessian, float(w[used] @ sq), 2 * int(used.sum()))
     status, message, weak = MatchStatus.OK, "", None
     cond = analyse_hessian(hessian, characteristic_length_m(moved))
