@@ -34,7 +34,6 @@ from scanflow.matching.correspondence import (
     target_lines,
     thin_dense_target,
 )
-from scanflow.matching.covariance import pose_parameter_jacobian
 from scanflow.matching.inputs import (
     require_in,
     require_iterations,
@@ -115,11 +114,13 @@ def _icp_kernel(
         cd, sd = math.cos(dth), math.sin(dth)
         dx = mtx - (cd * msx - sd * msy)
         dy = mty - (sd * msx + cd * msy)
-        # Left-multiply the step: T <- step * T.
+        # Left-multiply the step: T <- step * T. Its size is how far the source's origin moved
+        # ((dx, dy) is the target origin's, 250 m away 250 m per radian turned).
+        x0, y0 = x, y
         x, y = cd * x - sd * y + dx, sd * x + cd * y + dy
         th = th + dth
         gate = adaptive_gate_m(dist[pair >= 0], gate_min_m, gate_max_m)
-        small_step = math.hypot(dx, dy) < tol_m and abs(dth) < tol_rad
+        small_step = math.hypot(x - x0, y - y0) < tol_m and abs(dth) < tol_rad
         flat = abs(previous_error - error) <= relative_error_change * max(error, 1e-12)
         previous_error = error
         if small_step or flat:
@@ -192,7 +193,8 @@ def match_icp(
     lined = assoc >= 0
     moved = paired[lined[kept]]  # the lined pairs are among the kept ones, already moved
     normals, centres = lines.normals[assoc[lined]], lines.centres[assoc[lined]]
-    hessian = line_hessian(moved, normals)
+    # In the pose's own (x, y, theta): the source turns about its origin, R p = moved - t.
+    hessian = line_hessian(moved - [pose.x, pose.y], normals)
     result = line_match_result(
         "icp", source, tgt, lines, guess, pose, hessian, assoc, lined.astype(np.float64),
         iterations, code, min_inlier_fraction,
@@ -219,6 +221,6 @@ def line_optimum_offset(
     of b + e under C + b b^T is exactly 3.
     """
     residuals = np.sum(normals * (moved - centres), axis=1)
-    jac = np.column_stack((normals, normals[:, 1] * moved[:, 0] - normals[:, 0] * moved[:, 1]))
-    step = -np.linalg.solve(hessian, jac.T @ residuals)
-    return pose_parameter_jacobian(np.array([pose.x, pose.y])) @ step
+    turned = moved - [pose.x, pose.y]  # R p: `hessian` is in the pose's own parameters
+    jac = np.column_stack((normals, normals[:, 1] * turned[:, 0] - normals[:, 0] * turned[:, 1]))
+    return -np.linalg.solve(hessian, jac.T @ residuals)

@@ -106,7 +106,9 @@ def _plicp_kernel(
             res[m] = nx * (px - centres[j, 0]) + ny * (py - centres[j, 1])
             jac[m, 0] = nx
             jac[m, 1] = ny
-            jac[m, 2] = nx * -py + ny * px
+            # d/dtheta of the pose's own parameters: the source turns about its origin (x, y),
+            # not the target's (a lever arm growing with the distance from the target's origin).
+            jac[m, 2] = nx * -(py - y) + ny * (px - x)
             rows[m] = i
             assoc[i] = j
             m += 1
@@ -132,10 +134,7 @@ def _plicp_kernel(
         t_norm = math.hypot(step[0], step[1])
         limit = max(t_norm / max_step_m, abs(step[2]) / max_step_rad, 1.0)
         step /= limit
-        # Left-multiply the increment: T <- Exp(step) * T.
-        cd, sd = math.cos(step[2]), math.sin(step[2])
-        x, y = cd * x - sd * y + step[0], sd * x + cd * y + step[1]
-        th = th + step[2]
+        x, y, th = x + step[0], y + step[1], th + step[2]
         gate = adaptive_gate_m(dist[:m], gate_min_m, gate_max_m)
         if t_norm < tol_m and abs(step[2]) < tol_rad:
             code = CONVERGED
