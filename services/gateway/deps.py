@@ -6,6 +6,7 @@ import secrets
 from typing import Annotated
 
 from fastapi import Depends, HTTPException, Path, Request, Security
+from fastapi.exceptions import RequestValidationError
 from fastapi.security import APIKeyHeader
 from scanflow import keys
 from scanflow.config import GatewaySettings
@@ -48,11 +49,14 @@ def robot_id(
         str, Path(pattern=r"^[A-Za-z0-9_\-.]{1,64}$", description="robot id", examples=["robot"])
     ],
 ) -> str:
-    """The {robot} path parameter, checked like every key chunk (reserved ids refused)."""
+    """The {robot} path parameter, checked like every key chunk (reserved ids refused): a 422
+    shaped as the schema's HTTPValidationError, like an id outside the pattern."""
     try:
         return keys.check_robot_id(robot)
     except keys.KeyExprError as exc:
-        raise HTTPException(422, f"path.robot: {exc}") from exc
+        raise RequestValidationError(
+            [{"loc": ("path", "robot"), "msg": str(exc), "type": "value_error"}]
+        ) from exc
 
 
 Backend = Annotated[ZenohBackend, Depends(get_backend)]

@@ -6,6 +6,7 @@ from types import SimpleNamespace
 
 import pytest
 from fastapi import HTTPException
+from fastapi.exceptions import RequestValidationError
 from scanflow.config import GatewaySettings
 
 from services.gateway.deps import get_backend, get_settings, require_key, robot_id
@@ -44,10 +45,10 @@ def test_a_valid_robot_id_is_returned(robot):
 
 @pytest.mark.parametrize("robot", ["health", "stats"])
 def test_a_reserved_robot_id_is_a_422_naming_it(robot):
-    with pytest.raises(HTTPException) as info:
+    with pytest.raises(RequestValidationError) as info:
         robot_id(robot)
-    assert info.value.status_code == 422
-    assert info.value.detail.startswith("path.robot: ") and repr(robot) in info.value.detail
+    (error,) = info.value.errors()
+    assert error["loc"] == ("path", "robot") and repr(robot) in error["msg"]
 
 
 def test_a_robot_id_outside_the_pattern_is_refused_before_any_route(client):
@@ -56,4 +57,9 @@ def test_a_robot_id_outside_the_pattern_is_refused_before_any_route(client):
 
 
 def test_reserved_robot_id_is_refused(client):
-    assert client.get("/api/v1/robots/stats/pose").status_code == 422
+    """As the schema says a 422 is: detail a list of errors, each with its loc (schemathesis
+    found the bare string this was)."""
+    r = client.get("/api/v1/robots/stats/pose")
+    assert r.status_code == 422
+    (error,) = r.json()["detail"]
+    assert error["loc"] == ["path", "robot"] and "'stats' is reserved" in error["msg"]
