@@ -376,7 +376,14 @@ class ServiceShell:
     def _reply_stats(self, query: zenoh.Query) -> None:
         # Reply on our own concrete key: replies on the queried wildcard would be
         # consolidated into one across all services.
-        query.reply(keys.stats(self.service, self.instance, self.prefix), self.stats().encode())
+        try:
+            query.reply(keys.stats(self.service, self.instance, self.prefix), self.stats().encode())
+        except Exception as exc:  # a failing gauge source: the asker hears why, not silence
+            self.counters.add("stats.failed")
+            self.log.warning("stats failed: %s: %s", type(exc).__name__, exc)
+            query.reply_err(f"{self.service}/{self.instance} stats: {type(exc).__name__}: {exc}")
+        finally:
+            query.drop()  # the reply is final now, not when the query object is collected
 
     def _serve_queries(self) -> None:
         while not self.stop_event.is_set():

@@ -131,3 +131,33 @@ def test_wildcard_stats_query_gets_one_reply_per_service_instance(start, bus):
     replies = bus.get(keys.stats("*", "*"), timeout_s=5.0)
     answered = sorted((r.service, r.instance) for r in replies)
     assert answered == [("deskew", "0"), ("deskew", "1"), ("router", "0")]
+
+
+def test_a_failing_stats_source_is_an_error_reply_naming_it() -> None:
+    """A gauge source that raises (say a robot's map mid-reset) must not leave the stats query
+    unanswered: the asker gets an error reply naming the service and the cause, it is counted,
+    and the next query, once the source works again, gets the stats."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_session(ZenohSettings(mode="router", listen=[endpoint], connect=[]))
+    shell = ServiceShell("deskew", DeskewSettings(), ZenohSettings(connect=[endpoint]))
+    broken = [True]
+
+    def gauges() -> dict[str, float]:
+        if broken[0]:
+            raise KeyError("robot r7")
+        return {"robots": 1.0}
+
+    shell.add_stats(gauges)
+    shell.start(install_signals=False)
+    try:
+        key = keys.stats("deskew", "*", shell.prefix)
+        payloads, errors = shell.get(key, 5.0)
+        assert payloads == [] and len(errors) == 1
+        assert "deskew/" in errors[0] and "KeyError" in errors[0] and "robot r7" in errors[0]
+        broken[0] = False
+        payloads, errors = shell.get(key, 5.0)
+        assert errors == [] and len(payloads) == 1
+        assert shell.counters.get("stats.failed") == 1
+    finally:
+        shell.close(flush_s=0.0)
+        router.close()
