@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from scanflow.deskew import kernels
-from scanflow.deskew.source import DeskewError, PoseArrays
+from scanflow.deskew.source import DeskewError, PoseArrays, finite_times
 from scanflow.geometry import Pose2D, normalize_angles
 from scanflow.scan import Odometry
 
@@ -154,8 +154,11 @@ class OdometryBuffer:
         )
 
     def poses_at(self, times_s: ArrayLike) -> PoseArrays:
-        """Poses (x, y, theta wrapped to [-pi, pi)) at the given times; DeskewError if uncovered."""
-        t = np.ascontiguousarray(times_s, dtype=np.float64).reshape(-1)
+        """Poses (x, y, theta wrapped to [-pi, pi)) at the given times (none: empty arrays);
+        DeskewError if uncovered or a time is not finite."""
+        t = finite_times(times_s)
+        if t.size == 0:
+            return t, t.copy(), t.copy()
         self._require(float(t.min()), float(t.max()))
         poses = kernels.interpolate_poses(self._data, self._lo, self._hi, t, 0.0, False)
         return poses[0], poses[1], normalize_angles(poses[2])

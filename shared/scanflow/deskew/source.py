@@ -6,13 +6,22 @@ from collections.abc import Sequence
 from typing import Protocol
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 PoseArrays = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]
 
 
 class DeskewError(ValueError):
     """Deskewing input that cannot be used; the message names the field and the value."""
+
+
+def finite_times(times_s: ArrayLike) -> NDArray[np.float64]:
+    """`times_s` as a flat float64 array; DeskewError naming a time that is not finite (a NaN
+    time would give a NaN pose, not an error)."""
+    t = np.ascontiguousarray(times_s, dtype=np.float64).reshape(-1)
+    if not np.isfinite(t).all():
+        raise DeskewError(f"times_s must be finite, got {t[~np.isfinite(t)][0]}")
+    return t
 
 
 class PoseSource(Protocol):

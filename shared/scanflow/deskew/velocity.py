@@ -11,7 +11,7 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scanflow.deskew.source import DeskewError, PoseArrays
+from scanflow.deskew.source import DeskewError, PoseArrays, finite_times
 from scanflow.geometry import Pose2D, compose_arrays, se2_exp, se2_log
 
 
@@ -102,8 +102,11 @@ class ConstantVelocityModel:
         return None
 
     def poses_at(self, times_s: ArrayLike) -> PoseArrays:
-        """Predicted poses (x, y, theta) at the given times; DeskewError if beyond the horizon."""
-        t = np.asarray(times_s, dtype=np.float64)
+        """Predicted poses (x, y, theta) at the given times (none: empty arrays); DeskewError if
+        beyond the horizon or a time is not finite."""
+        t = finite_times(times_s)
+        if t.size == 0:
+            return t, t.copy(), t.copy()
         self._require(float(t.min()), float(t.max()))
         last_s, last_pose = self._last  # type: ignore[misc]
         poses = compose_arrays(last_pose.to_array(), self._motion(t - last_s))

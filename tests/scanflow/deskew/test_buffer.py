@@ -98,3 +98,18 @@ def test_bad_settings_and_stamps_name_the_field():
         OdometryBuffer().add(math.nan, Pose2D())
     with pytest.raises(DeskewError, match="max_horizon_s"):
         ConstantVelocityModel(max_horizon_s=-1.0)
+
+
+def test_poses_at_no_time_is_empty_and_a_non_finite_time_is_refused() -> None:
+    """No times, no poses (not numpy's zero-size error); a NaN time is named, never answered
+    with a NaN pose."""
+    from scanflow.scan import Odometry
+
+    buffer = OdometryBuffer()
+    for t in (0.0, 0.1, 0.2):
+        buffer.add_odometry(Odometry(stamp_s=t, pose=Pose2D(t, 0.0, 0.0)))
+    x, y, theta = buffer.poses_at([])
+    assert x.shape == y.shape == theta.shape == (0,)
+    for bad in (math.nan, math.inf, -math.inf):
+        with pytest.raises(DeskewError, match="times_s must be finite"):
+            buffer.poses_at([0.12, bad])

@@ -73,3 +73,15 @@ def test_constant_velocity_model_settings_are_checked():
                 {"max_turn_rate_rads": -1.0}):
         with pytest.raises(DeskewError, match=next(iter(bad))):
             ConstantVelocityModel(**bad)
+
+
+def test_poses_at_no_time_is_empty_and_a_non_finite_time_is_refused() -> None:
+    """As the odometry buffer: no times, no poses; a NaN time is named, not predicted."""
+    model = ConstantVelocityModel()
+    model.update(0.0, Pose2D(0.0, 0.0, 0.0))
+    model.update(0.1, Pose2D(0.1, 0.0, 0.01))
+    x, y, theta = model.poses_at([])
+    assert x.shape == y.shape == theta.shape == (0,)
+    for bad in (math.nan, math.inf):
+        with pytest.raises(DeskewError, match="times_s must be finite"):
+            model.poses_at([0.12, bad])
