@@ -39,7 +39,7 @@ def rejection_reason(result: MatchResult, prediction: Pose2D, limits: Acceptance
     if not (result.ok or (degenerate and limits.accept_degenerate)):
         detail = f": {result.message}" if result.message else ""
         return f"{result.method} match failed ({result.status}){detail}"
-    if result.score < limits.min_score:
+    if not result.score >= limits.min_score:  # a NaN score fails too
         return f"score {result.score:.3f} below min_score {limits.min_score}"
     correction = result.pose.relative_to(prediction)
     if correction.translation_norm() > limits.max_correction_m:

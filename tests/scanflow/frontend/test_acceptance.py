@@ -31,6 +31,7 @@ def result(pose: Pose2D = IDENTITY, status: MatchStatus = MatchStatus.OK, score:
         (result(), ""),
         (result(status=MatchStatus.DIVERGED), "failed (diverged): why"),
         (result(score=0.1), "score"),
+        (result(score=math.nan), "score nan below min_score"),
         (result(Pose2D(0.6, 0.0, 0.0)), "max_correction_m"),
         (result(Pose2D(0.0, 0.0, math.radians(11))), "max_correction"),
         (result(std_m=0.3), "position std"),
