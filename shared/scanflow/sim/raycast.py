@@ -8,6 +8,9 @@ from numpy.typing import NDArray
 from scanflow.geometry import Pose2D
 
 _PARALLEL_EPS = 1e-12
+# Slack on the segment parameter u: a ray aimed at the joint of two walls finds it at u just
+# past 1 on one and just below 0 on the other in floating point, and would slip out between them.
+_END_EPS = 1e-9
 
 
 def cast_rays(
@@ -30,7 +33,7 @@ def cast_rays(
     with np.errstate(divide="ignore", invalid="ignore"):
         t = (wx * ey - wy * ex) / denom
         u = (wx * dy - wy * dx) / denom
-    hit = (np.abs(denom) > _PARALLEL_EPS) & (t > 0.0) & (u >= 0.0) & (u <= 1.0)
+    hit = (np.abs(denom) > _PARALLEL_EPS) & (t > 0.0) & (u >= -_END_EPS) & (u <= 1.0 + _END_EPS)
     distance = np.where(hit, t, np.inf).min(axis=1)
     distance[distance > range_max_m] = np.inf
     return distance

@@ -42,3 +42,18 @@ def test_off_centre_ray_and_range_limit():
     assert distance[0] == pytest.approx(1.0)
     assert np.isinf(distance[1])  # the wall 3 m away is beyond range_max_m
     assert np.isinf(distance[2])  # 2 m to the wall, range_max_m is 1.5
+
+
+def test_a_ray_aimed_at_a_wall_corner_stops_there():
+    """Two walls meeting at a corner: a ray aimed at the joint must not slip out between them
+    (in floating point the corner can fall just past the end of both segments)."""
+    from scanflow.sim import get_world
+
+    walls = get_world("corridor").segments
+    rng = np.random.default_rng(0)
+    origins = rng.uniform((0.5, 0.2), (39.5, 1.8), (2000, 2))
+    corners = np.array([(0.0, 0.0), (40.0, 0.0), (40.0, 2.0), (0.0, 2.0)])
+    for corner in corners:
+        to = corner - origins
+        distance = cast_rays(origins, np.arctan2(to[:, 1], to[:, 0]), walls, 100.0)
+        np.testing.assert_array_less(distance, np.hypot(to[:, 0], to[:, 1]) + 1e-9)
