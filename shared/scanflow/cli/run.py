@@ -26,8 +26,8 @@ from scanflow.pipeline import Pipeline, PipelineOutput
 from scanflow.sim import SimConfig, simulate
 
 
-def _sim_outputs(pipeline: Pipeline, duration_s: float, seed: int) -> Iterator[PipelineOutput]:
-    for frame in simulate(SimConfig(duration_s=duration_s, seed=seed)):
+def _sim_outputs(pipeline: Pipeline, config: SimConfig) -> Iterator[PipelineOutput]:
+    for frame in simulate(config):
         for sample in frame.odometry:
             pipeline.add_odometry(sample)
         yield pipeline.process(frame.scan)
@@ -72,6 +72,10 @@ def run_command(
     if log is not None and not log.exists():
         raise typer.BadParameter(f"no log at {log}", param_hint="--log")
     try:
+        sim = SimConfig(duration_s=duration, seed=seed)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    try:
         check_environment(FrontendSettings, BackendSettings)
     except SettingsError as exc:
         raise typer.BadParameter(str(exc), param_hint="SCANFLOW_* environment") from exc
@@ -86,10 +90,8 @@ def run_command(
     if loop_closure:
         backend = backend.model_copy(update={"loop_closure": True})
     pipeline = Pipeline(settings, initial_pose=start.pose, grid=start.grid(), backend=backend)
-    outputs = _log_outputs(pipeline, log) if log is not None else _sim_outputs(
-        pipeline, duration, seed
-    )
-    total = limit or (None if log is not None else math.ceil(duration * SimConfig().rate_hz))
+    outputs = _log_outputs(pipeline, log) if log is not None else _sim_outputs(pipeline, sim)
+    total = limit or (None if log is not None else math.ceil(duration * sim.rate_hz))
     statuses: dict[str, int] = {}
     sources: dict[str, int] = {}
     scans = inserted = rechecked = redraws = 0

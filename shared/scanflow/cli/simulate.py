@@ -26,7 +26,10 @@ def simulate_command(
         raise typer.BadParameter(
             f"must be one of {sorted(WORLDS)}, got {world!r}", param_hint="--world"
         )
-    config = SimConfig(world=world, duration_s=duration, seed=seed)
+    try:
+        config = SimConfig(world=world, duration_s=duration, seed=seed)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
     odometry = OdometryBuffer()
     scans = beams = valid = 0
     distance_m = 0.0

@@ -40,7 +40,11 @@ class SimConfig:
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.duration_s) and self.duration_s > 0):
-            raise ValueError(f"SimConfig.duration_s must be > 0, got {self.duration_s!r}")
+            raise ValueError(
+                f"SimConfig.duration_s must be finite and > 0, got {self.duration_s!r}"
+            )
+        if self.seed < 0:  # numpy's SeedSequence takes none
+            raise ValueError(f"SimConfig.seed must be >= 0, got {self.seed!r}")
         if not (math.isfinite(self.odom_rate_hz) and self.odom_rate_hz > 0):
             raise ValueError(f"SimConfig.odom_rate_hz must be > 0, got {self.odom_rate_hz!r}")
         if not 0 < self.max_speed_mps <= 1.5:

@@ -114,3 +114,12 @@ def test_run_closes_loops_on_a_prior_map_and_keeps_it(tmp_path: Path) -> None:
     mapped = json.loads(first.output)
     gap = [a - b for a, b in zip(summary["final_pose"], mapped["final_pose"], strict=True)]
     assert abs(gap[0]) < 0.1 and abs(gap[1]) < 0.1 and abs(gap[2]) < 0.02
+
+
+def test_run_refuses_a_bad_seed_or_duration_without_a_traceback() -> None:
+    _register()
+    for option, value in (("--seed", "-1"), ("--duration", "inf")):
+        result = CliRunner().invoke(app, ["run", option, value, "--json"])
+        assert result.exit_code == 2, result.output
+        assert isinstance(result.exception, SystemExit)  # a message, not a traceback
+        assert value in result.output

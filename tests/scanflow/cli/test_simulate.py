@@ -23,3 +23,12 @@ def test_simulate_rejects_unknown_world():
     result = CliRunner().invoke(app, ["simulate", "--world", "moon"])
     assert result.exit_code != 0
     assert "moon" in result.output
+
+
+def test_simulate_refuses_a_bad_seed_or_duration_without_a_traceback():
+    _register()
+    for option, value in (("--seed", "-1"), ("--duration", "inf")):
+        result = CliRunner().invoke(app, ["simulate", option, value, "--json"])
+        assert result.exit_code == 2, result.output
+        assert isinstance(result.exception, SystemExit)  # a message, not a traceback
+        assert value in result.output

@@ -122,3 +122,10 @@ def test_bad_config_names_the_field():
         SimConfig(beams=50)
     with pytest.raises(ValueError, match="max_speed_mps"):
         SimConfig(max_speed_mps=3.0)
+
+
+def test_a_negative_seed_is_refused_naming_the_field():
+    """numpy's SeedSequence takes no negative seed: refused by the config, not by the first
+    frame deep inside numpy."""
+    with pytest.raises(ValueError, match=r"SimConfig\.seed"):
+        SimConfig(seed=-1)
