@@ -20,7 +20,7 @@ from scanflow.frontend import save_tum
 from scanflow.frontend.prior import FrontendStart, PriorMapError
 from scanflow.io.carmen import load_keyframes
 from scanflow.io.detect import detect_format, open_log
-from scanflow.io.rosbag import BagOdom
+from scanflow.io.rosbag import BagFormatError, BagOdom
 from scanflow.maps.export import save_map
 from scanflow.pipeline import Pipeline, PipelineOutput
 from scanflow.sim import SimConfig, simulate
@@ -71,6 +71,13 @@ def run_command(
     SCANFLOW_BACKEND_*."""
     if log is not None and not log.exists():
         raise typer.BadParameter(f"no log at {log}", param_hint="--log")
+    if log is not None:
+        try:
+            detect_format(log)
+        except (OSError, ValueError) as exc:  # a directory that is no ROS 2 bag, unreadable
+            raise typer.BadParameter(str(exc), param_hint="--log") from exc
+    if map_out is not None and map_out.exists() and not map_out.is_dir():
+        raise typer.BadParameter(f"{map_out} is not a directory", param_hint="--map-out")
     try:
         sim = SimConfig(duration_s=duration, seed=seed)
     except ValueError as exc:
@@ -96,16 +103,20 @@ def run_command(
     sources: dict[str, int] = {}
     scans = inserted = rechecked = redraws = 0
     t0 = time.perf_counter()
-    for out in tqdm(outputs, total=total, unit="scan", disable=as_json):
-        est = out.estimate
-        statuses[str(est.status)] = statuses.get(str(est.status), 0) + 1
-        sources[out.deskew.source_used] = sources.get(out.deskew.source_used, 0) + 1
-        scans += 1
-        inserted += est.inserted
-        rechecked += est.rechecked
-        redraws += out.backend is not None and out.backend.redrawn
-        if limit is not None and scans >= limit:
-            break
+    try:
+        for out in tqdm(outputs, total=total, unit="scan", disable=as_json):
+            est = out.estimate
+            statuses[str(est.status)] = statuses.get(str(est.status), 0) + 1
+            sources[out.deskew.source_used] = sources.get(out.deskew.source_used, 0) + 1
+            scans += 1
+            inserted += est.inserted
+            rechecked += est.rechecked
+            redraws += out.backend is not None and out.backend.redrawn
+            if limit is not None and scans >= limit:
+                break
+    except BagFormatError as exc:  # a bag that cannot be opened
+        typer.echo(f"error: cannot read {log}: {exc}", err=True)
+        raise typer.Exit(code=2) from exc
     final = pipeline.finish()
     wall_s = time.perf_counter() - t0
     frontend, mapper = pipeline.frontend, pipeline.mapper

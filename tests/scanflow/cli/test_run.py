@@ -123,3 +123,22 @@ def test_run_refuses_a_bad_seed_or_duration_without_a_traceback() -> None:
         assert result.exit_code == 2, result.output
         assert isinstance(result.exception, SystemExit)  # a message, not a traceback
         assert value in result.output
+
+
+def test_run_refuses_an_unreadable_log_or_a_file_as_map_out_without_a_traceback(
+    tmp_path: Path,
+) -> None:
+    """A directory that is no ROS 2 bag, a ROS 1 bag that cannot be opened, and a --map-out
+    that is a file: each a message naming it and exit 2 (before, a traceback and exit 1)."""
+    _register()
+    (tmp_path / "bag.bag").write_bytes(b"#ROSBAG V2.0\njunk")
+    (tmp_path / "taken").write_text("")
+    for args, named in (
+        (["--log", str(tmp_path)], "not a ROS 2 bag"),
+        (["--log", str(tmp_path / "bag.bag")], "cannot open bag"),
+        (["--duration", "0.5", "--map-out", str(tmp_path / "taken")], "not a directory"),
+    ):
+        result = CliRunner().invoke(app, ["run", *args, "--json"], env={"COLUMNS": "400"})
+        assert result.exit_code == 2, result.output
+        assert isinstance(result.exception, SystemExit)
+        assert named in result.output
