@@ -28,7 +28,7 @@ def load_prior_map(settings: FrontendSettings) -> OccupancyGrid | None:
         grid = load_map(path, occupancy_params(settings))
     except (OSError, ValueError, KeyError) as exc:
         raise PriorMapError(f"prior_map {path}: {exc}") from exc
-    if grid.is_empty:
+    if not grid.occupied_mask().any():
         raise PriorMapError(f"prior_map {path}: the map has no occupied cell")
     return grid
 

@@ -49,3 +49,19 @@ def test_a_bad_prior_map_is_named(tmp_path, settings: FrontendSettings, content,
         path.write_bytes(content)
     with pytest.raises(PriorMapError, match=named):
         load_prior_map(settings.model_copy(update={"prior_map": str(path)}))
+
+
+def test_a_prior_map_with_cells_but_none_occupied_is_refused(
+    tmp_path, settings: FrontendSettings
+) -> None:
+    """A map_server map all free (or all unknown) has cells but nothing to localise against:
+    refused at start-up as the message says, not left to fail when a robot first appears
+    (localise only) or to be silently replaced by a fresh map."""
+    from PIL import Image
+
+    for name, shade in (("free", 254), ("unknown", 205)):
+        Image.fromarray(np.full((20, 30), shade, np.uint8), mode="L").save(tmp_path / f"{name}.pgm")
+        yaml = tmp_path / f"{name}.yaml"
+        yaml.write_text(f"image: {name}.pgm\nresolution: 0.05\norigin: [0.0, 0.0, 0.0]\n")
+        with pytest.raises(PriorMapError, match="no occupied cell"):
+            load_prior_map(settings.model_copy(update={"prior_map": str(yaml)}))
