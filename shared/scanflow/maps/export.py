@@ -119,7 +119,12 @@ def _parse_flat_yaml(text: str, source: Path) -> dict[str, str]:
     return fields
 
 
-def _yaml_float(fields: dict[str, str], key: str, source: Path) -> float:
+def _yaml_float(
+    fields: dict[str, str], key: str, source: Path, default: float | None = None
+) -> float:
+    """Field `key` as a number (`default` when it is absent and one is given)."""
+    if key not in fields and default is not None:
+        return default
     try:
         return float(fields[key])
     except KeyError:
@@ -148,14 +153,18 @@ def load_map_server(yaml_path: Path | str, params: OccupancyParams | None = None
     if "image" not in fields:
         raise ValueError(f"{yaml_path}: missing field 'image'")
     resolution_m = _yaml_float(fields, "resolution", yaml_path)
-    occupied_thresh = float(fields.get("occupied_thresh", OCCUPIED_THRESH))
-    free_thresh = float(fields.get("free_thresh", FREE_THRESH))
+    occupied_thresh = _yaml_float(fields, "occupied_thresh", yaml_path, OCCUPIED_THRESH)
+    free_thresh = _yaml_float(fields, "free_thresh", yaml_path, FREE_THRESH)
     mode = fields.get("mode", "trinary")
     if mode not in ("trinary", "scale"):
         raise ValueError(f"{yaml_path}: field 'mode' must be trinary or scale, got {mode!r}")
-    origin = [float(v) for v in fields.get("origin", "").strip("[]").split(",") if v.strip()]
+    origin_text = fields.get("origin", "")
+    try:
+        origin = [float(v) for v in origin_text.strip("[]").split(",") if v.strip()]
+    except ValueError:
+        origin = []
     if len(origin) != 3 or origin[2] != 0.0:
-        raise ValueError(f"{yaml_path}: field 'origin' must be [x, y, 0.0], got {origin}")
+        raise ValueError(f"{yaml_path}: field 'origin' must be [x, y, 0.0], got {origin_text!r}")
     with Image.open(yaml_path.parent / fields["image"]) as img:
         grey = img.mode == "L"
         pixels = np.asarray(img if grey else img.convert("RGB"), dtype=np.float64)

@@ -295,3 +295,22 @@ def test_localisation_on_a_prior_map_loaded_from_disk(tmp_path: Path):
         # A field built on 5 cm cell centres can be biased by up to half a cell.
         assert math.hypot(result.pose.x - truth.x, result.pose.y - truth.y) < 0.04
         assert abs(result.pose.theta - truth.theta) < math.radians(1.0)
+
+
+@pytest.mark.parametrize(
+    ("line", "field"),
+    [
+        ("occupied_thresh: high\n", "occupied_thresh"),
+        ("free_thresh: low\n", "free_thresh"),
+        ("origin: [a, 0.0, 0.0]\n", "origin"),
+    ],
+)
+def test_a_map_server_field_that_is_not_a_number_is_named(tmp_path: Path, line: str, field: str):
+    """Not float's bare "could not convert string to float": the file and the field."""
+    Image.fromarray(np.full((2, 3), 254, np.uint8), mode="L").save(tmp_path / "a.pgm")
+    text = "image: a.pgm\nresolution: 0.05\norigin: [0.0, 0.0, 0.0]\n"
+    if line.startswith("origin"):
+        text = text.replace("origin: [0.0, 0.0, 0.0]\n", "")
+    (tmp_path / "bad.yaml").write_text(text + line)
+    with pytest.raises(ValueError, match=f"bad.yaml: field '{field}'"):
+        load_map(tmp_path / "bad.yaml")
