@@ -165,9 +165,13 @@ def load_map_server(yaml_path: Path | str, params: OccupancyParams | None = None
         origin = []
     if len(origin) != 3 or origin[2] != 0.0:
         raise ValueError(f"{yaml_path}: field 'origin' must be [x, y, 0.0], got {origin_text!r}")
-    with Image.open(yaml_path.parent / fields["image"]) as img:
-        grey = img.mode == "L"
-        pixels = np.asarray(img if grey else img.convert("RGB"), dtype=np.float64)
+    image_path = yaml_path.parent / fields["image"]
+    try:
+        with Image.open(image_path) as img:
+            grey = img.mode == "L"
+            pixels = np.asarray(img if grey else img.convert("RGB"), dtype=np.float64)
+    except Image.DecompressionBombError as exc:  # a size no map has: a corrupt header
+        raise ValueError(f"{image_path}: {exc}") from exc
     shade = pixels if grey else pixels.mean(axis=2)  # map_server averages the channels
     if fields.get("negate", "0") not in ("0", "false", "False"):
         shade = 255.0 - shade

@@ -314,3 +314,15 @@ def test_a_map_server_field_that_is_not_a_number_is_named(tmp_path: Path, line: 
     (tmp_path / "bad.yaml").write_text(text + line)
     with pytest.raises(ValueError, match=f"bad.yaml: field '{field}'"):
         load_map(tmp_path / "bad.yaml")
+
+
+def test_an_image_whose_header_claims_billions_of_pixels_is_a_value_error_naming_it(
+    tmp_path: Path,
+):
+    """A corrupt PGM header (20000 x 20000): PIL refuses it with its DecompressionBombError,
+    which is no OSError or ValueError and got past every caller's handler (a prior map stopped
+    the service with a traceback)."""
+    (tmp_path / "big.pgm").write_bytes(b"P5\n20000 20000\n255\n" + bytes(64))
+    (tmp_path / "big.yaml").write_text("image: big.pgm\nresolution: 0.05\norigin: [0, 0, 0]\n")
+    with pytest.raises(ValueError, match=r"big\.pgm"):
+        load_map(tmp_path / "big.yaml")
