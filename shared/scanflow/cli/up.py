@@ -12,7 +12,14 @@ from typing import Annotated
 import typer
 
 from scanflow.cli import app
-from scanflow.config import SECTIONS, BackendSettings, SettingsError, check_environment
+from scanflow.config import (
+    SECTIONS,
+    BackendSettings,
+    FrontendSettings,
+    SettingsError,
+    check_environment,
+)
+from scanflow.frontend.prior import PriorMapError, load_prior_map
 
 
 @app.command()
@@ -52,8 +59,10 @@ def up(
     if limit is not None:
         settings["SCANFLOW_INGEST_LIMIT"] = str(limit)
     if prior_map is not None:
-        if not prior_map.is_file():
-            raise typer.BadParameter(f"no file at {prior_map}", param_hint="--prior-map")
+        try:  # read as the matcher and map server will: a bad map would stop them at start-up
+            load_prior_map(FrontendSettings(prior_map=str(prior_map)))
+        except PriorMapError as exc:
+            raise typer.BadParameter(str(exc), param_hint="--prior-map") from exc
         settings["SCANFLOW_FRONTEND_PRIOR_MAP"] = str(prior_map.resolve())
     if loop_closure:
         settings["SCANFLOW_BACKEND_LOOP_CLOSURE"] = "true"

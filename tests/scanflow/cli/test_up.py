@@ -17,6 +17,8 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from scanflow.cli import _register, app
 from scanflow.cli import up as up_module
+from scanflow.maps.export import save_map
+from scanflow.maps.occupancy import OccupancyGrid
 from typer.testing import CliRunner, Result
 
 from services.common import launch
@@ -128,7 +130,9 @@ def test_up_gives_every_service_its_defaults_as_settings(run_up, tmp_path) -> No
 
 
 def test_up_passes_every_option_on_as_a_setting_with_absolute_paths(run_up, tmp_path) -> None:
-    (tmp_path / "prior.npz").write_bytes(b"")
+    prior = OccupancyGrid()
+    prior.insert_scan([[1.0, 0.0]], (0.0, 0.0))  # one occupied cell: a usable prior map
+    save_map(prior, tmp_path / "prior.npz")
     result, plan = run_up(
         "--log", "run.log", "--rate", "0", "--port", "8123", "--zenoh-port", "7500",
         "--data-dir", "data", "--limit", "15", "--prior-map", "prior.npz", "--loop-closure",
@@ -237,3 +241,14 @@ def test_up_with_loop_closure_says_so_and_how_keyframes_are_culled(run_up, monke
     result, plan = run_up()
     assert "SCANFLOW_BACKEND_LOOP_CLOSURE" not in plan.launchers[0].settings
     assert "back end:" not in result.output
+
+
+def test_up_refuses_an_unusable_prior_map_before_starting_anything(run_up, tmp_path) -> None:
+    """A prior map that is there but cannot be used (corrupt, or nothing occupied) stopped the
+    matcher and map server at their start, and `up` then waited for their health for minutes
+    before a traceback: it is read here first, as the services will read it."""
+    (tmp_path / "bad.npz").write_bytes(b"not a map")
+    result, plan = run_up("--prior-map", "bad.npz")
+    assert result.exit_code == 2, result.output
+    assert "prior_map bad.npz" in result.output
+    assert plan.launchers == []
