@@ -112,7 +112,8 @@ def simulate(config: SimConfig, trajectory: Trajectory | None = None) -> Iterato
         config.odom_scale_error,
         config.odom_yaw_noise,
     )
-    odom_twists = trajectory.twist_at(odom_stamps_s) * (1.0 + config.odom_scale_error, 1.0, 1.0)
+    scale = 1.0 + config.odom_scale_error  # on translations, as odometry_poses measures them
+    odom_twists = trajectory.twist_at(odom_stamps_s) * (scale, scale, 1.0)
     next_odom = 0
     for seq, stamp_s in enumerate(scan_stamps_s):
         m = measure(

@@ -129,3 +129,17 @@ def test_a_negative_seed_is_refused_naming_the_field():
     frame deep inside numpy."""
     with pytest.raises(ValueError, match=r"SimConfig\.seed"):
         SimConfig(seed=-1)
+
+
+def test_odometry_velocity_carries_the_scale_error_of_its_poses_sideways_too():
+    """A holonomic base sliding sideways: its odometry poses travel (1 + e) times as far, so
+    the velocity reported with them is (1 + e) times the true vy, as vx is."""
+    slide = ConstantVelocityTrajectory(Pose2D(7.5, 2.0, 0.3), 0.2, 0.0, vy_mps=0.4)
+    config = SimConfig(duration_s=0.5, odom_scale_error=0.1, odom_yaw_noise=0.0)
+    samples = [s for frame in simulate(config, slide) for s in frame.odometry]
+    poses = np.array([s.pose.to_array() for s in samples])
+    stamps = np.array([s.stamp_s for s in samples])
+    speed = np.hypot(*np.diff(poses[:, :2], axis=0).T) / np.diff(stamps)
+    np.testing.assert_allclose(speed, 1.1 * math.hypot(0.2, 0.4), rtol=1e-9)
+    for s in samples:
+        assert s.velocity == pytest.approx((1.1 * 0.2, 1.1 * 0.4, 0.0), abs=1e-12)
