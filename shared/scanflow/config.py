@@ -209,7 +209,7 @@ class IngestSettings(ServiceSettings):
     window: int = Field(32, ge=0, description="scans in flight before waiting for poses; 0 = off")
     replays: int = Field(1, ge=1, description="publish the source this many times in a row")
     sim_duration_s: float = Field(60.0, gt=0.0, description="the simulator's run length")
-    sim_seed: int = Field(0, description="the simulator's seed (runs are reproducible)")
+    sim_seed: int = Field(0, ge=0, description="the simulator's seed (runs are reproducible)")
     sim_world: Literal["rooms", "corridor", "loop", "campus"] = Field(
         "rooms", description="the simulator's world (loop: a ring corridor to close a loop in; "
         "campus: outdoors, buildings 15-70 m away)"

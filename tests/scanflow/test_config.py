@@ -253,3 +253,10 @@ def test_a_misspelt_method_is_refused_when_settings_load(monkeypatch) -> None:
     monkeypatch.setenv("SCANFLOW_BACKEND_METHOD", "ndt")
     loaded = config.check_environment(config.FrontendSettings, config.BackendSettings)
     assert loaded[config.FrontendSettings].fallback_method == ""
+
+
+def test_a_negative_simulator_seed_is_refused_when_settings_load(monkeypatch) -> None:
+    """numpy takes no negative seed: named at start-up, not by the first simulated frame."""
+    monkeypatch.setenv("SCANFLOW_INGEST_SIM_SEED", "-1")
+    with pytest.raises(config.SettingsError, match="SCANFLOW_INGEST_SIM_SEED='-1'"):
+        config.check_environment(config.IngestSettings)
