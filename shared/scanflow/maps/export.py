@@ -155,6 +155,11 @@ def load_map_server(yaml_path: Path | str, params: OccupancyParams | None = None
     resolution_m = _yaml_float(fields, "resolution", yaml_path)
     occupied_thresh = _yaml_float(fields, "occupied_thresh", yaml_path, OCCUPIED_THRESH)
     free_thresh = _yaml_float(fields, "free_thresh", yaml_path, FREE_THRESH)
+    if not 0.0 <= free_thresh < occupied_thresh <= 1.0:  # scale mode divides by their gap
+        raise ValueError(
+            f"{yaml_path}: fields 'free_thresh' and 'occupied_thresh' must satisfy 0 <= free < "
+            f"occupied <= 1, got {free_thresh} and {occupied_thresh}"
+        )
     mode = fields.get("mode", "trinary")
     if mode not in ("trinary", "scale"):
         raise ValueError(f"{yaml_path}: field 'mode' must be trinary or scale, got {mode!r}")

@@ -326,3 +326,17 @@ def test_an_image_whose_header_claims_billions_of_pixels_is_a_value_error_naming
     (tmp_path / "big.yaml").write_text("image: big.pgm\nresolution: 0.05\norigin: [0, 0, 0]\n")
     with pytest.raises(ValueError, match=r"big\.pgm"):
         load_map(tmp_path / "big.yaml")
+
+
+@pytest.mark.parametrize(
+    "thresholds", ["free_thresh: 0.65\noccupied_thresh: 0.65\n", "free_thresh: 0.7\n",
+                   "occupied_thresh: 1.5\n", "free_thresh: -0.1\n"],
+)
+def test_map_server_thresholds_out_of_order_are_named(tmp_path: Path, thresholds: str):
+    """free < occupied within [0, 1]: equal ones made scale mode divide by zero, swapped ones
+    let a shade count as both occupied and free."""
+    Image.fromarray(np.full((2, 3), 254, np.uint8), mode="L").save(tmp_path / "a.pgm")
+    text = "image: a.pgm\nresolution: 0.05\norigin: [0.0, 0.0, 0.0]\nmode: scale\n"
+    (tmp_path / "bad.yaml").write_text(text + thresholds)
+    with pytest.raises(ValueError, match=r"bad\.yaml: fields 'free_thresh' and 'occupied_thresh'"):
+        load_map(tmp_path / "bad.yaml")
