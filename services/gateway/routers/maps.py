@@ -17,6 +17,7 @@ from scanflow import keys
 from scanflow.maps.export import save_map_server, save_png
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
 from scanflow.wire import MapImageMessage, MapMetaMessage, MapRegionMessage
+from starlette.concurrency import run_in_threadpool
 
 from services.gateway.backend import BackendError
 from services.gateway.deps import API_PREFIX, Backend, Robot
@@ -77,7 +78,8 @@ async def map_file(
     if region.occupancy.size == 0:
         raise HTTPException(404, f"the map of {robot!r} has no cells in {bounds}")
     headers["X-Map-Revision"] = str(region.meta.revision)
-    return Response(export_region(region, fmt), media_type=MEDIA[fmt], headers=headers)
+    data = await run_in_threadpool(export_region, region, fmt)  # CPU work: off the event loop
+    return Response(data, media_type=MEDIA[fmt], headers=headers)
 
 
 def export_region(region: MapRegionMessage, fmt: str) -> bytes:

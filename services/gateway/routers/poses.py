@@ -12,10 +12,11 @@ from typing import Annotated, Literal
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query
-from fastapi.responses import PlainTextResponse
+from fastapi.responses import PlainTextResponse, Response
 from numpy.typing import NDArray
 from scanflow import keys
 from scanflow.wire import InitialPoseMessage, TrajectoryMessage
+from starlette.concurrency import run_in_threadpool
 
 from services.gateway.backend import BackendError, ZenohBackend
 from services.gateway.deps import API_PREFIX, Backend, Robot, require_key
@@ -96,7 +97,7 @@ async def get_trajectory(
     start: TimeParam = None,
     end: TimeParam = None,
     format: Annotated[Literal["json", "tum"], Query(description="tum: for evo")] = "json",
-) -> TrajectoryOut | PlainTextResponse:
+) -> Response:
     """The robot's poses within [start, end], as JSON or TUM lines (for evo): the map server's
     trajectory, or the gateway's cache when the map server cannot give it (`X-Scanflow-Source`)."""
     source: Literal["mapserver", "cache"] = "mapserver"
@@ -113,10 +114,19 @@ async def get_trajectory(
     keep = (stamps >= (-math.inf if start is None else start)) & (
         stamps <= (math.inf if end is None else end)
     )
-    stamps, poses = stamps[keep], poses[keep]
+    # Writing 10^5 poses out takes a second of CPU: off the event loop.
+    return await run_in_threadpool(_written, robot, source, stamps[keep], poses[keep], format)
+
+
+def _written(
+    robot: str, source: Literal["mapserver", "cache"], stamps: NDArray[np.float64],
+    poses: NDArray[np.float64], format: Literal["json", "tum"],
+) -> Response:
+    """The trajectory as TUM text, or as TrajectoryOut's JSON (written here, not by FastAPI
+    on the event loop)."""
     if format == "tum":
         return PlainTextResponse(tum_lines(stamps, poses), headers={"X-Scanflow-Source": source})
-    return TrajectoryOut(
+    out = TrajectoryOut(
         robot_id=robot,
         source=source,
         poses=[
@@ -124,6 +134,7 @@ async def get_trajectory(
             for s, p in zip(stamps.tolist(), poses.tolist(), strict=True)
         ],
     )
+    return Response(out.model_dump_json(), media_type="application/json")
 
 
 def tum_lines(stamps_s: NDArray[np.float64], poses: NDArray[np.float64]) -> str:

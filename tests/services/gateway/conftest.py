@@ -6,10 +6,12 @@ test publishes messages and declares tiny queryables that answer with wire messa
 
 from __future__ import annotations
 
+import asyncio
 import math
 import time
 from collections.abc import Callable, Iterator
 
+import httpx
 import numpy as np
 import pytest
 import zenoh
@@ -103,6 +105,28 @@ def eventually(check: Callable[[], object], what: str, timeout_s: float = 5.0) -
             raise AssertionError(f"timed out waiting for {what}")
         time.sleep(0.02)
     return value
+
+
+def held_up_during(app: object, slow_url: str, probe_url: str) -> tuple[httpx.Response, float]:
+    """GET `slow_url` on the ASGI app and, while it runs, `probe_url` again and again: the slow
+    answer and the longest a probe waited, as a share of the slow request's time (near 1: the
+    event loop did the slow request's work, and every other request waited for all of it)."""
+
+    async def scenario() -> tuple[httpx.Response, float]:
+        transport = httpx.ASGITransport(app=app)  # type: ignore[arg-type]
+        async with httpx.AsyncClient(transport=transport, base_url="http://gateway") as c:
+            start = time.perf_counter()
+            slow = asyncio.create_task(c.get(slow_url))
+            worst = 0.0
+            while not slow.done():
+                t0 = time.perf_counter()
+                await asyncio.sleep(0.005)
+                assert (await c.get(probe_url)).status_code == 200
+                worst = max(worst, time.perf_counter() - t0)
+            response = await slow
+            return response, worst / (time.perf_counter() - start)
+
+    return asyncio.run(scenario())
 
 
 def estimate(robot: str, seq: int, stamp_s: float, x: float, y: float, theta: float = 0.0,
