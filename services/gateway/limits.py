@@ -9,6 +9,10 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from services.gateway.metrics import Metrics
 
+# The methods a label names; any other (uvicorn passes any token) is "other", so that made-up
+# methods cannot grow the label sets without bound.
+METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
+
 
 class BodyTooLargeError(Exception):
     """Raised inside the app's receive when the streamed body passes the cap."""
@@ -96,6 +100,6 @@ class RequestTiming:
                 "scanflow_http_request_duration_seconds",
                 time.perf_counter() - t0,
                 route=getattr(route, "path", "unmatched"),
-                method=scope["method"],
+                method=scope["method"] if scope["method"] in METHODS else "other",
                 status=str(status),
             )

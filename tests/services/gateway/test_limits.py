@@ -108,3 +108,22 @@ def test_streamed_body_over_the_limit_is_413(client, auth):
     chunks = (b" " * 16_384 for _ in range(8))  # no Content-Length: chunked upload
     r = client.post("/api/v1/match", content=chunks, headers=auth)
     assert r.status_code == 413
+
+
+def test_a_clients_made_up_methods_do_not_grow_the_label_sets():
+    """uvicorn (h11) passes any token as the method: one label set per made-up method would
+    grow /metrics, and the gateway's memory, without bound."""
+    metrics = Metrics()
+    app = echo_app()
+    app.add_middleware(RequestTiming, metrics=metrics)
+    with TestClient(app) as client:
+        for i in range(50):
+            client.request(f"X{i}", "/echo")
+            client.request(f"Y{i}", "/nowhere")
+        client.request("DELETE", "/echo")
+    text = metrics.render()
+    name = "scanflow_http_request_duration_seconds_count"
+    assert f'{name}{{method="other",route="/echo",status="405"}} 50' in text
+    assert f'{name}{{method="other",route="unmatched",status="404"}} 50' in text
+    assert f'{name}{{method="DELETE",route="/echo",status="405"}} 1' in text
+    assert text.count(f"{name}{{") == 3
