@@ -14,6 +14,11 @@ from scanflow.config import GatewaySettings
 from services.gateway.backend import ZenohBackend
 
 API_PREFIX = "/api/v1"
+# The answer of every route whose answer comes from a service (app._unreadable_reply, and an
+# error reply the gateway has no status for: backend.error_status).
+BAD_GATEWAY: dict[int | str, dict[str, str]] = {
+    502: {"description": "a service's answer is unreadable, or it failed unexpectedly"}
+}
 api_key_header = APIKeyHeader(
     name="X-API-Key", auto_error=False, description="SCANFLOW_GATEWAY_API_KEY"
 )

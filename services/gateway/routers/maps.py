@@ -20,14 +20,15 @@ from scanflow.wire import MapImageMessage, MapMetaMessage, MapRegionMessage
 from starlette.concurrency import run_in_threadpool
 
 from services.gateway.backend import BackendError
-from services.gateway.deps import API_PREFIX, Backend, Robot
+from services.gateway.deps import API_PREFIX, BAD_GATEWAY, Backend, Robot
 from services.gateway.models import MapMetaOut
 
 router = APIRouter(prefix=API_PREFIX, tags=["maps"])
 Bound = Annotated[float | None, Query(ge=-1e6, le=1e6, description="metres")]
 MEDIA = {"png": "image/png", "pgm": "image/x-portable-graymap", "yaml": "application/yaml"}
 ANSWERS = {404: {"description": "no map for this robot"}, 422: {"description": "bad region"},
-           503: {"description": "no map server answers"}, 504: {"description": "timed out"}}
+           503: {"description": "no map server answers"}, 504: {"description": "timed out"},
+           **BAD_GATEWAY}
 
 
 @router.get("/robots/{robot}/map", response_model=MapMetaOut, responses=ANSWERS,

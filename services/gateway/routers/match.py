@@ -14,12 +14,13 @@ from scanflow.wire import MapRef, MatchRequest, MatchResponse, MessageError
 
 from services.gateway.backend import BackendError
 from services.gateway.body import BODY_ANSWERS, MSGPACK, body_doc, invalid, read_body
-from services.gateway.deps import API_PREFIX, Backend, Settings, require_key
+from services.gateway.deps import API_PREFIX, BAD_GATEWAY, Backend, Settings, require_key
 from services.gateway.models import MatchIn, MatchOut, MethodsOut, ScanIn
 
 router = APIRouter(prefix=API_PREFIX, tags=["match"])
 ANSWERS = {
     **BODY_ANSWERS,
+    **BAD_GATEWAY,
     404: {"description": "scan-to-map: the robot is unknown (no matcher, no pose of it)"},
     503: {"description": "no matcher answers"},
     504: {"description": "the matcher did not answer in time"},

@@ -19,14 +19,20 @@ from scanflow.wire import InitialPoseMessage, TrajectoryMessage
 from starlette.concurrency import run_in_threadpool
 
 from services.gateway.backend import BackendError, ZenohBackend
-from services.gateway.deps import API_PREFIX, Backend, Robot, require_key
+from services.gateway.deps import API_PREFIX, BAD_GATEWAY, Backend, Robot, require_key
 from services.gateway.models import PoseIn, PoseOut, TimedPose, TrajectoryOut
 from services.gateway.routers.match import ANSWERS
 from services.gateway.tracks import estimate_arrays, pose_at
 
 router = APIRouter(prefix=API_PREFIX, tags=["poses"])
 TimeParam = Annotated[float | None, Query(ge=0.0, le=1e11, description="seconds")]
-NOT_FOUND = {404: {"description": "unknown robot, or a time outside its trajectory"}}
+NOT_FOUND = {
+    404: {"description": "unknown robot, or a time outside its trajectory"}, **BAD_GATEWAY
+}
+BEFORE_THE_CACHE = {  # a time before the gateway's cache: the map server's trajectory
+    503: {"description": "t is before the gateway's cache, and no map server answers"},
+    504: {"description": "t is before the gateway's cache, and the map server timed out"},
+}
 
 
 def _unknown(robot: str) -> HTTPException:
@@ -34,7 +40,7 @@ def _unknown(robot: str) -> HTTPException:
 
 
 @router.get(
-    "/robots/{robot}/pose", response_model=PoseOut, responses=NOT_FOUND,
+    "/robots/{robot}/pose", response_model=PoseOut, responses={**NOT_FOUND, **BEFORE_THE_CACHE},
     summary="Latest pose, or the pose at time t (interpolated between estimates)",
 )
 async def get_pose(robot: Robot, backend: Backend, t: TimeParam = None) -> PoseOut:

@@ -94,3 +94,20 @@ def test_an_unreadable_answer_from_a_service_is_a_502_naming_it(peer, backend, s
         r = c.get("/api/v1/robots/r1/map")
     assert r.status_code == 502
     assert "unreadable" in r.json()["detail"] and "msgpack" in r.json()["detail"]
+
+
+def test_the_statuses_of_the_routes_that_ask_a_service_are_in_the_schema(client, publish_poses):
+    """A pose at a time before the gateway's cache asks the map server: 503 with none, 504
+    when it is slow; any service's unreadable answer is a 502. The schema listed neither."""
+    publish_poses("r1", [(10.0, 0.0, 0.0, 0.0)])
+    r = client.get("/api/v1/robots/r1/pose", params={"t": 1.0})  # no map server
+    assert r.status_code == 503
+    paths = client.get("/openapi.json").json()["paths"]
+    pose = paths["/api/v1/robots/{robot}/pose"]
+    assert {"502", "503", "504"} <= set(pose["get"]["responses"])
+    for path, method in [
+        ("/api/v1/robots/{robot}/pose", "put"), ("/api/v1/robots/{robot}/trajectory", "get"),
+        ("/api/v1/match", "post"), ("/api/v1/robots/{robot}/map", "get"),
+        ("/api/v1/robots/{robot}/map.{fmt}", "get"),
+    ]:
+        assert "502" in paths[path][method]["responses"], (method, path)
