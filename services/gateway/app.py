@@ -19,7 +19,7 @@ from scanflow.config import GatewaySettings, ZenohSettings
 from scanflow.wire import DecodeError
 
 from services.gateway.backend import BackendError, ZenohBackend
-from services.gateway.deps import require_key
+from services.gateway.deps import KEY_ANSWERS, require_key
 from services.gateway.limits import BodyLimit, RequestTiming
 from services.gateway.metrics import Metrics
 from services.gateway.models import MatchIn, OdometryIn, ScanIn
@@ -63,7 +63,7 @@ def create_app(
     app.state.metrics = Metrics()
     reads = [Depends(require_key)] if settings.guard_reads else []  # documented only if on
     for router in ROUTERS:
-        app.include_router(router, dependencies=reads)
+        app.include_router(router, dependencies=reads, responses=KEY_ANSWERS if reads else None)
     app.add_exception_handler(BackendError, _backend_error)  # type: ignore[arg-type]
     app.add_exception_handler(RequestValidationError, _invalid)  # type: ignore[arg-type]
     app.add_exception_handler(DecodeError, _unreadable_reply)  # type: ignore[arg-type]

@@ -13,14 +13,15 @@ from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ValidationError
 from scanflow.wire import DecodeError, Message
 
+from services.gateway.deps import KEY_ANSWERS
+
 MSGPACK = "application/x-msgpack"
 JSON = "application/json"
 M = TypeVar("M", bound=BaseModel)
 W = TypeVar("W", bound=Message)
 # The answers of every endpoint that takes a body behind the API key (OpenAPI `responses`).
 BODY_ANSWERS: dict[int | str, dict[str, Any]] = {
-    401: {"description": "API key missing"},
-    403: {"description": "API key wrong"},
+    **KEY_ANSWERS,
     413: {"description": "body over max_body_bytes"},
     415: {"description": "body neither JSON nor msgpack"},
     422: {"description": "invalid body; the message names the field"},

@@ -19,6 +19,11 @@ API_PREFIX = "/api/v1"
 BAD_GATEWAY: dict[int | str, dict[str, str]] = {
     502: {"description": "a service's answer is unreadable, or it failed unexpectedly"}
 }
+# The answers of a route behind the API key (require_key).
+KEY_ANSWERS: dict[int | str, dict[str, str]] = {
+    401: {"description": "API key missing"},
+    403: {"description": "API key wrong"},
+}
 api_key_header = APIKeyHeader(
     name="X-API-Key", auto_error=False, description="SCANFLOW_GATEWAY_API_KEY"
 )

@@ -111,3 +111,16 @@ def test_the_statuses_of_the_routes_that_ask_a_service_are_in_the_schema(client,
         ("/api/v1/robots/{robot}/map.{fmt}", "get"),
     ]:
         assert "502" in paths[path][method]["responses"], (method, path)
+
+
+def test_guarded_reads_list_the_keys_answers_in_the_schema(backend, settings):
+    """With guard_reads every read answers 401 without the key and 403 with a wrong one; the
+    schema listed neither (only the security scheme)."""
+    guarded = settings.model_copy(update={"guard_reads": True})
+    with TestClient(create_app(guarded, backend)) as c:
+        assert c.get("/api/v1/robots", headers={"X-API-Key": "wrong"}).status_code == 403
+        paths = c.get("/openapi.json").json()["paths"]
+    for path in ("/api/v1/robots", "/api/v1/robots/{robot}/pose", "/metrics"):
+        assert {"401", "403"} <= set(paths[path]["get"]["responses"]), path
+    open_paths = create_app(settings, backend).openapi()["paths"]
+    assert "401" not in open_paths["/api/v1/robots"]["get"]["responses"]
