@@ -7,11 +7,11 @@ test publishes messages and declares tiny queryables that answer with wire messa
 from __future__ import annotations
 
 import asyncio
+import importlib
 import math
 import time
 from collections.abc import Callable, Iterator
 
-import httpx
 import numpy as np
 import pytest
 import zenoh
@@ -107,26 +107,23 @@ def eventually(check: Callable[[], object], what: str, timeout_s: float = 5.0) -
     return value
 
 
-def held_up_during(app: object, slow_url: str, probe_url: str) -> tuple[httpx.Response, float]:
-    """GET `slow_url` on the ASGI app and, while it runs, `probe_url` again and again: the slow
-    answer and the longest a probe waited, as a share of the slow request's time (near 1: the
-    event loop did the slow request's work, and every other request waited for all of it)."""
+def off_the_loop(monkeypatch: pytest.MonkeyPatch, target: str) -> list[bool]:
+    """Wrap the function at `target` ("module.name") so each call records whether it ran with
+    no event loop in its thread: CPU work on the loop holds up every other request."""
+    module, name = target.rsplit(".", 1)
+    work = getattr(importlib.import_module(module), name)
+    calls: list[bool] = []
 
-    async def scenario() -> tuple[httpx.Response, float]:
-        transport = httpx.ASGITransport(app=app)  # type: ignore[arg-type]
-        async with httpx.AsyncClient(transport=transport, base_url="http://gateway") as c:
-            start = time.perf_counter()
-            slow = asyncio.create_task(c.get(slow_url))
-            worst = 0.0
-            while not slow.done():
-                t0 = time.perf_counter()
-                await asyncio.sleep(0.005)
-                assert (await c.get(probe_url)).status_code == 200
-                worst = max(worst, time.perf_counter() - t0)
-            response = await slow
-            return response, worst / (time.perf_counter() - start)
+    def recorded(*args: object, **kwargs: object) -> object:
+        try:
+            asyncio.get_running_loop()
+            calls.append(False)
+        except RuntimeError:  # no loop here: a worker thread
+            calls.append(True)
+        return work(*args, **kwargs)
 
-    return asyncio.run(scenario())
+    monkeypatch.setattr(target, recorded)
+    return calls
 
 
 def estimate(robot: str, seq: int, stamp_s: float, x: float, y: float, theta: float = 0.0,
