@@ -42,6 +42,8 @@ from scanflow.matching.csm_search import (
     stack_depth,
     window_steps,
 )
+from scanflow.matching.field_cost import MAX_LEVELS
+from scanflow.matching.inputs import require_at_most, require_in, require_positive
 from scanflow.scan import LaserScan
 
 GLOBAL_METHOD = "global"
@@ -68,17 +70,13 @@ def localise_globally(
     candidate scores >= ambiguity_ratio x the best (pose is the best, not to be trusted);
     otherwise the status says why (too few points, empty map, no candidate refined).
     extra["candidates"] / ["candidate_scores"]: the distinct refined optima, best first.
-    A search larger than the caps of `scanflow.matching.csm` (a map too large for `level`)
-    raises MatchInputError naming them."""
-    if level < 0 or candidates < 1 or not 0.0 < ambiguity_ratio <= 1.0:
-        raise ValueError(
-            f"level must be >= 0, candidates >= 1 and ambiguity_ratio in (0, 1], got "
-            f"level={level}, candidates={candidates}, ambiguity_ratio={ambiguity_ratio}"
-        )
-    if candidates > MAX_TOP_CANDIDATES:
-        raise MatchInputError(
-            f"candidates must be a count in 1..{MAX_TOP_CANDIDATES}, got {candidates!r}"
-        )
+    A search larger than the caps of `scanflow.matching.csm` (a map too large for `level`), or
+    an option out of its range, raises MatchInputError naming it."""
+    # A level past the pyramids gn and lm may ask for ran for minutes or failed deep inside.
+    require_in(0, MAX_LEVELS - 1, level=level)
+    require_in(1, MAX_TOP_CANDIDATES, candidates=candidates)
+    require_positive(ambiguity_ratio=ambiguity_ratio)
+    require_at_most(1.0, ambiguity_ratio=ambiguity_ratio)
     for name, value in (("suppress_m", suppress_m), ("suppress_rad", suppress_rad)):
         if not (math.isfinite(value) and value >= 0.0):
             raise MatchInputError(f"{name} must be finite and >= 0, got {value}")

@@ -103,14 +103,34 @@ def test_bad_input_gets_a_status_or_a_named_error(rooms_map):
     scan = cast(get_world("rooms").segments, Pose2D(2.5, 2.0, 0.0))
     assert localise_globally(scan, empty).status is MatchStatus.EMPTY_MAP
     assert localise_globally(scan[:2], rooms_map).status is MatchStatus.TOO_FEW_POINTS
-    with pytest.raises(ValueError, match="ambiguity_ratio"):
+    with pytest.raises(MatchInputError, match="ambiguity_ratio"):
         localise_globally(scan, rooms_map, ambiguity_ratio=1.5)
-    with pytest.raises(ValueError, match="level"):
+    with pytest.raises(MatchInputError, match="level"):
         localise_globally(scan, rooms_map, level=-1)
     with pytest.raises(MatchInputError, match="candidates"):  # used to hang
         localise_globally(scan, rooms_map, candidates=10**7)
     with pytest.raises(MatchInputError, match="suppress_m"):  # used to raise OverflowError
         localise_globally(scan, rooms_map, suppress_m=math.inf)
+
+
+@pytest.mark.parametrize(
+    ("option", "value"),
+    [
+        ("level", -1),  # a plain ValueError
+        ("level", 64),  # numba's TypingError from the map's pyramid
+        ("level", 1100),  # OverflowError
+        ("level", 40),  # ran for minutes
+        ("candidates", 0),
+        ("ambiguity_ratio", 0.0),
+        ("ambiguity_ratio", 1.5),
+    ],
+)
+def test_an_option_out_of_its_range_is_a_match_input_error_naming_it(rooms_map, option, value):
+    """Through `match`, as the README promises: never an error from deep inside, nor a hang
+    (a pyramid level at most MAX_LEVELS - 1, as gn's and lm's `levels`)."""
+    scan = cast(get_world("rooms").segments, Pose2D(2.5, 2.0, 0.0))
+    with pytest.raises(MatchInputError, match=rf"^option {option} must be"):
+        match(scan, rooms_map, method="global", **{option: value})
 
 
 def test_a_far_source_or_a_glitch_point_keeps_the_search_bounded(rooms_map):
