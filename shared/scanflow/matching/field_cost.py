@@ -29,6 +29,7 @@ from scanflow.matching.checks import (
     surface_conditioning,
 )
 from scanflow.matching.covariance import least_squares_covariance
+from scanflow.matching.inputs import require_grid_cells
 from scanflow.matching.surface import densify_scan
 
 MIN_POINTS = 10
@@ -186,7 +187,9 @@ def field_pyramid(
         fields = list(target.likelihood_pyramid(levels))
     else:
         # Densified once at the finest step: dense enough for every coarser level too.
-        dense = densify_scan(np.asarray(target, dtype=np.float64), resolution_m)
+        points = np.asarray(target, dtype=np.float64)
+        require_field_size(points, resolution_m, sigma_m)  # the finest level is the largest
+        dense = densify_scan(points, resolution_m, "resolution_m")
         fields = [
             dense_points_field(dense, resolution_m * 2**k, sigma_m * 2**k) for k in range(levels)
         ]
@@ -201,7 +204,19 @@ def points_field(
     Snapping walls to cell centres biases the optimum by up to half a cell; keeping each
     cell's mean point makes the field's ridge follow the points to sub-cell accuracy.
     """
-    return dense_points_field(densify_scan(points, resolution_m), resolution_m, sigma_m)
+    require_field_size(points, resolution_m, sigma_m)
+    return dense_points_field(
+        densify_scan(points, resolution_m, "resolution_m"), resolution_m, sigma_m
+    )
+
+
+def require_field_size(points: NDArray[np.float64], resolution_m: float, sigma_m: float) -> None:
+    """MatchInputError unless the field `dense_points_field` lays over `points` fits
+    MAX_GRID_CELLS (`require_grid_cells`)."""
+    spec = GridSpec.covering(points, resolution_m, CUTOFF_SIGMAS * sigma_m + 2.0 * resolution_m)
+    require_grid_cells(
+        spec.rows, spec.cols, f"a field of resolution_m {resolution_m:g}, sigma_m {sigma_m:g}"
+    )
 
 
 def dense_points_field(

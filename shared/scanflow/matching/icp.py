@@ -171,7 +171,9 @@ def match_icp(
     scan = isinstance(target, np.ndarray)  # a point target is one scan seen from its origin
     if scan:
         tgt = thin_dense_target(tgt, thin_below_deg)
-    surface = densify_scan(tgt, surface_step_m) if surface_step_m is not None and scan else tgt
+    surface = tgt
+    if surface_step_m is not None and scan:
+        surface = densify_scan(tgt, surface_step_m, "surface_step_m")
     pose_arr, pair, iterations, code = _icp_kernel(
         source, GridIndex.build(surface, grid_cell_m).arrays, guess.to_array(),
         max_correspondence_m, min_correspondence_m, keep_fraction, max_iterations, tolerance_m,

@@ -36,6 +36,7 @@ from scanflow.matching.field_cost import (
     moved_points,
 )
 from scanflow.matching.inputs import (
+    require_grid_cells,
     require_in,
     require_iterations,
     require_non_negative,
@@ -241,20 +242,24 @@ def newton_level(
 
 
 def _target_cells(
-    target: object, coarsest_m: float, surface_step_m: float | None
+    target: object, finest_m: float, coarsest_m: float, surface_step_m: float | None
 ) -> tuple[Callable[[float], OverlappingCells], NDArray[np.float64]]:
     """(overlapping cells of a given size, points whose absence means an empty target).
 
     A map's own cells (`overlapping_ndt_cells`) and, for emptiness, its coarsest cells' means
     (so it need not list its occupied points); else cells built from the target's points, a
-    scan's filled every `surface_step_m` along its surfaces first (None: its samples only).
+    scan's filled every `surface_step_m` along its surfaces first (None: its samples only),
+    within MAX_GRID_CELLS half-cells of `finest_m` (`require_grid_cells`).
     """
     kept = getattr(target, "overlapping_ndt_cells", None)
     if kept is not None:
         return kept, kept(coarsest_m).means
     points = target_points(target)
+    if len(points):
+        cols, rows = np.ptp(points, axis=0) / (0.5 * finest_m) + 3  # a spare half-cell a side
+        require_grid_cells(rows, cols, f"cells of cell_size_m {finest_m:g}")
     if isinstance(target, np.ndarray) and surface_step_m is not None:
-        points = densify_scan(points, surface_step_m)
+        points = densify_scan(points, surface_step_m, "surface_step_m")
     return (lambda size: OverlappingCells.from_points(points, size)), points
 
 
@@ -285,7 +290,7 @@ def match_ndt(
     require_iterations(max_iterations)
     require_non_negative(translation_tol_m=translation_tol_m, rotation_tol_rad=rotation_tol_rad)
     reach_m = cell_size_m * 2 ** (levels - 1)  # the coarsest cell size
-    cells_at, held = _target_cells(target, reach_m, surface_step_m)
+    cells_at, held = _target_cells(target, cell_size_m, reach_m, surface_step_m)
     bad = check_inputs("ndt", source, held, guess)
     if bad is not None:
         return bad

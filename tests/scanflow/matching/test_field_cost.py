@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 from scanflow.geometry import Pose2D
 from scanflow.maps.field import LikelihoodField
 from scanflow.maps.grid import GridSpec
-from scanflow.matching import MatchStatus
+from scanflow.matching import MatchInputError, MatchStatus, match
 from scanflow.matching.checks import DEGENERATE_RATIO
 from scanflow.matching.covariance import least_squares_covariance
 from scanflow.matching.field_cost import (
@@ -435,3 +435,31 @@ def test_assessed_match_in_a_corridor_keeps_the_guess_along_it(
     assert r.status is MatchStatus.DEGENERATE and abs(r.weak_direction[0]) > 0.95
     assert abs(r.pose.x - guess.x) < 0.02 and abs(r.pose.y - truth.y) < 0.01
     assert abs(r.pose.theta - truth.theta) < 0.005
+
+
+@pytest.mark.parametrize(
+    ("method", "extra_point", "options"),
+    [
+        (method, extra_point, options)
+        for method in ("gn", "lm", "gn+plicp", "csm", "csm+plicp")
+        for extra_point, options in (
+            ([1e4, 1e4], {}),  # one return 10 km off: numpy asked for 298 GiB
+            ([1e6, 0.0], {}),
+            (None, {"sigma_m": 1e6}),  # its field's margin: 182 PiB
+            (None, {"resolution_m": 1e-12}),  # densified along its surfaces: 198 TiB
+        )
+        if method != "csm+plicp" or "sigma_m" not in options  # not one of its options
+    ],
+)
+def test_a_field_too_large_for_memory_is_a_match_input_error_not_a_memory_error(
+    room: np.ndarray, caster: Caster, method: str, extra_point: list[float] | None,
+    options: dict[str, float],
+) -> None:
+    """A point target's field covers its bounding box: a far glitch point or an option out of
+    scale is refused naming the target and the options (README, bad input), before numpy
+    allocates anything."""
+    target = caster(room, Pose2D())
+    if extra_point is not None:
+        target = np.vstack((target, [extra_point]))
+    with pytest.raises(MatchInputError, match=r"too large"):
+        match(caster(room, ROOM_POSE), target, ROOM_POSE, method=method, **options)

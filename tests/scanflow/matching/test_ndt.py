@@ -8,7 +8,7 @@ from scanflow.geometry import Pose2D
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.ndt_cells import OverlappingCells
 from scanflow.maps.occupancy import OccupancyGrid
-from scanflow.matching import MatchStatus, match
+from scanflow.matching import MatchInputError, MatchStatus, match
 from scanflow.matching.ndt import ndt_cost, ndt_evaluate, positive_definite
 
 
@@ -166,3 +166,24 @@ def test_coarse_cells_do_not_drag_a_start_on_the_truth_along_a_corridor(corridor
             .translation_norm()) >= 0.05
     ]
     assert not far, f"{len(far)} pairs end over 5 cm from a start on the truth: {far}"
+
+
+@pytest.mark.parametrize(
+    ("extra_point", "options"),
+    [
+        ([1e4, 1e4], {}),  # one return 10 km off: 45 s and a 13 GB cell index, status ok
+        ([1e6, 0.0], {}),  # MemoryError
+        (None, {"cell_size_m": 1e-12}),  # ValueError: negative dimensions
+        (None, {"surface_step_m": 1e-12}),  # MemoryError filling the surfaces
+    ],
+)
+def test_cells_too_many_for_memory_are_a_match_input_error(
+    room, caster, extra_point, options
+) -> None:
+    """A point target's cells cover its bounding box: refused naming the target and the
+    options (README, bad input), before anything is allocated."""
+    target = caster(room, Pose2D())
+    if extra_point is not None:
+        target = np.vstack((target, [extra_point]))
+    with pytest.raises(MatchInputError, match=r"too large"):
+        match(caster(room, Pose2D(0.1, 0.05, 0.05)), target, method="ndt", **options)

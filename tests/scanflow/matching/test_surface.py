@@ -4,6 +4,7 @@ points `densify_scan` adds along them."""
 import math
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scanflow.matching.surface import GAP_BASE_M, GAP_PER_RANGE, densify_scan, surface_gap_m
@@ -60,3 +61,16 @@ def test_added_points_lie_between_bridged_neighbours_step_m_apart(
         assert np.all(spacing <= step_m + 1e-9)
         np.testing.assert_allclose(spacing.sum(), gaps[k], rtol=1e-9)
         offset += n
+
+
+def test_a_step_that_would_add_too_many_points_is_a_match_input_error() -> None:
+    """icp's `surface_step_m=1e-12` asked numpy for 198 TiB (README, bad input: a
+    MatchInputError naming the option, not a MemoryError)."""
+    from scanflow.matching import MatchInputError, match
+
+    scan = arc(5.0, 1.0, 360)
+    with pytest.raises(MatchInputError, match=r"too large"):
+        densify_scan(scan, 1e-12)
+    with pytest.raises(MatchInputError, match=r"surface_step_m"):
+        match(scan, scan, method="icp", surface_step_m=1e-12)
+    assert len(densify_scan(scan, 0.01)) > len(scan)
