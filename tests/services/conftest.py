@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import os
+import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -138,3 +140,31 @@ def start(launcher: Launcher, bus: Bus) -> Callable[..., None]:
         wait_until(lambda: f"{name}/{instance}" in bus.alive(), 30.0, f"{name} health token")
 
     return start_service
+
+
+def stats_failures_while(stats: Callable[[], object], admit: Callable[[int], None]) -> list:
+    """Gather `stats()` again and again on another thread (as Zenoh's stats queryable does)
+    while `admit(i)` adds 20,000 robots as the worker would; the RuntimeErrors it raised (a
+    dict that changed size while iterated: the stats query went unanswered)."""
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # hand the GIL over often: the race shows at once
+    failures: list[Exception] = []
+    done = threading.Event()
+
+    def scrape() -> None:
+        while not done.is_set():
+            try:
+                stats()
+            except RuntimeError as exc:
+                failures.append(exc)
+
+    scraper = threading.Thread(target=scrape)
+    scraper.start()
+    try:
+        for i in range(20_000):
+            admit(i)
+    finally:
+        done.set()
+        scraper.join()
+        sys.setswitchinterval(interval)
+    return failures

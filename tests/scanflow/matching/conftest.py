@@ -152,3 +152,32 @@ def corridor_pairs() -> list[tuple[np.ndarray, np.ndarray, Pose2D]]:
     return [(b.true_points, a.true_points, b.true_pose.relative_to(a.true_pose))
             for a, b in itertools.pairwise(frames)
             if max(abs(math.sin(a.true_pose.theta)), abs(math.sin(b.true_pose.theta))) < 0.05]
+
+
+class _Map:
+    """A map target: its occupied points, in the map's frame."""
+
+    def __init__(self, points: NDArray[np.float64]) -> None:
+        self.points = points
+
+    def likelihood_field(self, level: int = 0) -> object:
+        raise AssertionError("point methods use occupied_points()")
+
+    def occupied_points(self) -> NDArray[np.float64]:
+        return self.points
+
+
+def assert_far_map_matches_as_near(method: str, offset_m: float) -> None:
+    """The same room as a map target at the origin and `offset_m` away: same status, the same
+    pose shifted (1 mm), the same covariance (5 %)."""
+    segments = room_segments()
+    truth = Pose2D(0.5, -0.5, 0.3)
+    source = cast(segments, truth, noise_m=0.01)
+    shift = Pose2D(offset_m, 0.6 * offset_m, 0.0)
+    start = truth * Pose2D(0.05, -0.04, 0.02)
+    near = match(source, _Map(wall_points(segments)), start, method=method)
+    far = match(source, _Map(shift.transform_points(wall_points(segments))), shift * start,
+                method=method)
+    assert near.ok and far.status is near.status, far.message
+    assert (shift * near.pose).relative_to(far.pose).translation_norm() < 1e-3
+    assert np.allclose(far.covariance, near.covariance, rtol=0.05)

@@ -57,34 +57,11 @@ def test_covariance_is_calibrated_nees_near_three() -> None:
     assert 1.5 < float(np.mean(nees)) < 6.0
 
 
-class _Map:
-    """A map target: its occupied points, in the map's frame."""
-
-    def __init__(self, points: np.ndarray) -> None:
-        self.points = points
-
-    def likelihood_field(self, level: int = 0) -> object:
-        raise AssertionError("point methods use occupied_points()")
-
-    def occupied_points(self) -> np.ndarray:
-        return self.points
-
-
 @pytest.mark.parametrize("offset_m", [30.0, 250.0])
 def test_a_map_far_from_its_origin_matches_as_one_near_it(offset_m: float) -> None:
     """icp judges its pairs on the map's lines as plicp does, and stops on its steps: in the
     pose's own (x, y, theta), not a left increment whose rotation turns about the map's
     origin (a room 30 m from it was 'degenerate' and moved 6 cm towards the guess)."""
-    from .conftest import cast, room_segments, wall_points
+    from .conftest import assert_far_map_matches_as_near
 
-    segments = room_segments()
-    truth = Pose2D(0.5, -0.5, 0.3)
-    source = cast(segments, truth, noise_m=0.01)
-    shift = Pose2D(offset_m, 0.6 * offset_m, 0.0)
-    start = truth * Pose2D(0.05, -0.04, 0.02)
-    near = match(source, _Map(wall_points(segments)), start, method="icp")
-    far = match(source, _Map(shift.transform_points(wall_points(segments))), shift * start,
-                method="icp")
-    assert near.ok and far.status is near.status, far.message
-    assert (shift * near.pose).relative_to(far.pose).translation_norm() < 1e-3
-    assert np.allclose(far.covariance, near.covariance, rtol=0.05)
+    assert_far_map_matches_as_near("icp", offset_m)

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import math
-import sys
-import threading
 import time
 
 import numpy as np
@@ -19,6 +17,8 @@ from scanflow.wire import DeskewedScanMessage, OdometryMessage, PoseEstimateMess
 
 from services.deskew.service import DeskewService, _Robot
 from services.ingest.sources import source_events
+
+from ..conftest import stats_failures_while
 
 pytestmark = [pytest.mark.integration]
 
@@ -185,26 +185,10 @@ def test_stats_gathered_while_robots_are_admitted_do_not_fail() -> None:
     unanswered)."""
     service = DeskewService(DeskewSettings(max_robots=100_000),
                             ZenohSettings(mode="peer", connect=[]))
-    interval = sys.getswitchinterval()
-    sys.setswitchinterval(1e-6)  # hand the GIL over often: the race shows at once
-    failures: list[Exception] = []
-    done = threading.Event()
-
-    def scrape() -> None:
-        while not done.is_set():
-            try:
-                service.shell.stats()
-            except RuntimeError as exc:
-                failures.append(exc)
-
-    scraper = threading.Thread(target=scrape)
-    scraper.start()
     try:
-        for i in range(20_000):  # what the worker does as each new robot's first message comes
-            service.robots.setdefault(f"r{i}", _Robot())
+        failures = stats_failures_while(
+            service.shell.stats, lambda i: service.robots.setdefault(f"r{i}", _Robot())
+        )
     finally:
-        done.set()
-        scraper.join()
-        sys.setswitchinterval(interval)
         service.shell.close(flush_s=0.0)
     assert failures == []

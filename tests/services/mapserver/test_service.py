@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import sys
-import threading
 from dataclasses import replace
 
 import numpy as np
@@ -17,6 +15,8 @@ from scanflow.wire import MapInsertMessage, MapRedrawMessage, MapStateMessage, P
 from services.mapserver.keyframes import Keyframes
 from services.mapserver.robot import RobotMap
 from services.mapserver.service import MapServer
+
+from ..conftest import stats_failures_while
 
 
 def test_a_snapshot_that_cannot_be_written_is_named_and_the_others_still_are(
@@ -325,26 +325,10 @@ def test_stats_gathered_while_robots_are_admitted_do_not_fail(tmp_path) -> None:
     server = MapServer(MapServerSettings(data_dir=str(tmp_path), max_robots=100_000),
                        ZenohSettings(mode="peer", connect=[]))
     robot = server.robots.setdefault("r0", RobotMap("r0", server.new_grid))
-    interval = sys.getswitchinterval()
-    sys.setswitchinterval(1e-6)  # hand the GIL over often: the race shows at once
-    failures: list[Exception] = []
-    done = threading.Event()
-
-    def scrape() -> None:
-        while not done.is_set():
-            try:
-                server.shell.stats()
-            except RuntimeError as exc:
-                failures.append(exc)
-
-    scraper = threading.Thread(target=scrape)
-    scraper.start()
     try:
-        for i in range(20_000):  # as the worker does for each new robot's first message
-            server.robots[f"r{i}"] = robot
+        failures = stats_failures_while(
+            server.shell.stats, lambda i: server.robots.__setitem__(f"r{i}", robot)
+        )
     finally:
-        done.set()
-        scraper.join()
-        sys.setswitchinterval(interval)
         server.shell.close(flush_s=0.0)
     assert failures == []
