@@ -187,9 +187,7 @@ def field_pyramid(
         fields = list(target.likelihood_pyramid(levels))
     else:
         # Densified once at the finest step: dense enough for every coarser level too.
-        points = np.asarray(target, dtype=np.float64)
-        require_field_size(points, resolution_m, sigma_m)  # the finest level is the largest
-        dense = densify_scan(points, resolution_m, "resolution_m")
+        dense = densify_scan(np.asarray(target, dtype=np.float64), resolution_m, "resolution_m")
         fields = [
             dense_points_field(dense, resolution_m * 2**k, sigma_m * 2**k) for k in range(levels)
         ]
@@ -204,18 +202,8 @@ def points_field(
     Snapping walls to cell centres biases the optimum by up to half a cell; keeping each
     cell's mean point makes the field's ridge follow the points to sub-cell accuracy.
     """
-    require_field_size(points, resolution_m, sigma_m)
     return dense_points_field(
         densify_scan(points, resolution_m, "resolution_m"), resolution_m, sigma_m
-    )
-
-
-def require_field_size(points: NDArray[np.float64], resolution_m: float, sigma_m: float) -> None:
-    """MatchInputError unless the field `dense_points_field` lays over `points` fits
-    MAX_GRID_CELLS (`require_grid_cells`)."""
-    spec = GridSpec.covering(points, resolution_m, CUTOFF_SIGMAS * sigma_m + 2.0 * resolution_m)
-    require_grid_cells(
-        spec.rows, spec.cols, f"a field of resolution_m {resolution_m:g}, sigma_m {sigma_m:g}"
     )
 
 
@@ -225,10 +213,14 @@ def dense_points_field(
     """`points_field` of points already densified at `resolution_m` or finer.
 
     The field is cut off at CUTOFF_SIGMAS (as maps' fields are), so only a band around the
-    points is computed, whatever their bounding box.
+    points is computed, whatever their bounding box; a box over MAX_GRID_CELLS (a far glitch
+    point, an option out of scale) is a MatchInputError before anything is allocated.
     """
     cutoff_m = CUTOFF_SIGMAS * sigma_m
     spec = GridSpec.covering(points, resolution_m, cutoff_m + 2.0 * resolution_m)
+    require_grid_cells(
+        spec.rows, spec.cols, f"a field of resolution_m {resolution_m:g}, sigma_m {sigma_m:g}"
+    )
     cells = spec.world_to_cell(points)
     _, cell_of_point = np.unique(cells[:, 0] * spec.cols + cells[:, 1], return_inverse=True)
     count = np.bincount(cell_of_point)

@@ -79,11 +79,12 @@ def unpack_message(data: Any, bulk_types: Container[str] = ()) -> tuple[str, Fie
     big payloads are refused before anything is unpacked."""
     if not isinstance(data, bytes | bytearray | memoryview):
         raise DecodeError(f"payload must be bytes, got {type(data).__name__}")
-    size = memoryview(data).nbytes
+    view = memoryview(data)
+    size = view.nbytes
     if size > MAX_BULK_BYTES:
         raise PayloadTooLarge(f"payload is {size} bytes, over {_limit(True)}")
-    if memoryview(data).itemsize != 1:  # msgpack reads only buffers of bytes
-        data = memoryview(data).tobytes()
+    if view.itemsize != 1:  # msgpack reads only buffers of bytes
+        data = view.tobytes()
     if size > MAX_PAYLOAD_BYTES:
         tag = _leading_type(data)
         if tag not in bulk_types:
