@@ -3,12 +3,28 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 from scanflow.geometry import Pose2D
 from scanflow.io.carmen import Keyframe
 from scanflow.scan import LaserScan
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def run_bench(
+    module: str, *args: str, timeout_s: float = 300.0, check: bool = False
+) -> subprocess.CompletedProcess[str]:
+    """`python -m bench.<module> ARGS` from the repository's root, its output captured as text
+    (`check`: a non-zero exit raises)."""
+    return subprocess.run(
+        [sys.executable, "-m", f"bench.{module}", *args],
+        cwd=REPO, capture_output=True, text=True, timeout=timeout_s, check=check,
+    )
 
 
 @pytest.fixture

@@ -2,20 +2,12 @@
 
 import json
 import math
-import subprocess
-import sys
-from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[2]
-
-
-def run_bench(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "bench.calibration", *args],
-                          capture_output=True, text=True, cwd=REPO, timeout=300)
+from .conftest import run_bench
 
 
 def test_simulated_mounts_come_back_and_not_calibrating_is_the_baseline() -> None:
-    out = run_bench("--sim", "--duration", "20", "--json")
+    out = run_bench("calibration", "--sim", "--duration", "20", "--json")
     assert out.returncode == 0, out.stderr
     report = json.loads(out.stdout)
     assert set(report) == {"front, turned 20 deg", "rear-facing", "side, 90 deg", "centre"}
@@ -28,5 +20,5 @@ def test_simulated_mounts_come_back_and_not_calibrating_is_the_baseline() -> Non
 
 
 def test_bad_arguments_are_named() -> None:
-    out = run_bench("--sim", "--step", "0")
+    out = run_bench("calibration", "--sim", "--step", "0")
     assert out.returncode == 2 and "--step must be >= 1" in out.stderr

@@ -4,16 +4,13 @@ runs against the real gateway process, without an error, and is timed."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
+
+from .conftest import run_bench
 
 
 def test_every_scenario_answers_and_is_timed() -> None:
-    done = subprocess.run(
-        [sys.executable, "-m", "bench.gateway", "--seconds", "0.3", "--concurrency", "2",
-         "--bus-scans", "100", "--json"],
-        capture_output=True, text=True, timeout=240, check=True,
-    )
+    done = run_bench("gateway", "--seconds", "0.3", "--concurrency", "2", "--bus-scans", "100",
+                     "--json", timeout_s=240, check=True)
     report = json.loads(done.stdout)
     scenarios = ("latest_pose", "match_scan_to_scan", "match_scan_to_map", "post_scan",
                  "latest_pose_bus_scans")

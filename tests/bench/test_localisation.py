@@ -1,16 +1,14 @@
 """bench.localisation: the success figures and the CLI end to end on a real log."""
 
 import json
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 
 from bench.data import corrected_log
 from bench.localisation import rates
 
-REPO = Path(__file__).resolve().parents[2]
+from .conftest import run_bench
+
 LOG = corrected_log("aces")
 
 
@@ -22,17 +20,14 @@ def test_rates_count_both_bars() -> None:
 
 
 def test_bad_arguments_are_named() -> None:
-    out = subprocess.run([sys.executable, "-m", "bench.localisation", "--data", "x.gz",
-                          "--queries", "0"], capture_output=True, text=True, cwd=REPO)
+    out = run_bench("localisation", "--data", "x.gz", "--queries", "0")
     assert out.returncode == 2 and "--queries must be >= 1" in out.stderr
 
 
 @pytest.mark.skipif(not LOG.exists(), reason=f"real log {LOG} not available")
 def test_bench_localisation_json_on_a_real_log() -> None:
-    out = subprocess.run(
-        [sys.executable, "-m", "bench.localisation", "--data", str(LOG), "--limit", "40",
-         "--queries", "3", "--json"], capture_output=True, text=True, cwd=REPO,
-    )
+    out = run_bench("localisation", "--data", str(LOG), "--limit", "40", "--queries", "3",
+                    "--json")
     assert out.returncode == 0, out.stderr
     report = json.loads(out.stdout)
     assert set(report["global"]) == {"level_1", "level_0_baseline"}

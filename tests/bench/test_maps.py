@@ -2,26 +2,17 @@
 BENCHMARKS.md quotes."""
 
 import json
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 
 from bench.data import corrected_log
 
-REPO = Path(__file__).resolve().parents[2]
+from .conftest import run_bench
 
 
 def test_bench_maps_reports_times_and_memory():
-    out = subprocess.run(
-        [sys.executable, "-m", "bench.maps", "--json", "--step-m", "8", "--rebuilds", "1"],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        check=True,
-        timeout=120,
-    )
+    out = run_bench("maps", "--json", "--step-m", "8", "--rebuilds", "1", timeout_s=120,
+                    check=True)
     result = json.loads(out.stdout)
     mapping, revisit = result["phases"]["mapping"], result["phases"]["revisit"]
     assert result["resolution_m"] == 0.05
@@ -39,14 +30,8 @@ LOG = corrected_log("intel")
 @pytest.mark.skipif(not LOG.exists(), reason=f"real log {LOG} not available")
 def test_bench_maps_times_view_refresh_and_rebuild_on_a_small_and_a_large_map():
     args = ["--json", "--views-only", "--data", str(LOG), "--limit", "60", "--tile-cells", "8"]
-    out = subprocess.run(
-        [sys.executable, "-m", "bench.maps", *args, "--small-scans", "10", "--samples", "5"],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        check=True,
-        timeout=120,
-    )
+    out = run_bench("maps", *args, "--small-scans", "10", "--samples", "5", timeout_s=120,
+                    check=True)
     views = json.loads(out.stdout)["views"]
     assert views["scans"] == 60 and views["tile_cells"] == 8 and "phases" not in views
     small, large = views["small"], views["large"]

@@ -3,9 +3,6 @@ exact truth, and the CLI end to end."""
 
 import json
 import math
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,7 +20,8 @@ from bench.matching import (
     sim_frames,
 )
 
-REPO = Path(__file__).resolve().parents[2]
+from .conftest import run_bench
+
 LOG = corrected_log("intel")
 
 
@@ -130,33 +128,23 @@ def test_simulated_keyframes_carry_exact_truth_and_the_wheel_odometry() -> None:
     assert frames[-1].odom_pose.relative_to(frames[-1].true_pose).translation_norm() > 1e-4
 
 
-def run_bench(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "bench.matching", *args],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-
-
 def test_closure_needs_a_gap_of_two_or_more() -> None:
-    out = run_bench("--data", str(LOG), "--gap", "1", "--closure")
+    out = run_bench("matching", "--data", str(LOG), "--gap", "1", "--closure")
     assert out.returncode == 2
     assert "--closure needs --gap >= 2" in out.stderr
 
 
 def test_start_step_must_be_positive() -> None:
-    out = run_bench("--data", str(LOG), "--gap", "3", "--start-step", "0")
+    out = run_bench("matching", "--data", str(LOG), "--gap", "3", "--start-step", "0")
     assert out.returncode == 2
     assert "--start-step must be >= 1" in out.stderr
 
 
 @pytest.mark.skipif(not LOG.exists(), reason=f"real log {LOG} not available")
 def test_bench_matching_json_with_closure_on_real_pairs() -> None:
-    out = run_bench("--data", str(LOG), "--gap", "3", "--start-step", "1", "--limit", "4",
-                    "--methods", "odometry", "plicp", "--peers", "--robust-pairs", "0",
-                    "--closure", "--json")
+    out = run_bench("matching", "--data", str(LOG), "--gap", "3", "--start-step", "1",
+                    "--limit", "4", "--methods", "odometry", "plicp", "--peers",
+                    "--robust-pairs", "0", "--closure", "--json")
     assert out.returncode == 0, out.stderr
     report = json.loads(out.stdout)
     assert report["pairs"] == 4 and report["start_step"] == 1
@@ -172,9 +160,9 @@ def test_bench_matching_json_with_closure_on_real_pairs() -> None:
 
 
 def test_bench_matching_json_on_simulated_campus_pairs() -> None:
-    out = run_bench("--sim", "campus", "--sim-duration-s", "12", "--lidar", "181,180,80",
-                    "--methods", "odometry",
-                    "plicp", "--peers", "--robust-pairs", "0", "--json")
+    out = run_bench("matching", "--sim", "campus", "--sim-duration-s", "12", "--lidar",
+                    "181,180,80", "--methods", "odometry", "plicp", "--peers", "--robust-pairs",
+                    "0", "--json")
     assert out.returncode == 0, out.stderr
     report = json.loads(out.stdout)
     assert report["data"] == "sim:campus" and report["pairs"] == 23
@@ -185,9 +173,9 @@ def test_bench_matching_json_on_simulated_campus_pairs() -> None:
 
 
 def test_data_and_sim_are_one_or_the_other() -> None:
-    out = run_bench("--data", str(LOG), "--sim", "rooms")
+    out = run_bench("matching", "--data", str(LOG), "--sim", "rooms")
     assert out.returncode == 2 and "not allowed with argument" in out.stderr
-    out = run_bench("--sim", "campus", "--lidar", "181,180,-1")
+    out = run_bench("matching", "--sim", "campus", "--lidar", "181,180,-1")
     assert out.returncode == 2 and "range_max_m" in out.stderr
-    out = run_bench("--sim", "campus", "--lidar", "181,180")
+    out = run_bench("matching", "--sim", "campus", "--lidar", "181,180")
     assert out.returncode == 2 and "BEAMS,FOV_DEG,RANGE_M" in out.stderr

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -21,6 +22,14 @@ from bench import pipeline
 from bench.pipeline import FREIBURG, SERVICES, Observer, stats, threads_on
 
 needs_log = pytest.mark.skipif(not FREIBURG.exists(), reason=f"real log {FREIBURG} not available")
+
+
+def real_services(test: Callable[[], None]) -> Callable[[], None]:
+    """Integration, slow, and in make test's second process: real services for ~10 s each
+    (balances its two processes)."""
+    for mark in (pytest.mark.second_lane, pytest.mark.slow, pytest.mark.integration):
+        test = mark(test)
+    return test
 
 
 class FakeSession:
@@ -176,9 +185,7 @@ def test_transport_through_the_router_alone() -> None:
     assert 0 < report["latency_ms_p50"] <= report["latency_ms_p99"]
 
 
-@pytest.mark.integration
-@pytest.mark.slow
-@pytest.mark.second_lane  # real services for ~10 s each: balances make test's two processes
+@real_services
 @needs_log
 def test_throughput_of_the_services_against_the_in_process_pipeline() -> None:
     report = pipeline.throughput(FREIBURG, 20, rounds=1)
@@ -204,18 +211,14 @@ def test_throughput_of_the_services_against_the_in_process_pipeline() -> None:
     assert round_["per_scan_ms"]["matcher"]["cpu"] > 0
 
 
-@pytest.mark.integration
-@pytest.mark.slow
-@pytest.mark.second_lane  # real services for ~10 s each: balances make test's two processes
+@real_services
 def test_latency_from_ingest_to_pose_at_real_time_rate() -> None:
     report = pipeline.latency(1.0)
     assert report["scans"] == 10 and report["source"].startswith("simulator, 1 s at 10 Hz")
     assert 0 < report["latency_ms_p50"] <= report["latency_ms_p99"] <= report["latency_ms_max"]
 
 
-@pytest.mark.integration
-@pytest.mark.slow
-@pytest.mark.second_lane  # real services for ~10 s each: balances make test's two processes
+@real_services
 @needs_log
 def test_memory_of_every_service_after_each_replay() -> None:
     report = pipeline.memory(FREIBURG, 10, replays=2)

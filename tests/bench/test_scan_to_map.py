@@ -2,15 +2,13 @@
 
 import json
 import math
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 
 from bench.data import corrected_log
 
-REPO = Path(__file__).resolve().parents[2]
+from .conftest import run_bench
+
 LOG = corrected_log("intel")
 
 
@@ -18,14 +16,7 @@ LOG = corrected_log("intel")
 def test_bench_scan_to_map_reports_every_method_both_map_fields_and_ndt_on_a_map():
     args = ["--json", "--pairs", "3", "--sim-seconds", "1.5", "--map-scans", "12"]
     args += ["--data", str(LOG)]
-    out = subprocess.run(
-        [sys.executable, "-m", "bench.scan_to_map", *args],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        check=True,
-        timeout=120,
-    )
+    out = run_bench("scan_to_map", *args, timeout_s=120, check=True)
     result = json.loads(out.stdout)
     assert result["real"]["pairs"] == 3
     for method in ("gn", "lm", "ndt"):
