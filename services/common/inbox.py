@@ -50,6 +50,15 @@ class Inbox:
         except queue.Empty:
             return None
 
+    def take_all(self) -> list[tuple[str, Any]]:
+        """Empty the inbox now and return what it held, oldest first."""
+        items = []
+        while True:
+            try:
+                items.append(self._queue.get_nowait())
+            except queue.Empty:
+                return items
+
     def depth(self) -> int:
         """How many items wait in the inbox now."""
         return self._queue.qsize()

@@ -3,8 +3,9 @@
 A service builds a `ServiceShell`, declares its publishers, subscribers and queryables through
 it, calls `start()` and then `run(handle)`: Zenoh callbacks only decode, count and enqueue;
 `handle(kind, message)` runs on the one worker thread; queries run on one query thread; puts
-leave in order from one sender thread (`Outbox`). SIGTERM or Ctrl-C ends `run`, then `close()`
-sends what is queued, flushes, undeclares and closes the session.
+leave in order from one sender thread (`Outbox`). SIGTERM or Ctrl-C ends `run` once the worker
+has handled what the inbox held (`drain`), then `close()` sends what is queued, flushes,
+undeclares and closes the session.
 
 A full inbox blocks the Zenoh callback and with it the session's whole link (backpressure).
 Hints a service takes back from a service it feeds (deskew: the matcher's poses) must not wait
@@ -53,6 +54,7 @@ class ServiceShell:
         self.instance = keys.check_id(settings.instance, "instance")
         queue_size = settings.queue_size
         self.slow_message_s = settings.slow_message_s
+        self.inbox_drain_s = settings.inbox_drain_s
         self.prefix = zenoh_settings.prefix
         self.log = logging.getLogger(f"scanflow.{service}")
         self.stop_event = threading.Event()
@@ -233,7 +235,8 @@ class ServiceShell:
                 self._count_malformed(kind, str(sample.key_expr), exc)
                 return
             self.counters.add(f"received.{kind}")
-            deliver(kind, message)
+            if deliver(kind, message) is False:  # the inbox refuses once the service stops
+                self.counters.add(f"refused_at_stop.{kind}")
 
         return on_sample
 
@@ -282,7 +285,8 @@ class ServiceShell:
         idle: Callable[[], None] | None = None,
         poll_s: float = 0.1,
     ) -> None:
-        """Feed inbox items to `handle` until stopped; `idle()` runs after `poll_s` of quiet."""
+        """Feed inbox items to `handle` until stopped, then `drain`; `idle()` runs after
+        `poll_s` of quiet."""
         while not self.stop_event.is_set():
             item = self.inbox.get(poll_s)
             t0 = time.perf_counter()
@@ -294,6 +298,32 @@ class ServiceShell:
             elif item[0] != _WAKE:
                 self._handle(handle, *item)
             self._busy_s += time.perf_counter() - t0
+        self.drain(handle)
+
+    def drain(self, handle: Callable[[str, Any], None]) -> None:
+        """Once stopped, handle what the inbox already holds, for at most `inbox_drain_s`: a message
+        accepted off the bus is not lost on a clean stop (the inbox takes nothing new once the
+        stop is set). What is left then is counted as inbox.dropped_at_stop and logged."""
+        deadline = time.monotonic() + self.inbox_drain_s
+        handled = 0
+        while time.monotonic() < deadline:
+            for kind, message in self._take_feedback():
+                self._handle(handle, kind, message)
+            item = self.inbox.get(0.0)
+            if item is None:
+                break
+            if item[0] != _WAKE:
+                self._handle(handle, *item)
+                handled += 1
+        left = sum(1 for kind, _ in self.inbox.take_all() if kind != _WAKE)
+        if handled:
+            self.log.info("stopping: handled the %d messages left in the inbox", handled)
+        if left:
+            self.counters.add("inbox.dropped_at_stop", left)
+            self.log.warning(
+                "stopping: %d messages left in the inbox were not handled within "
+                "inbox_drain_s=%.1f s", left, self.inbox_drain_s,
+            )
 
     def _idle(self, idle: Callable[[], None]) -> None:
         try:

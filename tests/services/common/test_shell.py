@@ -161,3 +161,84 @@ def test_a_failing_stats_source_is_an_error_reply_naming_it() -> None:
     finally:
         shell.close(flush_s=0.0)
         router.close()
+
+
+def test_messages_waiting_in_the_inbox_at_stop_are_handled_not_dropped(caplog) -> None:
+    """A clean stop (SIGTERM) arrives while scans wait in the inbox: they were accepted off the
+    bus, so the worker handles them, in order, before `run` returns."""
+    shell = ServiceShell("deskew", DeskewSettings(), ZenohSettings(mode="peer", connect=[]))
+    handled: list[int] = []
+
+    def handle(_kind: str, n: int) -> None:
+        handled.append(n)
+        if n == 0:
+            shell.stop()  # the signal lands while 1..4 wait behind this one
+
+    for n in range(5):
+        shell.inbox.put("scan", n)
+    try:
+        with caplog.at_level(logging.INFO, logger="scanflow.deskew"):
+            shell.run(handle, poll_s=0.01)
+        assert shell.inbox.put("scan", 5) is False  # nothing new is taken once stopping
+    finally:
+        shell.close(flush_s=0.0)
+    assert handled == [0, 1, 2, 3, 4]
+    assert shell.counters.get("inbox.dropped_at_stop") == 0
+    assert "handled the 4 messages left in the inbox" in caplog.text
+
+
+def test_what_the_inbox_holds_past_the_drain_limit_is_counted_and_logged(caplog) -> None:
+    """The drain is bounded (inbox_drain_s, within the container's stop grace period): what
+    it could not handle is counted as inbox.dropped_at_stop and named in a warning."""
+    settings = DeskewSettings.model_construct(inbox_drain_s=0.15)
+    shell = ServiceShell("deskew", settings, ZenohSettings(mode="peer", connect=[]))
+    handled: list[int] = []
+
+    def handle(_kind: str, n: int) -> None:
+        handled.append(n)
+        if n == 0:
+            shell.stop()
+        else:
+            time.sleep(0.1)
+
+    for n in range(6):
+        shell.inbox.put("scan", n)
+    try:
+        with caplog.at_level(logging.WARNING, logger="scanflow.deskew"):
+            shell.run(handle, poll_s=0.01)
+    finally:
+        shell.close(flush_s=0.0)
+    assert handled[0] == 0 and 2 <= len(handled) < 6
+    left = 6 - len(handled)
+    assert shell.counters.get("inbox.dropped_at_stop") == left
+    assert f"{left} messages left in the inbox were not handled" in caplog.text
+
+
+def test_a_sample_arriving_after_stop_is_counted_as_refused() -> None:
+    """Once stopping, the subscriber's callback no longer blocks on the inbox: a sample then
+    is counted as refused_at_stop.<kind> (it was never accepted), not silently gone."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_session(ZenohSettings(mode="router", listen=[endpoint], connect=[]))
+    shell = ServiceShell("deskew", DeskewSettings(), ZenohSettings(connect=[endpoint]))
+    shell.subscribe("scanflow-test/in", "raw", bytes)
+    shell.start(install_signals=False)
+    publisher = open_session(ZenohSettings(connect=[endpoint]))
+    try:
+        publisher.put("scanflow-test/in", b"before")
+        deadline = time.monotonic() + 5.0
+        while shell.inbox.depth() == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        shell.stop()
+        publisher.put("scanflow-test/in", b"after")
+        deadline = time.monotonic() + 5.0
+        while shell.counters.get("refused_at_stop.raw") == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        handled: list[bytes] = []
+        shell.run(lambda _kind, message: handled.append(message))
+    finally:
+        publisher.close()
+        shell.close(flush_s=0.0)
+        router.close()
+    assert handled == [b"before"]
+    assert shell.counters.get("received.raw") == 2
+    assert shell.counters.get("refused_at_stop.raw") == 1
