@@ -287,16 +287,23 @@ class ZenohBackend:
         return seq
 
     def publish(self, key: str, payload: bytes) -> None:
-        """Reliable put through a cached publisher that blocks rather than drops."""
-        with self._lock:
-            pub = self._publishers.get(key)
-            if pub is None:
-                pub = self._publishers[key] = self.session.declare_publisher(
-                    key,
-                    congestion_control=zenoh.CongestionControl.BLOCK,
-                    reliability=zenoh.Reliability.RELIABLE,
-                )
-        pub.put(payload)
+        """Reliable put through a cached publisher that blocks rather than drops; 503 when
+        Zenoh refuses it (the session closing, say), the publisher then being declared again."""
+        try:
+            with self._lock:
+                pub = self._publishers.get(key)
+                if pub is None:
+                    pub = self._publishers[key] = self.session.declare_publisher(
+                        key,
+                        congestion_control=zenoh.CongestionControl.BLOCK,
+                        reliability=zenoh.Reliability.RELIABLE,
+                    )
+            pub.put(payload)
+        except zenoh.ZError as exc:
+            with self._lock:  # the next post declares a fresh publisher
+                self._publishers.pop(key, None)
+            self.metrics.count("scanflow_gateway_publish_failed_total")
+            raise BackendError(503, f"could not publish on {key}: {exc}") from exc
 
     def publish_numbered(
         self, robot_id: str, stream: str, given: int | None, key: str,
@@ -305,7 +312,8 @@ class ZenohBackend:
         """Number a posted message (`given`, or the next seq: `_next_seq`) and put
         `encode(seq)` on `key`, one post at a time: posts numbered n and n + 1 must reach the
         bus in that order, or every service takes n for a replay and starts the robot's map
-        afresh. Returns the seq."""
+        afresh. The seq counts as used only once the put went out: after a refused put (503)
+        the same seq is given to the next post, so the services see no gap. Returns the seq."""
         with self._ingest_lock:
             if not self.tracks.knows_seq(robot_id, stream):
                 self.tracks.learn_seq(robot_id, stream, self._services_last_seq(robot_id, stream))
@@ -313,6 +321,8 @@ class ZenohBackend:
             self.publish(key, encode(seq))
             if stream == "scan":
                 self.tracks.saw_scan(robot_id, seq)
+            else:
+                self.tracks.saw_odometry(robot_id, seq)
             return seq
 
     async def apublish_numbered(

@@ -23,6 +23,7 @@ HELP = {
     "scanflow_gateway_poses_received_total": "pose estimates the gateway received",
     "scanflow_gateway_malformed_total": "bus messages the gateway could not decode",
     "scanflow_gateway_ingested_total": "messages ingested over HTTP and published",
+    "scanflow_gateway_publish_failed_total": "posts whose put Zenoh refused (answered 503)",
     "scanflow_scans_processed_total": "scans a service received (its received.scan counter)",
     "scanflow_seq_received_total": "messages a service received per sequenced stream",
     "scanflow_seq_gaps_total": "sequence numbers missed per stream (drops upstream)",

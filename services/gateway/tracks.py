@@ -147,7 +147,8 @@ class TrackStore:
         past the stream's last when it is None; None when the robot is refused (over the
         limit). A `given` seq other than 0 at or below the last raises StaleSeqError: a retried or
         reordered request would otherwise restart the robot's map in every service. Seq 0
-        starts a new run (a replay) on purpose."""
+        starts a new run (a replay) on purpose. Nothing is recorded: once the message went
+        out, `saw_scan` / `saw_odometry` note its seq (a put that failed uses none up)."""
         with self._lock:
             track = self._track(robot_id)
             if track is None:
@@ -162,7 +163,6 @@ class TrackStore:
                     f"and start the robot's map afresh; leave seq out to have it numbered, or "
                     f"send seq 0 to start a new run"
                 )
-            track.saw_seq(stream, given)
             return given
 
     def saw_map(self, robot_id: str, revision: int) -> None:

@@ -45,6 +45,24 @@ def test_concurrent_posts_reach_the_bus_in_the_order_of_their_seqs(peer, backend
     assert [ScanMessage.decode(b).seq for b in scans] == list(range(80))
 
 
+def test_a_refused_put_is_a_503_and_its_seq_goes_to_the_next_post(client, peer, auth, backend):
+    """Zenoh refuses a post's put (here: its publisher undeclared under it): the client gets a
+    503 naming the key, the seq is not used up (the services would count a gap), and the next
+    post goes out on a freshly declared publisher with that seq."""
+    scans = peer.subscribe(keys.raw_scan("pf"))
+    post = lambda: client.post("/api/v1/robots/pf/scans", json=SCAN, headers=auth)  # noqa: E731
+    assert post().json()["seq"] == 0
+    backend._publishers[keys.raw_scan("pf", backend.prefix)].undeclare()
+    refused = post()
+    assert refused.status_code == 503
+    assert "could not publish on" in refused.json()["detail"] and "pf/scan/raw" in refused.text
+    assert post().json()["seq"] == 1
+    eventually(lambda: len(scans) >= 2, "both scans that went out on the bus")
+    assert [ScanMessage.decode(b).seq for b in scans] == [0, 1]
+    metrics = client.get("/metrics").text
+    assert "scanflow_gateway_publish_failed_total 1" in metrics
+
+
 def test_numbering_follows_the_scans_and_odometry_other_sources_put(client, peer, auth,
                                                                     backend):
     """Another source (a robot's own Zenoh client) feeds the robot: the gateway numbers past
@@ -61,7 +79,7 @@ def test_numbering_follows_the_scans_and_odometry_other_sources_put(client, peer
     r = client.post("/api/v1/robots/fed2/scans", json={**SCAN, "seq": 2}, headers=auth)
     assert r.status_code == 409 and "its last is 4" in r.json()["detail"]
     odom = {"stamp_s": 9.0, "pose": {"x_m": 1.0}}
-    assert client.post("/api/v1/robots/fed2/odometry", json=odom, headers=auth).json()["seq"] == 15
+    assert client.post("/api/v1/robots/fed2/odometry", json=odom, headers=auth).json()["seq"] == 14
 
 
 @pytest.mark.parametrize("settings", [GatewaySettings(api_key="test-key", query_timeout_s=10.0)])

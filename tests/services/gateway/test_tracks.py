@@ -26,6 +26,7 @@ def test_a_numbered_seq_is_past_every_seq_since_the_last_run_began(seen, posted)
         if i < len(posted) and posted[i]:
             number = store.next_seq("r", "scan", None)
             assert number > max(run)
+            store.saw_scan("r", number)  # the post went out (publish_numbered notes it)
             run.append(number)
 
 
@@ -49,8 +50,20 @@ def test_scans_follow_the_last_pose_until_a_scan_is_seen():
     store.add_pose(estimate("r", 40, 1.0, 0.0, 0.0))
     assert store.next_seq("r", "scan", None) == 41
     assert store.next_seq("r", "odom", None) == 0  # odometry has no pose to follow
+    store.saw_scan("r", 41)
     store.saw_scan("r", 3)  # a late copy of an earlier scan lowers nothing
     assert store.next_seq("r", "scan", None) == 42
+
+
+def test_a_seq_is_used_only_once_the_post_went_out():
+    """Numbering alone records nothing: a post whose put failed leaves its seq to the next
+    one, so the services see no gap in the robot's stream."""
+    store = TrackStore(10)
+    store.saw_odometry("r", 6)
+    assert store.next_seq("r", "odom", None) == 7
+    assert store.next_seq("r", "odom", None) == 7  # the first put failed: 7 again
+    store.saw_odometry("r", 7)
+    assert store.next_seq("r", "odom", None) == 8
 
 
 def test_a_robot_over_the_limit_gets_no_seq():
