@@ -146,6 +146,30 @@ def _occupancy_from_pixels(
     return data.astype(np.int8)
 
 
+def _shade_of(image_path: Path) -> NDArray[np.float64]:
+    """The image's grey level per pixel on map_server's 0..255 scale: colour channels averaged
+    as map_server does, 16-bit images (PGM with maxval > 255, PNG) scaled down from 0..65535
+    rather than clipped at 255 (Pillow reads both as 0..65535)."""
+    try:
+        with Image.open(image_path) as img:
+            mode = img.mode
+            if mode == "L":
+                return np.asarray(img, dtype=np.float64)
+            if mode == "I" or mode.startswith("I;16"):
+                pixels = np.asarray(img, dtype=np.float64)
+                if pixels.size and (pixels.min() < 0.0 or pixels.max() > 65535.0):
+                    raise ValueError(
+                        f"{image_path}: mode {mode} pixels outside 0..65535 "
+                        f"({pixels.min():.0f}..{pixels.max():.0f}): not a 16-bit grey map"
+                    )
+                return pixels * (255.0 / 65535.0)
+            if mode == "F":
+                raise ValueError(f"{image_path}: floating-point image (mode F): not a map image")
+            return np.asarray(img.convert("RGB"), dtype=np.float64).mean(axis=2)
+    except Image.DecompressionBombError as exc:  # a size no map has: a corrupt header
+        raise ValueError(f"{image_path}: {exc}") from exc
+
+
 def load_map_server(yaml_path: Path | str, params: OccupancyParams | None = None) -> OccupancyGrid:
     """Read a map_server YAML and its image (PGM, PNG, ...) into an OccupancyGrid."""
     yaml_path = Path(yaml_path)
@@ -170,14 +194,7 @@ def load_map_server(yaml_path: Path | str, params: OccupancyParams | None = None
         origin = []
     if len(origin) != 3 or origin[2] != 0.0:
         raise ValueError(f"{yaml_path}: field 'origin' must be [x, y, 0.0], got {origin_text!r}")
-    image_path = yaml_path.parent / fields["image"]
-    try:
-        with Image.open(image_path) as img:
-            grey = img.mode == "L"
-            pixels = np.asarray(img if grey else img.convert("RGB"), dtype=np.float64)
-    except Image.DecompressionBombError as exc:  # a size no map has: a corrupt header
-        raise ValueError(f"{image_path}: {exc}") from exc
-    shade = pixels if grey else pixels.mean(axis=2)  # map_server averages the channels
+    shade = _shade_of(yaml_path.parent / fields["image"])
     if fields.get("negate", "0") not in ("0", "false", "False"):
         shade = 255.0 - shade
     data = _occupancy_from_pixels(shade[::-1], mode, occupied_thresh, free_thresh)

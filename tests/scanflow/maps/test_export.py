@@ -340,3 +340,31 @@ def test_map_server_thresholds_out_of_order_are_named(tmp_path: Path, thresholds
     (tmp_path / "bad.yaml").write_text(text + thresholds)
     with pytest.raises(ValueError, match=r"bad\.yaml: fields 'free_thresh' and 'occupied_thresh'"):
         load_map(tmp_path / "bad.yaml")
+
+
+@pytest.mark.parametrize("image_format", ["pgm", "png"])
+def test_a_16_bit_map_image_reads_as_its_8_bit_twin(tmp_path: Path, image_format: str):
+    """A 16-bit map image (a PGM with maxval 65535, a 16-bit PNG): its grey levels are on
+    0..65535, which used to be clipped at 255 (every shade read as white: free). Scaled down,
+    it gives the cells its 8-bit twin gives."""
+    shades8 = np.array([[0, 254, 205], [128, 40, 230]], dtype=np.uint8)
+    wide = shades8.astype(np.uint16) * 257  # the same shade on 0..65535
+    Image.fromarray(shades8, mode="L").save(tmp_path / "eight.pgm")
+    if image_format == "pgm":
+        header = b"P5\n3 2\n65535\n"
+        (tmp_path / f"wide.{image_format}").write_bytes(header + wide.astype(">u2").tobytes())
+    else:
+        Image.fromarray(wide).save(tmp_path / "wide.png")
+    origin = "resolution: 0.05\norigin: [0.0, 0.0, 0.0]\nmode: scale\n"
+    (tmp_path / "eight.yaml").write_text("image: eight.pgm\n" + origin)
+    (tmp_path / "wide.yaml").write_text(f"image: wide.{image_format}\n" + origin)
+    expected = load_map(tmp_path / "eight.yaml").to_int8()
+    assert np.array_equal(load_map(tmp_path / "wide.yaml").to_int8(), expected)
+    assert len(np.unique(expected)) >= 3  # occupied, free and a shade between
+
+
+def test_a_floating_point_image_is_a_value_error_naming_it(tmp_path: Path):
+    Image.fromarray(np.zeros((2, 3), np.float32), mode="F").save(tmp_path / "f.tiff")
+    (tmp_path / "f.yaml").write_text("image: f.tiff\nresolution: 0.05\norigin: [0, 0, 0]\n")
+    with pytest.raises(ValueError, match=r"f\.tiff: floating-point image"):
+        load_map(tmp_path / "f.yaml")
