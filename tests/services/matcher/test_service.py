@@ -379,3 +379,31 @@ def test_a_bad_prior_map_stops_the_matcher_naming_it(launcher, tmp_path):
     proc.wait(60.0)
     assert proc.returncode != 0
     assert f"prior_map: no file at {missing}" in launcher.log_text("matcher")
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_scans_waiting_in_the_matchers_inbox_at_sigterm_still_get_their_poses(launcher, bus,
+                                                                             start):
+    """SIGTERM while deskewed scans wait in the matcher's inbox: they were accepted off the
+    bus, so each still gets its pose on the bus before the process exits cleanly."""
+    start("matcher")
+    poses = bus.record(keys.pose("r"))
+    stage = DeskewStage()
+    frames = list(simulate(SimConfig(duration_s=30.0, seed=2)))
+    for frame in frames:
+        for sample in frame.odometry:
+            stage.add_odometry(sample)
+        result = stage.process(frame.scan)
+        beams = len(frame.scan.ranges_m)
+        bus.put(keys.deskewed_scan("r"), DeskewedScanMessage(
+            "r", frame.scan.seq, result.reference_stamp_s, result.points, result.source_used,
+            False, beams, beams - len(result.points), result.no_return_points,
+        ).encode())
+    stats = bus.wait_until(
+        lambda: (s := bus.stats("matcher")) and s.counters.get("received.scan") == len(frames)
+        and s, 30.0, "every scan in the matcher")
+    assert stats.gauges["inbox_depth"] > 0  # still waiting when the stop comes
+    assert launcher.stop("matcher") == 0
+    assert sorted(p.seq for p in poses) == [f.scan.seq for f in frames]
+    assert "messages left in the inbox" in launcher.log_text("matcher")
