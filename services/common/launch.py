@@ -8,7 +8,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -20,6 +20,10 @@ from services.common.zsession import open_session
 
 ORDER = ("router", "deskew", "matcher", "mapserver", "gateway", "ingest")
 PIPELINE = ("deskew", "matcher", "mapserver")  # what must listen before ingest publishes
+# A clean stop goes with the data: the sources first, then each stage once the one feeding it
+# has exited, so what a stage handles and flushes at its stop reaches a stage still running;
+# the router (started first) goes last.
+STOP_ORDER = ("ingest", "gateway", *PIPELINE)
 
 
 def free_port() -> int:
@@ -47,8 +51,9 @@ def wait_for_port(port: int, timeout_s: float = 10.0) -> None:
 class Launcher:
     """Service subprocesses sharing one environment (router endpoint, prefix, settings).
 
-    Each service logs to `<log_dir>/<name>.log`. `stop_all` sends SIGTERM in reverse start
-    order and waits, then kills what is left. With a `cpus` plan each service is started with
+    Each service logs to `<log_dir>/<name>.log`. `stop_all` sends SIGTERM to one service at a
+    time (in a given order, the rest last started first) and waits for each, killing one that
+    does not stop. With a `cpus` plan each service is started with
     its `SCANFLOW_<SERVICE>_CPUS` and `_IO_CPUS`, unless the environment already sets them.
     """
 
@@ -130,9 +135,12 @@ class Launcher:
         proc.kill()
         proc.wait()
 
-    def stop_all(self) -> dict[str, int | None]:
-        """Stop every service, last started first; their exit codes."""
-        return {name: self.stop(name) for name in reversed(list(self.processes))}
+    def stop_all(self, order: Sequence[str] = ()) -> dict[str, int | None]:
+        """Stop every service, one at a time: those named in `order` first, in that order,
+        then the rest last started first; their exit codes."""
+        first = [name for name in order if name in self.processes]
+        rest = [name for name in reversed(list(self.processes)) if name not in first]
+        return {name: self.stop(name) for name in [*first, *rest]}
 
     def exited(self) -> dict[str, int]:
         """Services that have ended, with their exit codes."""

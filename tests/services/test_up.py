@@ -11,9 +11,16 @@ import time
 
 import numpy as np
 import pytest
+import zenoh
+from scanflow import keys
+from scanflow.config import ZenohSettings
 from scanflow.maps.export import load_map
+from scanflow.scan import LaserScan
+from scanflow.wire import OdometryMessage, ScanMessage, decode_any
 
 from services.common.launch import free_port
+from services.common.zsession import open_session
+from services.ingest.sources import source_events
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -88,3 +95,53 @@ def test_up_with_loop_closure_runs_the_back_end_in_the_services(tmp_path):
     assert "keyframes culled within 0.3 m / 10.0 deg of one drawn" in text
     with np.load(data / "robot.snapshot.npz") as snap:  # the map server kept the keyframes
         assert len(snap["keyframes_seqs"]) > 0
+
+
+
+
+def test_ctrl_c_stops_with_the_data_so_scans_deskew_holds_still_reach_the_map(tmp_path):
+    """A robot's own Zenoh client sends scans and odometry, the odometry for its last second
+    never comes: deskew holds those scans, waiting for it (odom_wait_s). Ctrl-C: the services
+    stop with the data (ingest and gateway first, then deskew, matcher, map server, each once
+    the one before has exited), so the scans deskew flushes at its stop are still matched and
+    mapped: every scan has its pose in the map server's snapshot."""
+    out, data, zenoh_port = tmp_path / "up.out", tmp_path / "data", free_port()
+    cmd = up_command(data)
+    cmd[cmd.index("--zenoh-port") + 1] = str(zenoh_port)
+    cmd[cmd.index("--limit") + 1] = "1"  # the built-in robot: one scan, then ingest is done
+    env = {**os.environ, "SCANFLOW_DESKEW_ODOM_WAIT_S": "120"}
+    events = list(source_events(None, "ext", 20.0, 3, None))
+    scans = [e for e in events if isinstance(e, LaserScan)]
+    cut_s = scans[-10].stamp_s  # no odometry from here on: the last 10 scans are held
+    sent = [e for e in events if isinstance(e, LaserScan) or e.stamp_s < cut_s]
+    with out.open("wb") as sink:
+        proc = subprocess.Popen(cmd, stdout=sink, stderr=subprocess.STDOUT, env=env)
+        try:
+            deadline = time.monotonic() + 120
+            while "ingest exited with code 0" not in out.read_text():
+                assert proc.poll() is None and time.monotonic() < deadline, out.read_text()
+                time.sleep(0.3)
+            robot = open_session(ZenohSettings(connect=[f"tcp/127.0.0.1:{zenoh_port}"]))
+            for event in sent:
+                is_scan = isinstance(event, LaserScan)
+                message = ScanMessage(event) if is_scan else OdometryMessage(event)
+                key = keys.raw_scan("ext") if is_scan else keys.odom("ext")
+                robot.put(key, message.encode(), congestion_control=zenoh.CongestionControl.BLOCK)
+
+            def held() -> bool:  # every earlier scan mapped, the last 10 held by deskew
+                replies = robot.get(keys.stats("mapserver", "0"), timeout=2.0)
+                stats = [decode_any(r.ok.payload.to_bytes()) for r in replies if r.ok]
+                return bool(stats) and stats[0].gauges.get("seq.ext/pose.last") == scans[-11].seq
+
+            while not held():
+                assert time.monotonic() < deadline, "the scans before the cut never mapped"
+                time.sleep(0.2)
+            robot.close()
+        finally:
+            proc.send_signal(signal.SIGINT)
+            proc.wait(90)
+    text = out.read_text()
+    assert proc.returncode == 0, text
+    with np.load(data / "ext.snapshot.npz") as snap:
+        assert len(snap["poses"]) == len(scans)
+        assert int(snap["last_seq"]) == scans[-1].seq

@@ -40,7 +40,7 @@ def up(
 ) -> None:
     """Start the whole pipeline as local processes; stop them all on Ctrl-C or SIGTERM.
     Exits 0 when every service stopped cleanly, else 1 naming the ones that did not."""
-    from services.common.launch import ORDER, PIPELINE, Launcher
+    from services.common.launch import ORDER, PIPELINE, STOP_ORDER, Launcher
 
     try:  # every service reads the same environment: one bad variable stops them all
         check_environment(*SECTIONS)
@@ -108,7 +108,7 @@ def up(
             time.sleep(0.5)
     finally:
         typer.echo("stopping...")
-        codes = launcher.stop_all()
+        codes = launcher.stop_all(STOP_ORDER)
         for name, code in codes.items():
             typer.echo(f"  {name}: exit {code}")
     failed = sorted(name for name, code in codes.items() if code != 0)

@@ -25,3 +25,19 @@ def test_launcher_counts_death_by_its_own_sigterm_as_a_clean_stop(tmp_path):
     launcher.processes["done"] = subprocess.Popen([sys.executable, "-c", "raise SystemExit(4)"])
     launcher.processes["done"].wait()
     assert launcher.stop_all() == {"done": 4, "fails": 3, "reraises": 0}
+
+
+def test_stop_all_stops_the_named_services_first_in_order_then_the_rest_newest_first(tmp_path):
+    """`scanflow up` stops with the data (ingest, gateway, deskew, matcher, map server), one
+    at a time, so what a stage flushes at its stop reaches the next one still running."""
+    stopped = tmp_path / "stopped"
+    launcher = Launcher({}, tmp_path)
+    for name in ("router", "deskew", "matcher", "mapserver", "ingest"):
+        launcher.processes[name] = _python(
+            f"signal.signal(signal.SIGTERM, lambda *_: (open({str(stopped)!r}, 'a')"
+            f".write('{name}\\n'), sys.exit(0)))"
+        )
+    codes = launcher.stop_all(("ingest", "gateway", "deskew", "matcher", "mapserver"))
+    assert list(codes) == ["ingest", "deskew", "matcher", "mapserver", "router"]
+    assert set(codes.values()) == {0}
+    assert stopped.read_text().split() == ["ingest", "deskew", "matcher", "mapserver", "router"]
