@@ -68,10 +68,12 @@ class FakeLauncher:
             self.plan.send(signal.SIGINT)
         return dict(self.plan.exits)
 
-    def stop_all(self) -> dict[str, int]:
-        self.calls.append("stop all")
+    def stop_all(self, order: tuple[str, ...] = ()) -> dict[str, int]:
+        self.calls.append(f"stop {','.join(order)}, then the rest")
         started = [c for c in self.calls if c in EVERY_SERVICE]
-        return {name: self.plan.codes.get(name, 0) for name in reversed(started)}
+        first = [name for name in order if name in started]
+        rest = [name for name in reversed(started) if name not in first]
+        return {name: self.plan.codes.get(name, 0) for name in [*first, *rest]}
 
 
 @pytest.fixture
@@ -112,7 +114,8 @@ def test_up_starts_every_service_in_order_and_ingest_once_the_pipeline_listens(r
     (launcher,) = plan.launchers
     assert launcher.calls == [
         "router", "deskew", "matcher", "mapserver", "gateway",
-        "wait for deskew,matcher,mapserver", "ingest", "stop all",
+        "wait for deskew,matcher,mapserver", "ingest",
+        "stop ingest,gateway,deskew,matcher,mapserver, then the rest",  # with the data
     ]
     assert set(plan.handlers) == {signal.SIGINT, signal.SIGTERM}
 
@@ -211,7 +214,9 @@ def test_up_exits_1_naming_the_services_that_did_not_stop_cleanly(run_up) -> Non
 def test_a_signal_while_starting_starts_nothing_more_and_stops_what_runs(run_up) -> None:
     result, plan = run_up(signal_after_start="deskew")
     assert result.exit_code == 0, result.output
-    assert plan.launchers[0].calls == ["router", "deskew", "stop all"]
+    assert plan.launchers[0].calls == [
+        "router", "deskew", "stop ingest,gateway,deskew,matcher,mapserver, then the rest"
+    ]
     assert "  deskew: exit 0" in result.output and "  router: exit 0" in result.output
 
 
