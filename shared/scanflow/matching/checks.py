@@ -37,12 +37,25 @@ class Conditioning:
         return not self.ratio > DEGENERATE_RATIO
 
 
-def characteristic_length_m(points: NDArray[np.float64]) -> float:
-    """RMS distance of the points from their centroid (>= 1 cm), the scale for rotations."""
+def characteristic_length_m(
+    points: NDArray[np.float64], used: NDArray[np.bool_] | None = None
+) -> float:
+    """RMS distance of the points (those `used`, when any are) from their centroid (>= 1 cm),
+    the scale for rotations: the spread of the points that carry the information, as a far
+    unmatched point (a doorway onto a long hall) would make every rotation look weak."""
+    if used is not None and np.any(used):
+        points = points[used]
     if len(points) == 0:
         return 1.0
     c = points - points.mean(axis=0)
     return max(float(np.sqrt(np.mean(np.sum(c * c, axis=1)))), 0.01)
+
+
+def weak_length_m(extra: dict[str, object], source: NDArray[np.float64]) -> float:
+    """The rotation scale a result's weak direction was found with (`extra["length_m"]`, set
+    by the method that judged it), else the source's spread: undo or keep it in that metric."""
+    length_m = extra.get("length_m")
+    return float(length_m) if isinstance(length_m, float) else characteristic_length_m(source)
 
 
 def analyse_hessian(hessian: NDArray[np.float64], length_m: float) -> Conditioning:

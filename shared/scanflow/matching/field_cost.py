@@ -386,7 +386,9 @@ def assess_field_match(
     front end's predictions can be degrees off in heading, which `guess_along` turned into
     position error (BENCHMARKS.md, "Front end").
     """
-    length_m = characteristic_length_m(source)
+    # Rotation scaled by the spread of the points on the field: far ones off it carry nothing.
+    matched = field.sample(moved_points(source, pose))[0] >= MATCHED_VALUE
+    length_m = characteristic_length_m(source, matched)
     lin = linearise(field, source, pose)
     cond = analyse_hessian(lin.hessian, length_m)
     at = Pose2D.from_array(pose)
@@ -396,7 +398,6 @@ def assess_field_match(
         message = f"one direction unconstrained (eigenvalue ratio {cond.ratio:.2e})"
         kept = guess_along(weak, at, guess, length_m)
     else:
-        matched = field.sample(moved_points(source, pose))[0] >= MATCHED_VALUE
         status, weak, message = surface_conditioning(source, matched, at)
         if weak is not None:
             keep = guess_along if scan_target else guess_position_along
@@ -417,4 +418,5 @@ def assess_field_match(
         message=message,
         weak_direction=weak,
         inliers=lin.hits,
+        extra={} if weak is None else {"length_m": length_m},  # weak's rotation scale
     )

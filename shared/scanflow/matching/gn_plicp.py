@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 
 from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.matching.api import MatchResult, MatchStatus, register_method, target_points
-from scanflow.matching.checks import characteristic_length_m, without_weak_direction
+from scanflow.matching.checks import weak_length_m, without_weak_direction
 from scanflow.matching.correspondence import thin_dense_target
 from scanflow.matching.gn import match_gn
 from scanflow.matching.inputs import require_at_most, require_positive
@@ -72,7 +72,7 @@ def match_gn_plicp(
     step, verdict = fine.pose, "kept"
     if fine.status is MatchStatus.DEGENERATE and fine.weak_direction is not None:
         weak = fine.weak_direction
-        step = without_weak_direction(step, weak, characteristic_length_m(source))
+        step = without_weak_direction(step, weak, weak_length_m(fine.extra, source))
         verdict = f"kept across the weak direction {np.round(weak, 3).tolist()}"
     elif not fine.ok:
         step, verdict = IDENTITY, f"not kept: plicp {fine.status}: {fine.message}"

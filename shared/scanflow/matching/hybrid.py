@@ -21,7 +21,7 @@ from scipy.spatial import cKDTree
 
 from scanflow.geometry import Pose2D
 from scanflow.matching.api import MatchResult, MatchStatus, register_method, target_points
-from scanflow.matching.checks import characteristic_length_m, guess_along
+from scanflow.matching.checks import guess_along, weak_length_m
 from scanflow.matching.csm import found_a_pose, match_csm
 from scanflow.matching.inputs import (
     require_at_least,
@@ -122,7 +122,7 @@ def match_csm_plicp(
         # Along a direction the scans do not observe, the search's peak is a tie-break that
         # drifts with the scans' extents (to the window's edge along a corridor): keep the
         # guess's value there, the only information along it.
-        pose = guess_along(fine.weak_direction, pose, guess, characteristic_length_m(source))
+        pose = guess_along(fine.weak_direction, pose, guess, weak_length_m(fine.extra, source))
     return replace(
         fine,
         pose=pose,

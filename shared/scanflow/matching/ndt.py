@@ -150,8 +150,9 @@ def ndt_evaluate(
 
 def surface_hessian(
     cells: OverlappingCells, points: NDArray[np.float64], pose: NDArray[np.float64]
-) -> NDArray[np.float64]:
-    """Point-to-line Hessian with each matched cell's normal (its tightest axis), unshifted grid.
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Point-to-line Hessian with each matched cell's normal (its tightest axis), unshifted grid,
+    and which points count in it.
 
     NDT's own information matrix constrains motion along a wall through the cells' finite
     extent, which hides a corridor; the surface normals show what the geometry observes. A
@@ -166,7 +167,8 @@ def surface_hessian(
     inv = cells.inv_covs[k[hit]]
     # The tightest axis is the inverse covariance's major axis: closed form for 2 x 2.
     phi = 0.5 * np.arctan2(2.0 * inv[:, 0, 1], inv[:, 0, 0] - inv[:, 1, 1])
-    return line_hessian(moved[hit] - pose[:2], np.column_stack((np.cos(phi), np.sin(phi))))
+    hessian = line_hessian(moved[hit] - pose[:2], np.column_stack((np.cos(phi), np.sin(phi))))
+    return hessian, hit
 
 
 @njit(cache=True)
@@ -321,8 +323,9 @@ def match_ndt(
         total += alt.iterations
         if alt.status is None and ndt_cost(cells, source, alt.pose) < ndt_cost(cells, source, pose):
             pose = alt.pose
-    length_m = characteristic_length_m(source)
-    cond = analyse_hessian(surface_hessian(cells, source, pose), length_m)
+    hessian, held = surface_hessian(cells, source, pose)
+    length_m = characteristic_length_m(source, held)  # the spread of the points that count
+    cond = analyse_hessian(hessian, length_m)
     status, weak = MatchStatus.OK, None
     if cond.degenerate:
         # The guess is the only information along an unobserved direction (as for the others).
@@ -343,4 +346,5 @@ def match_ndt(
         method="ndt",
         weak_direction=weak,
         inliers=ev.hits,
+        extra={} if weak is None else {"length_m": length_m},  # weak's rotation scale
     )

@@ -251,17 +251,19 @@ def line_match_result(
             method, MatchStatus.NO_OVERLAP, guess,
             f"only {inliers} source points found a target line within the gate", iterations,
         )
+    # Rotation scaled by the spread of the points paired with the target: the Hessian's.
+    length_m = characteristic_length_m(source, assoc >= 0)
     if code == SINGULAR:
-        weak = analyse_hessian(hessian, characteristic_length_m(source)).weak_direction
+        weak = analyse_hessian(hessian, length_m).weak_direction
         singular = failed(
             method, MatchStatus.DEGENERATE, guess,
             f"point-to-line Hessian is singular: no constraint along {np.round(weak, 3).tolist()}",
             iterations,
         )
-        return replace(singular, weak_direction=weak)
+        return replace(singular, weak_direction=weak, extra={"length_m": length_m})
     cov = pair_covariance(source, target, lines, pose, assoc, weights)
     fraction = inliers / len(source)
-    cond = analyse_hessian(hessian, characteristic_length_m(source))
+    cond = analyse_hessian(hessian, length_m)
     status, message, weak = MatchStatus.OK, "", None
     if fraction < min_inlier_fraction:
         status = MatchStatus.NO_OVERLAP
@@ -281,7 +283,7 @@ def line_match_result(
     if weak is not None:
         # Along an unobserved direction the solution drifts with noise and the scans' extents
         # (plicp 0.5 m along the simulated corridor): the guess is the only information there.
-        pose = guess_along(weak, pose, guess, characteristic_length_m(source))
+        pose = guess_along(weak, pose, guess, length_m)
     return MatchResult(
         pose=pose,
         covariance=cov,
@@ -293,4 +295,5 @@ def line_match_result(
         message=message,
         weak_direction=weak,
         inliers=inliers,
+        extra={} if weak is None else {"length_m": length_m},  # weak's rotation scale
     )

@@ -18,6 +18,7 @@ from scanflow.matching.checks import (
     guess_along,
     guess_position_along,
     line_hessian,
+    weak_length_m,
     without_weak_direction,
 )
 
@@ -132,9 +133,9 @@ def test_a_guess_degrees_off_in_heading_does_not_move_the_position() -> None:
 
 def along_weak(result, guess: Pose2D, source: np.ndarray) -> float:
     """How far (result - guess) reaches along the result's weak direction, in the metric of
-    `analyse_hessian` (theta scaled by the source's spread): what `without_weak_direction`
-    would remove from it."""
-    length_m = characteristic_length_m(source)
+    `analyse_hessian` (theta scaled by the spread of the points the method matched): what
+    `without_weak_direction` would remove from it."""
+    length_m = weak_length_m(result.extra, source)  # the metric the method judged it in
     offset = Pose2D(result.pose.x - guess.x, result.pose.y - guess.y,
                     normalize_angle(result.pose.theta - guess.theta))
     removed = offset.to_array() - without_weak_direction(
@@ -216,3 +217,21 @@ def test_against_a_map_a_corridor_keeps_the_guess_s_position_along_it(
             assert abs(axis @ [r.pose.x - guess.x, r.pose.y - guess.y]) < 1e-9
             assert abs(math.degrees(err.theta)) < 0.5
     assert len(wrong) <= 0.03 * len(corridor_maps), f"ok but off by {wrong} m"
+
+
+def test_rotation_is_scaled_by_the_spread_of_the_points_that_were_matched() -> None:
+    """A doorway onto a far hall: its points in the source match nothing, so they must not set
+    the lever arm that rotation is scaled by (they made it 7x here); the method that judged a
+    weak direction records the scale it used, and it is read back for that result only."""
+    rng = np.random.default_rng(4)
+    room = rng.uniform(-2.0, 2.0, (200, 2))
+    hall = np.column_stack((np.full(20, 40.0), np.linspace(-1.0, 1.0, 20)))
+    source = np.vstack((room, hall))
+    matched = np.arange(len(source)) < len(room)
+    assert characteristic_length_m(source, matched) == pytest.approx(
+        characteristic_length_m(room))
+    assert characteristic_length_m(source) > 7.0 * characteristic_length_m(room)
+    assert characteristic_length_m(source, np.zeros(len(source), bool)) == \
+        characteristic_length_m(source)  # nothing matched: the whole source
+    assert weak_length_m({"length_m": 1.25}, source) == 1.25
+    assert weak_length_m({}, source) == characteristic_length_m(source)
