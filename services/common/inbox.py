@@ -1,64 +1,75 @@
 """The bounded hand-off from Zenoh callback threads to a service's single worker thread.
 
 A full inbox blocks the callback: Zenoh then stops reading the link and, because publishers
-use BLOCK congestion control, the publisher waits. That is backpressure, never a drop.
+use BLOCK congestion control, the publisher waits. That is backpressure, never a drop. Only
+`close` (once the worker has drained it at a stop) makes it refuse, and a refused item is
+never half taken: closing and inserting exclude each other.
 """
 
 from __future__ import annotations
 
-import queue
 import threading
+import time
+from collections import deque
 from typing import Any
-
-_POLL_S = 0.1
 
 
 class Inbox:
-    """A bounded FIFO of (kind, item) pairs that refuses to lose items while running."""
+    """A bounded FIFO of (kind, item) pairs that loses nothing until it is closed."""
 
-    def __init__(self, maxsize: int, stop: threading.Event) -> None:
+    def __init__(self, maxsize: int) -> None:
         if maxsize < 1:
             raise ValueError(f"queue_size must be >= 1, got {maxsize}")
-        self._queue: queue.Queue[tuple[str, Any]] = queue.Queue(maxsize)
-        self._stop = stop
+        self._maxsize = maxsize
+        self._items: deque[tuple[str, Any]] = deque()
+        self._changed = threading.Condition()
+        self._closed = False
         self.high_water = 0
 
     def put(self, kind: str, item: Any) -> bool:
-        """Block until there is room; False only if the service is stopping."""
-        while not self._stop.is_set():
-            try:
-                self._queue.put((kind, item), timeout=_POLL_S)
-            except queue.Full:
-                continue
-            self.high_water = max(self.high_water, self._queue.qsize())
-            return True
-        return False
+        """Block until there is room; False only once the inbox is closed."""
+        with self._changed:
+            while len(self._items) >= self._maxsize and not self._closed:
+                self._changed.wait()
+            return self._append(kind, item)
 
     def offer(self, kind: str, item: Any) -> bool:
-        """Enqueue without waiting; False when the inbox is full."""
-        try:
-            self._queue.put_nowait((kind, item))
-        except queue.Full:
+        """Enqueue without waiting; False when the inbox is full or closed."""
+        with self._changed:
+            return len(self._items) < self._maxsize and self._append(kind, item)
+
+    def _append(self, kind: str, item: Any) -> bool:
+        if self._closed:
             return False
-        self.high_water = max(self.high_water, self._queue.qsize())
+        self._items.append((kind, item))
+        self.high_water = max(self.high_water, len(self._items))
+        self._changed.notify_all()
         return True
 
-    def get(self, timeout_s: float = _POLL_S) -> tuple[str, Any] | None:
+    def get(self, timeout_s: float = 0.1) -> tuple[str, Any] | None:
         """The next item, or None after `timeout_s` without one."""
-        try:
-            return self._queue.get(timeout=timeout_s)
-        except queue.Empty:
-            return None
+        deadline = time.monotonic() + timeout_s
+        with self._changed:
+            while not self._items:
+                left_s = deadline - time.monotonic()
+                if left_s <= 0.0:
+                    return None
+                self._changed.wait(left_s)
+            item = self._items.popleft()
+            self._changed.notify_all()  # room for a blocked producer
+            return item
 
-    def take_all(self) -> list[tuple[str, Any]]:
-        """Empty the inbox now and return what it held, oldest first."""
-        items = []
-        while True:
-            try:
-                items.append(self._queue.get_nowait())
-            except queue.Empty:
-                return items
+    def close(self) -> list[tuple[str, Any]]:
+        """Refuse from now on (blocked producers return False) and hand back what was left,
+        oldest first; closing again returns nothing."""
+        with self._changed:
+            self._closed = True
+            left = list(self._items)
+            self._items.clear()
+            self._changed.notify_all()
+            return left
 
     def depth(self) -> int:
         """How many items wait in the inbox now."""
-        return self._queue.qsize()
+        with self._changed:
+            return len(self._items)

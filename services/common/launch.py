@@ -24,6 +24,9 @@ PIPELINE = ("deskew", "matcher", "mapserver")  # what must listen before ingest 
 # has exited, so what a stage handles and flushes at its stop reaches a stage still running;
 # the router (started first) goes last.
 STOP_ORDER = ("ingest", "gateway", *PIPELINE)
+# A service's clean stop: its inbox drain (SCANFLOW_<SERVICE>_INBOX_DRAIN_S, 5 s), its outbox
+# sent (up to 10 s), a snapshot; past this it is killed (compose: stop_grace_period, the same).
+STOP_TIMEOUT_S = 25.0
 
 
 def free_port() -> int:
@@ -99,7 +102,7 @@ class Launcher:
                 env.setdefault(key, ",".join(map(str, cpus)))
         log = (self.log_dir / f"{label}.log").open("ab")
         # A session of its own: a terminal's Ctrl-C reaches only the launcher, which then
-        # stops the services in order (last started first) instead of all at once.
+        # stops the services one at a time (`stop_all`) instead of all at once.
         proc = subprocess.Popen(
             [sys.executable, "-m", f"services.{name}"],
             env=env, stdout=log, stderr=log, start_new_session=True,
@@ -110,7 +113,7 @@ class Launcher:
             wait_for_port(self.zenoh_port)
         return proc
 
-    def stop(self, name: str, timeout_s: float = 15.0) -> int | None:
+    def stop(self, name: str, timeout_s: float = STOP_TIMEOUT_S) -> int | None:
         """SIGTERM one service and wait for it (SIGKILL after `timeout_s`); its exit code.
 
         0 also when the service died of the SIGTERM sent here (uvicorn re-raises the signal

@@ -12,6 +12,7 @@ import logging
 import queue
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 _POLL_S = 0.1
@@ -21,26 +22,31 @@ _log = logging.getLogger("scanflow.outbox")
 class Outbox:
     """Bounded FIFO of (publisher, payload) pairs, sent in order by one daemon thread."""
 
-    def __init__(self, maxsize: int, stop: threading.Event, name: str = "outbox") -> None:
+    def __init__(
+        self, maxsize: int, give_up_at: Callable[[], float], name: str = "outbox"
+    ) -> None:
+        """`give_up_at()`: the monotonic time past which a full outbox refuses a payload
+        (math.inf while the service runs: it blocks; a stopping service's drain deadline)."""
         if maxsize < 1:
             raise ValueError(f"outbox size must be >= 1, got {maxsize}")
         self._queue: queue.Queue[tuple[Any, bytes] | None] = queue.Queue(maxsize)
-        self._stop = stop
+        self._give_up_at = give_up_at
         self.send_s = 0.0  # time the sender spent in puts (blocked by slow subscribers)
         self.failed = 0  # puts Zenoh refused (session closing)
-        self.refused = 0  # payloads offered after stop with the outbox full
+        self.refused = 0  # payloads offered past the stop's deadline with the outbox full
         self._thread = threading.Thread(target=self._send, name=name, daemon=True)
         self._thread.start()
 
     def put(self, publisher: Any, payload: bytes) -> bool:
         """Queue `payload` for `publisher`, blocking while the outbox is full; False (counted
-        in `refused`) only when the service is stopping and there is still no room."""
+        in `refused`) only when there is still no room past `give_up_at()` (a stopping
+        service whose drain ran out of time: what it drained before that still goes out)."""
         while True:
             try:
                 self._queue.put((publisher, payload), timeout=_POLL_S)
                 return True
             except queue.Full:
-                if self._stop.is_set():
+                if time.monotonic() > self._give_up_at():
                     self.refused += 1
                     return False
 

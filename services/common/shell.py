@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 import os
 import queue
 import signal
@@ -42,6 +43,8 @@ from services.common.zsession import open_session
 
 QueryHandler = Callable[[zenoh.Query], None]
 _WAKE = "_wake"  # an inbox item that only wakes the worker to take feedback
+# A stop's drain ends once nothing has come for this long: what upstream flushed has arrived.
+DRAIN_QUIET_S = 0.25
 
 
 class ServiceShell:
@@ -61,8 +64,10 @@ class ServiceShell:
         self.counters = Counters()
         self.seqs = SeqTracker()
         self._robots = RobotLimit(settings.max_robots, self._refused_robot)
-        self.inbox = Inbox(queue_size, self.stop_event)
-        self.outbox = Outbox(queue_size, self.stop_event, f"{service}-sender")
+        self._stop_deadline: float | None = None  # when a stop's drain ends (monotonic)
+        self._stop_lock = threading.Lock()
+        self.inbox = Inbox(queue_size)
+        self.outbox = Outbox(queue_size, self.stop_deadline, f"{service}-sender")
         self._io_cpus = settings.io_cpus
         self._zenoh_settings = zenoh_settings
         self.session = self._open_session()
@@ -300,22 +305,35 @@ class ServiceShell:
             self._busy_s += time.perf_counter() - t0
         self.drain(handle)
 
+    def stop_deadline(self) -> float:
+        """When a stop's drain ends (time.monotonic): math.inf while running, else
+        `inbox_drain_s` after the stop was first seen here. The outbox blocks until then too,
+        so what the drain hands it is sent rather than refused."""
+        if not self.stop_event.is_set():
+            return math.inf
+        with self._stop_lock:
+            if self._stop_deadline is None:
+                self._stop_deadline = time.monotonic() + self.inbox_drain_s
+            return self._stop_deadline
+
     def drain(self, handle: Callable[[str, Any], None]) -> None:
-        """Once stopped, handle what the inbox already holds, for at most `inbox_drain_s`: a message
-        accepted off the bus is not lost on a clean stop (the inbox takes nothing new once the
-        stop is set). What is left then is counted as inbox.dropped_at_stop and logged."""
-        deadline = time.monotonic() + self.inbox_drain_s
+        """Once stopped, handle what the inbox holds and what still arrives, until nothing has
+        come for DRAIN_QUIET_S or `stop_deadline` passes: a message accepted off the bus is not
+        lost on a clean stop, nor one an upstream service flushed at its own stop (they stop
+        in data-flow order) that is still on the wire. Then the inbox closes: what it held is
+        counted as inbox.dropped_at_stop and logged, later samples as refused_at_stop.<kind>."""
+        deadline = self.stop_deadline()
         handled = 0
-        while time.monotonic() < deadline:
+        while (left_s := deadline - time.monotonic()) > 0.0:
             for kind, message in self._take_feedback():
                 self._handle(handle, kind, message)
-            item = self.inbox.get(0.0)
+            item = self.inbox.get(min(DRAIN_QUIET_S, left_s))
             if item is None:
                 break
             if item[0] != _WAKE:
                 self._handle(handle, *item)
                 handled += 1
-        left = sum(1 for kind, _ in self.inbox.take_all() if kind != _WAKE)
+        left = sum(1 for kind, _ in self.inbox.close() if kind != _WAKE)
         if handled:
             self.log.info("stopping: handled the %d messages left in the inbox", handled)
         if left:
@@ -357,6 +375,7 @@ class ServiceShell:
         """Send what the outbox holds (at most `drain_s`), let Zenoh's queues empty for
         `flush_s`, then undeclare everything and close the session."""
         self.stop_event.set()
+        self.inbox.close()  # a callback blocked on a full inbox returns (refused) at once
         left = self.outbox.close(drain_s)
         if left:
             self.log.warning("%d queued messages not sent within %.0f s", left, drain_s)

@@ -133,7 +133,10 @@ NORMAL_NEIGHBOURS = 16
 
 
 def surface_conditioning(
-    source: NDArray[np.float64], matched: NDArray[np.bool_], pose: Pose2D
+    source: NDArray[np.float64],
+    matched: NDArray[np.bool_],
+    pose: Pose2D,
+    length_m: float | None = None,
 ) -> tuple[MatchStatus, tuple[float, float, float] | None, str]:
     """OK, DEGENERATE (with the weak direction) or ILL_CONDITIONED for a pose matched from the
     source points `matched` (csm's optimum, an ICP's pairs), from the geometry of those points.
@@ -163,8 +166,9 @@ def surface_conditioning(
         turn = np.array([[c, s], [-s, c]])  # row vectors times R^T: into the target frame
         hessian = line_hessian(points[lines.ok] @ turn, lines.normals[lines.ok] @ turn)
     # Rotation scaled by the spread of the points that carry the information (a glitch point
-    # far off the target would otherwise make every rotation look unconstrained).
-    cond = analyse_hessian(hessian, characteristic_length_m(points))
+    # far off the target would otherwise make every rotation look unconstrained): the caller's
+    # `length_m` when it judges in that metric too, so a weak direction keeps one metric.
+    cond = analyse_hessian(hessian, length_m or characteristic_length_m(points))
     top = float(cond.eigenvalues[-1])
     weak = int(np.count_nonzero(cond.eigenvalues <= DEGENERATE_RATIO * top)) if top > 0 else 3
     if weak >= 2:

@@ -398,7 +398,7 @@ def assess_field_match(
         message = f"one direction unconstrained (eigenvalue ratio {cond.ratio:.2e})"
         kept = guess_along(weak, at, guess, length_m)
     else:
-        status, weak, message = surface_conditioning(source, matched, at)
+        status, weak, message = surface_conditioning(source, matched, at, length_m)
         if weak is not None:
             keep = guess_along if scan_target else guess_position_along
             kept = keep(weak, at, guess, length_m)

@@ -252,7 +252,8 @@ def line_match_result(
             f"only {inliers} source points found a target line within the gate", iterations,
         )
     # Rotation scaled by the spread of the points paired with the target: the Hessian's.
-    length_m = characteristic_length_m(source, assoc >= 0)
+    paired = assoc >= 0
+    length_m = characteristic_length_m(source, paired)
     if code == SINGULAR:
         weak = analyse_hessian(hessian, length_m).weak_direction
         singular = failed(
@@ -274,7 +275,7 @@ def line_match_result(
             f"weakly constrained along {np.round(weak, 3).tolist()} "
             f"(eigenvalue ratio {cond.ratio:.1e}), e.g. a corridor"
         )
-    elif (surface := surface_conditioning(source, assoc >= 0, pose))[0] is not MatchStatus.OK:
+    elif (surface := surface_conditioning(source, paired, pose, length_m))[0] is not MatchStatus.OK:
         # The Hessian above holds the fitted normals' noise, which fakes a constraint along a
         # corridor (a near wall's dense points, 1 cm noise over a few cm): ask the surfaces.
         status, weak, message = surface

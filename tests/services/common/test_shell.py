@@ -214,31 +214,35 @@ def test_what_the_inbox_holds_past_the_drain_limit_is_counted_and_logged(caplog)
     assert f"{left} messages left in the inbox were not handled" in caplog.text
 
 
-def test_a_sample_arriving_after_stop_is_counted_as_refused() -> None:
-    """Once stopping, the subscriber's callback no longer blocks on the inbox: a sample then
-    is counted as refused_at_stop.<kind> (it was never accepted), not silently gone."""
+def test_what_arrives_during_the_drain_is_handled_and_after_it_refused() -> None:
+    """Services stop in data-flow order: what the upstream one flushed at its stop may still
+    be on the wire at this one's stop. The inbox takes it until the drain ends (nothing for
+    DRAIN_QUIET_S); once the drain has closed it, a sample is counted as refused_at_stop."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_session(ZenohSettings(mode="router", listen=[endpoint], connect=[]))
     shell = ServiceShell("deskew", DeskewSettings(), ZenohSettings(connect=[endpoint]))
     shell.subscribe("scanflow-test/in", "raw", bytes)
     shell.start(install_signals=False)
     publisher = open_session(ZenohSettings(connect=[endpoint]))
+    handled: list[bytes] = []
+
+    def handle(_kind: str, message: bytes) -> None:
+        handled.append(message)
+        if message == b"before":
+            shell.stop()
+            publisher.put("scanflow-test/in", b"on the wire")  # arrives during the drain
+
     try:
         publisher.put("scanflow-test/in", b"before")
-        deadline = time.monotonic() + 5.0
-        while shell.inbox.depth() == 0 and time.monotonic() < deadline:
-            time.sleep(0.01)
-        shell.stop()
+        shell.run(handle)
         publisher.put("scanflow-test/in", b"after")
         deadline = time.monotonic() + 5.0
         while shell.counters.get("refused_at_stop.raw") == 0 and time.monotonic() < deadline:
             time.sleep(0.01)
-        handled: list[bytes] = []
-        shell.run(lambda _kind, message: handled.append(message))
     finally:
         publisher.close()
         shell.close(flush_s=0.0)
         router.close()
-    assert handled == [b"before"]
-    assert shell.counters.get("received.raw") == 2
+    assert handled == [b"before", b"on the wire"]
+    assert shell.counters.get("received.raw") == 3
     assert shell.counters.get("refused_at_stop.raw") == 1
