@@ -301,7 +301,12 @@ class ZenohBackend:
             pub.put(payload)
         except zenoh.ZError as exc:
             with self._lock:  # the next post declares a fresh publisher
-                self._publishers.pop(key, None)
+                stale = self._publishers.pop(key, None)
+            if stale is not None:
+                try:
+                    stale.undeclare()
+                except zenoh.ZError:  # undeclared already (or the session closing)
+                    log.debug("undeclaring a failed publisher failed", exc_info=True)
             self.metrics.count("scanflow_gateway_publish_failed_total")
             raise BackendError(503, f"could not publish on {key}: {exc}") from exc
 

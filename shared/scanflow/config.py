@@ -156,8 +156,9 @@ class ServiceSettings(ProcessSettings):
         1.0, gt=0.0, description="a message handled for longer is logged and counted as slow"
     )
     inbox_drain_s: float = Field(
-        5.0, ge=0.0, description="on a clean stop, the worker handles what its inbox already "
-        "holds for at most this long (what is left is counted as inbox.dropped_at_stop)",
+        5.0, ge=0.0, description="on a clean stop, the worker handles what its inbox holds "
+        "and what still arrives until 0.25 s pass without any, for at most this long (what is "
+        "left is counted as inbox.dropped_at_stop)",
     )
     max_robots: int = Field(
         100, ge=1, description="robots this service keeps state for; messages naming more are "
