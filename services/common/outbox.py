@@ -42,11 +42,15 @@ class Outbox:
         in `refused`) only when there is still no room past `give_up_at()` (a stopping
         service whose drain ran out of time: what it drained before that still goes out)."""
         while True:
+            wait_s = min(_POLL_S, self._give_up_at() - time.monotonic())
             try:
-                self._queue.put((publisher, payload), timeout=_POLL_S)
+                if wait_s > 0.0:
+                    self._queue.put((publisher, payload), timeout=wait_s)
+                else:  # past the deadline: room now or never, at no cost per payload
+                    self._queue.put_nowait((publisher, payload))
                 return True
             except queue.Full:
-                if time.monotonic() > self._give_up_at():
+                if wait_s <= 0.0:
                     self.refused += 1
                     return False
 

@@ -74,6 +74,8 @@ class ServiceShell:
         self._side: zenoh.Session | None = None
         self._feedback: deque[tuple[str, Any]] = deque()
         self._feedback_lock = threading.Lock()
+        self._wake_posted = False  # one _WAKE in the inbox at a time: it takes the whole lane
+        self._closed = threading.Event()  # set by close(): the query thread ends
         self._feedback_size = queue_size
         self._keep: dict[str, Callable[[Any], bool]] = {}  # per kind: feedback never dropped
         self._declared: list[Any] = []
@@ -198,11 +200,13 @@ class ServiceShell:
             full = len(self._feedback) >= self._feedback_size
             dropped = self._drop_oldest_hint() if full else None
             self._feedback.append((kind, message))
+            wake, self._wake_posted = not self._wake_posted, True
         if dropped is not None:
             n = self.counters.add(f"feedback_overflow.{dropped}")
             if worth_logging(n):
                 self.log.warning("feedback queue full: dropped the oldest %s (#%d)", dropped, n)
-        self.inbox.offer(_WAKE, None)  # a full inbox wakes the worker anyway
+        if wake:
+            self.inbox.offer(_WAKE, None)  # a full inbox wakes the worker anyway
 
     def _drop_oldest_hint(self) -> str | None:
         """Drop the oldest waiting feedback that may go, and name its kind; None when all must
@@ -218,6 +222,7 @@ class ServiceShell:
         with self._feedback_lock:
             items = list(self._feedback)
             self._feedback.clear()
+            self._wake_posted = False
         return items
 
     def _sample_callback(
@@ -240,7 +245,7 @@ class ServiceShell:
                 self._count_malformed(kind, str(sample.key_expr), exc)
                 return
             self.counters.add(f"received.{kind}")
-            if deliver(kind, message) is False:  # the inbox refuses once the service stops
+            if deliver(kind, message) is False:  # the inbox refuses once the drain closed it
                 self.counters.add(f"refused_at_stop.{kind}")
 
         return on_sample
@@ -323,19 +328,29 @@ class ServiceShell:
         in data-flow order) that is still on the wire. Then the inbox closes: what it held is
         counted as inbox.dropped_at_stop and logged, later samples as refused_at_stop.<kind>."""
         deadline = self.stop_deadline()
-        handled = 0
+        handled, quiet = 0, self.inbox_drain_s <= 0.0  # no drain: nothing to report
         while (left_s := deadline - time.monotonic()) > 0.0:
             for kind, message in self._take_feedback():
                 self._handle(handle, kind, message)
             item = self.inbox.get(min(DRAIN_QUIET_S, left_s))
             if item is None:
+                quiet = left_s > DRAIN_QUIET_S
                 break
             if item[0] != _WAKE:
                 self._handle(handle, *item)
                 handled += 1
-        left = sum(1 for kind, _ in self.inbox.close() if kind != _WAKE)
+        self._count_dropped_at_stop(self.inbox.close())
+        for kind, message in self._take_feedback():  # what came with the last items
+            self._handle(handle, kind, message)
         if handled:
             self.log.info("stopping: handled the %d messages left in the inbox", handled)
+        if not quiet:  # input or feedback kept coming (say another robot's own client)
+            self.counters.add("drain.hit_deadline")
+            self.log.warning("stopping: input still arriving after inbox_drain_s=%.1f s",
+                             self.inbox_drain_s)
+
+    def _count_dropped_at_stop(self, items: list[tuple[str, Any]]) -> None:
+        left = sum(1 for kind, _ in items if kind != _WAKE)
         if left:
             self.counters.add("inbox.dropped_at_stop", left)
             self.log.warning(
@@ -375,7 +390,9 @@ class ServiceShell:
         """Send what the outbox holds (at most `drain_s`), let Zenoh's queues empty for
         `flush_s`, then undeclare everything and close the session."""
         self.stop_event.set()
-        self.inbox.close()  # a callback blocked on a full inbox returns (refused) at once
+        # A callback blocked on a full inbox returns (refused) at once; what a shell that never
+        # drained (never ran) still held is counted.
+        self._count_dropped_at_stop(self.inbox.close())
         left = self.outbox.close(drain_s)
         if left:
             self.log.warning("%d queued messages not sent within %.0f s", left, drain_s)
@@ -387,6 +404,7 @@ class ServiceShell:
                 self.log.debug("undeclare failed during close", exc_info=True)
         self._declared.clear()
         self._publishers.clear()
+        self._closed.set()  # queries were answered up to here, through the drain
         if self._side is not None:
             self._side.close()
         self.session.close()
@@ -435,7 +453,7 @@ class ServiceShell:
             query.drop()  # the reply is final now, not when the query object is collected
 
     def _serve_queries(self) -> None:
-        while not self.stop_event.is_set():
+        while not self._closed.is_set():
             try:
                 handler, query = self._queries.get(timeout=0.1)
             except queue.Empty:

@@ -246,3 +246,65 @@ def test_what_arrives_during_the_drain_is_handled_and_after_it_refused() -> None
     assert handled == [b"before", b"on the wire"]
     assert shell.counters.get("received.raw") == 3
     assert shell.counters.get("refused_at_stop.raw") == 1
+
+
+def test_feedback_keeps_one_wake_in_the_inbox_and_a_drain_it_keeps_busy_ends_at_its_deadline(
+    caplog,
+) -> None:
+    """Every feedback sample used to post its own wake item (filling inbox slots samples need);
+    one waits now, and takes the whole lane. Feedback that never stops (another robot's own
+    client) keeps the drain from going quiet: it ends at inbox_drain_s, counted and logged."""
+    settings = DeskewSettings.model_construct(inbox_drain_s=0.5)
+    shell = ServiceShell("deskew", settings, ZenohSettings(mode="peer", connect=[]))
+    for n in range(10):
+        shell._feed("pose", n)
+    assert shell.inbox.depth() == 1
+    handled: list[object] = []
+    feeding = threading.Event()
+
+    def feed() -> None:
+        n = 10
+        while not feeding.wait(0.05):
+            shell._feed("pose", n)
+            n += 1
+
+    def handle(kind: str, message: object) -> None:
+        handled.append(message)
+        shell.stop()
+
+    feeder = threading.Thread(target=feed, daemon=True)
+    feeder.start()
+    try:
+        with caplog.at_level(logging.WARNING, logger="scanflow.deskew"):
+            shell.run(handle, poll_s=0.01)
+    finally:
+        feeding.set()
+        feeder.join()
+        shell.close(flush_s=0.0)
+    assert handled[:10] == list(range(10)) and len(handled) > 15  # fed through the drain
+    assert shell.counters.get("drain.hit_deadline") == 1
+    assert "input still arriving after inbox_drain_s=0.5 s" in caplog.text
+
+
+def test_queries_are_answered_through_the_drain() -> None:
+    """The query thread serves until close(), not until the stop: a map query to a map server
+    that is draining is answered, not left to time out."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_session(ZenohSettings(mode="router", listen=[endpoint], connect=[]))
+    shell = ServiceShell("mapserver", MatcherSettings(), ZenohSettings(connect=[endpoint]))
+    shell.serve("scanflow-test/map", lambda q: q.reply(q.key_expr, b"map"))
+    shell.start(install_signals=False)
+    answers: list[tuple[list[bytes], list[str]]] = []
+
+    def handle(_kind: str, _message: object) -> None:
+        shell.stop()
+        answers.append(shell.get("scanflow-test/map", 5.0))  # the drain is under way
+
+    shell.inbox.put("scan", None)
+    shell.inbox.put("scan", None)
+    try:
+        shell.run(handle, poll_s=0.01)
+    finally:
+        shell.close(flush_s=0.0)
+        router.close()
+    assert answers == [([b"map"], []), ([b"map"], [])]
