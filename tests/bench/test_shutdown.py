@@ -8,7 +8,7 @@ import pytest
 
 from .conftest import run_bench
 
-pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.second_lane]
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 
 def test_a_stop_right_after_the_robot_sent_keeps_every_scan() -> None:

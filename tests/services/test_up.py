@@ -22,7 +22,7 @@ from services.common.launch import free_port
 from services.common.zsession import open_session
 from services.ingest.sources import source_events
 
-pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.second_lane]
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 
 def up_command(data, *extra: str) -> list[str]:
