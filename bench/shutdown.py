@@ -28,11 +28,11 @@ import zenoh
 from scanflow import keys
 from scanflow.config import ZenohSettings
 from scanflow.scan import LaserScan
-from scanflow.wire import OdometryMessage, ScanMessage, ServiceStatsMessage
+from scanflow.wire import ServiceStatsMessage
 
 from services.common.launch import free_port
 from services.common.zsession import open_session
-from services.ingest.sources import source_events
+from services.ingest.sources import bus_message, source_events
 
 ROBOT = "ext"
 
@@ -41,11 +41,8 @@ def send(client: zenoh.Session, scans: int) -> int:
     """Put `scans` simulated scans of ROBOT and their odometry on the bus; how many scans."""
     sent = 0
     for event in source_events(None, ROBOT, scans / 10 + 1, 3, scans):
-        is_scan = isinstance(event, LaserScan)
-        message = ScanMessage(event) if is_scan else OdometryMessage(event)
-        key = keys.raw_scan(ROBOT) if is_scan else keys.odom(ROBOT)
-        client.put(key, message.encode(), congestion_control=zenoh.CongestionControl.BLOCK)
-        sent += is_scan
+        client.put(*bus_message(event), congestion_control=zenoh.CongestionControl.BLOCK)
+        sent += isinstance(event, LaserScan)
     return sent
 
 

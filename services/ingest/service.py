@@ -10,12 +10,12 @@ from __future__ import annotations
 from scanflow import keys
 from scanflow.config import IngestSettings, ZenohSettings
 from scanflow.scan import LaserScan
-from scanflow.wire import OdometryMessage, PoseEstimateMessage, ScanMessage
+from scanflow.wire import PoseEstimateMessage
 
 from services.common.process import init_process, require_settings
 from services.common.shell import ServiceShell
 from services.ingest.flow import CreditWindow, Pacer
-from services.ingest.sources import source_events
+from services.ingest.sources import bus_message, source_events
 
 
 class Ingest:
@@ -58,12 +58,12 @@ class Ingest:
                     self._wait_for_pipeline(keys.raw_scan(robot, prefix))
                 if not self.credit.acquire(robot, event.seq):
                     break
-                self.shell.put(keys.raw_scan(robot, prefix), ScanMessage(event).encode())
+                self.shell.put(*bus_message(event, prefix))
                 self._last_scan[robot] = event.seq
                 self.shell.seqs.observe(f"{robot}/scan", event.seq)
                 scans += 1
             else:
-                self.shell.put(keys.odom(robot, prefix), OdometryMessage(event).encode())
+                self.shell.put(*bus_message(event, prefix))
                 self.shell.seqs.observe(f"{robot}/odom", event.seq)
         self.shell.counters.add("published.scan", scans)
         return scans

@@ -12,10 +12,20 @@ from collections import defaultdict
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
+from scanflow import keys
 from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.scan import LaserScan, Odometry
+from scanflow.wire import OdometryMessage, ScanMessage
 
 Event = LaserScan | Odometry
+
+
+def bus_message(event: Event, prefix: str = keys.DEFAULT_PREFIX) -> tuple[str, bytes]:
+    """The key and payload `event` is published as: a scan on its robot's raw scan key, an
+    odometry sample on its odom key (ingest's, and any robot client's, wire form)."""
+    if isinstance(event, LaserScan):
+        return keys.raw_scan(event.robot_id, prefix), ScanMessage(event).encode()
+    return keys.odom(event.robot_id, prefix), OdometryMessage(event).encode()
 
 
 def sim_events(

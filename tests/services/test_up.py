@@ -16,11 +16,11 @@ from scanflow import keys
 from scanflow.config import ZenohSettings
 from scanflow.maps.export import load_map
 from scanflow.scan import LaserScan
-from scanflow.wire import OdometryMessage, ScanMessage, decode_any
+from scanflow.wire import decode_any
 
 from services.common.launch import free_port
 from services.common.zsession import open_session
-from services.ingest.sources import source_events
+from services.ingest.sources import bus_message, source_events
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -123,10 +123,7 @@ def test_ctrl_c_stops_with_the_data_so_scans_deskew_holds_still_reach_the_map(tm
                 time.sleep(0.3)
             robot = open_session(ZenohSettings(connect=[f"tcp/127.0.0.1:{zenoh_port}"]))
             for event in sent:
-                is_scan = isinstance(event, LaserScan)
-                message = ScanMessage(event) if is_scan else OdometryMessage(event)
-                key = keys.raw_scan("ext") if is_scan else keys.odom("ext")
-                robot.put(key, message.encode(), congestion_control=zenoh.CongestionControl.BLOCK)
+                robot.put(*bus_message(event), congestion_control=zenoh.CongestionControl.BLOCK)
 
             def held() -> bool:  # every earlier scan mapped, the last 10 held by deskew
                 replies = robot.get(keys.stats("mapserver", "0"), timeout=2.0)
