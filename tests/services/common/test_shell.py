@@ -294,6 +294,9 @@ def test_queries_are_answered_through_the_drain() -> None:
     shell = ServiceShell("mapserver", MatcherSettings(), ZenohSettings(connect=[endpoint]))
     shell.serve("scanflow-test/map", lambda q: q.reply(q.key_expr, b"map"))
     shell.start(install_signals=False)
+    deadline = time.monotonic() + 30.0  # the side session is new: until it reaches the queryable
+    while shell.get("scanflow-test/map", 1.0) != ([b"map"], []) and time.monotonic() < deadline:
+        time.sleep(0.05)
     answers: list[tuple[list[bytes], list[str]]] = []
 
     def handle(_kind: str, _message: object) -> None:
