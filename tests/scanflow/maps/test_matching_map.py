@@ -635,7 +635,9 @@ def test_hit_means_near_holds_every_mean_within_the_radius(x, y, radius_m, count
     wanted = everything[cKDTree(queries).query(everything)[0] <= radius_m]
     if len(wanted):
         assert np.all(cKDTree(near).query(wanted)[0] < 1e-9)
-    slack_m = radius_m + math.sqrt(2) * 9 * mm.resolution_m
+    # A query's tile of 8 cells, grown by ceil(radius / resolution) cells on every side: a
+    # square around it, whose far corner lies sqrt(2) (radius + 9 cells) away at most.
+    slack_m = math.sqrt(2) * (radius_m + 9 * mm.resolution_m)
     if len(near):
         assert np.all(cKDTree(queries).query(near)[0] <= slack_m)
 
