@@ -95,6 +95,9 @@ class MaxPoolStack:
         whole = np.array([[0, 0, spec.rows, spec.cols]])
         _quantised(levels[0], v, whole, pad)
         _pool(levels, whole + pad)
+        # Read-only like a followed map's stack: the search kernels then see one array type
+        # (numba compiles each type apart, seconds each, at a service's first search).
+        levels.flags.writeable = False
         return MaxPoolStack(spec, levels, pad)
 
     @property
