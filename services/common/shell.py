@@ -86,6 +86,7 @@ class ServiceShell:
         self._started_s = time.monotonic()
         self._busy_s = 0.0  # worker time in `handle` (and `idle`): how loaded the service is
         self._put_s = 0.0  # worker time handing payloads to the outbox (blocked when full)
+        self._get_s = 0.0  # worker time waiting on its own queries' replies (`get`)
         self._handle_max_s = 0.0  # the longest a single message took to handle
 
     def _open_session(self) -> zenoh.Session:
@@ -185,6 +186,7 @@ class ServiceShell:
         Zenoh's default does to replies on one key), and the error replies' texts (both empty
         when nothing answered within `timeout_s`)."""
         payloads, errors = [], []
+        t0 = time.perf_counter()
         replies = self._side_session().get(
             selector, timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE
         )
@@ -193,6 +195,7 @@ class ServiceShell:
                 payloads.append(reply.ok.payload.to_bytes())
             else:
                 errors.append(reply.err.payload.to_string())
+        self._get_s += time.perf_counter() - t0
         return payloads, errors
 
     def _feed(self, kind: str, message: Any) -> None:
@@ -367,7 +370,7 @@ class ServiceShell:
                 self.log.exception("idle work failed (%d so far)", n)
 
     def _handle(self, handle: Callable[[str, Any], None], kind: str, message: Any) -> None:
-        t0 = time.perf_counter()
+        t0, put0, get0 = time.perf_counter(), self._put_s, self._get_s
         try:
             handle(kind, message)
         except Exception:  # a bad message must not stop the service
@@ -377,9 +380,13 @@ class ServiceShell:
         self._handle_max_s = max(self._handle_max_s, took_s)
         if took_s > self.slow_message_s:  # everything behind it waited that long too
             n = self.counters.add(f"slow.{kind}")
+            # Where the time went: a full outbox (a slow subscriber somewhere downstream) or
+            # another service's answer, else this service's own work.
             self.log.warning(
-                "a %s message took %.2f s to handle (slow_message_s=%.2f; %d so far), "
-                "inbox now %d", kind, took_s, self.slow_message_s, n, self.inbox.depth(),
+                "a %s message took %.2f s to handle (%.2f s waiting to publish, %.2f s waiting "
+                "on queries; slow_message_s=%.2f; %d so far), inbox now %d", kind, took_s,
+                self._put_s - put0, self._get_s - get0, self.slow_message_s, n,
+                self.inbox.depth(),
             )
 
     def stop(self) -> None:
@@ -423,6 +430,7 @@ class ServiceShell:
             "inbox_high_water": self.inbox.high_water,
             "worker_busy_s": self._busy_s,
             "put_s": self._put_s,
+            "get_s": self._get_s,
             "handle_max_s": self._handle_max_s,
             "send_s": self.outbox.send_s,
             "outbox_depth": self.outbox.depth(),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import re
 import threading
 import time
 from types import SimpleNamespace
@@ -40,6 +41,51 @@ def test_a_slow_message_is_logged_counted_and_measured(caplog) -> None:
     assert stats.counters["slow.scan"] == 1 and "slow.quick" not in stats.counters
     assert stats.gauges["handle_max_s"] >= 0.2
     assert "a scan message took 0.2" in caplog.text and "slow_message_s=0.05" in caplog.text
+    # Its own work: no time waiting on the outbox or on queries.
+    assert "(0.00 s waiting to publish, 0.00 s waiting on queries;" in caplog.text
+
+
+def test_a_slow_message_says_how_long_it_waited_on_a_query(caplog) -> None:
+    """A message slowed by another service's answer says so: the time its `get` waited is
+    named in the slow-message log and summed in the get_s gauge."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_session(ZenohSettings(mode="router", listen=[endpoint], connect=[]))
+    settings = MatcherSettings.model_construct(slow_message_s=0.1)
+    shell = ServiceShell("matcher", settings, ZenohSettings(connect=[endpoint]))
+    answers = open_session(ZenohSettings(connect=[endpoint]))
+    delay_s = {"value": 0.0}
+
+    def reply(query) -> None:
+        time.sleep(delay_s["value"])
+        query.reply(query.key_expr, b"map")
+
+    queryable = answers.declare_queryable("scanflow-test/slow", reply)
+    try:
+        deadline = time.monotonic() + 30.0  # until the new sessions reach the queryable
+        while shell.get("scanflow-test/slow", 1.0) != ([b"map"], []):
+            assert time.monotonic() < deadline, "the queryable never answered"
+            time.sleep(0.05)
+        delay_s["value"] = 0.4
+        before = shell.stats().gauges["get_s"]
+
+        def handle(_kind: str, _message: object) -> None:
+            assert shell.get("scanflow-test/slow", 5.0) == ([b"map"], [])
+            shell.stop()
+
+        shell.inbox.put("scan", None)
+        with caplog.at_level(logging.WARNING, logger="scanflow.matcher"):
+            shell.run(handle, poll_s=0.01)
+        waited = shell.stats().gauges["get_s"] - before
+    finally:
+        shell.close(flush_s=0.0)
+        queryable.undeclare()
+        answers.close()
+        router.close()
+    assert waited >= 0.4
+    found = re.search(r"a scan message took ([\d.]+) s to handle \(0\.00 s waiting to "
+                      r"publish, ([\d.]+) s waiting on queries;", caplog.text)
+    assert found, caplog.text
+    assert float(found[1]) >= float(found[2]) >= 0.4
 
 
 def test_failing_idle_work_is_logged_counted_and_the_worker_goes_on(caplog) -> None:
