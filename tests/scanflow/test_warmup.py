@@ -152,10 +152,9 @@ print(json.dumps({"kernels": len(kernels), "compiled": compiled,
 def test_after_warm_up_a_recovery_and_every_method_on_a_map_compile_nothing():
     """What a service does after its health token compiles no kernel: the first scan after a
     gap (the fallback search on the map, then the refinement) once compiled for seconds while
-    the robot's scans queued behind it, so did a restarted matcher's first loop-closure search
-    (18-33 s on a loaded machine: a fault test's poses stalled behind it), and arrays
-    decoded from the wire (read-only, a numba type of their own) compiled on a service's
-    first real scan."""
+    the robot's scans queued behind it, so did a matcher's first loop-closure search (1.9 s
+    idle: a drawn submap's stack, a numba type of its own), and arrays decoded from the wire
+    (read-only, another type) compiled on a service's first real scan."""
     out = subprocess.run(
         [sys.executable, "-c", NOTHING_LEFT_SCRIPT],
         capture_output=True, text=True, check=False, timeout=600,
