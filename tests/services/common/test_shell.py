@@ -16,6 +16,15 @@ from services.common.shell import ServiceShell, robots_only
 from services.common.zsession import open_session
 
 
+def wait_until_answered(shell: ServiceShell, key: str, payload: bytes) -> None:
+    """Query `key` until `payload` comes back: the shell's side session opens at its first
+    `get`, and a queryable declared a moment before may not have reached the router yet."""
+    deadline = time.monotonic() + 30.0
+    while shell.get(key, 1.0) != ([payload], []):
+        assert time.monotonic() < deadline, f"nothing answered on {key} within 30 s"
+        time.sleep(0.05)
+
+
 def test_a_slow_message_is_logged_counted_and_measured(caplog) -> None:
     """A message handled for longer than slow_message_s holds up everything behind it: it is
     logged with its kind and duration, counted as slow.<kind>, and handle_max_s shows it."""
@@ -61,10 +70,7 @@ def test_a_slow_message_says_how_long_it_waited_on_a_query(caplog) -> None:
 
     queryable = answers.declare_queryable("scanflow-test/slow", reply)
     try:
-        deadline = time.monotonic() + 30.0  # until the new sessions reach the queryable
-        while shell.get("scanflow-test/slow", 1.0) != ([b"map"], []):
-            assert time.monotonic() < deadline, "the queryable never answered"
-            time.sleep(0.05)
+        wait_until_answered(shell, "scanflow-test/slow", b"map")
         delay_s["value"] = 0.4
         before = shell.stats().gauges["get_s"]
 
@@ -345,9 +351,7 @@ def test_queries_are_answered_through_the_drain() -> None:
     shell = ServiceShell("mapserver", MatcherSettings(), ZenohSettings(connect=[endpoint]))
     shell.serve("scanflow-test/map", lambda q: q.reply(q.key_expr, b"map"))
     shell.start(install_signals=False)
-    deadline = time.monotonic() + 30.0  # the side session is new: until it reaches the queryable
-    while shell.get("scanflow-test/map", 1.0) != ([b"map"], []) and time.monotonic() < deadline:
-        time.sleep(0.05)
+    wait_until_answered(shell, "scanflow-test/map", b"map")
     answers: list[tuple[list[bytes], list[str]]] = []
 
     def handle(_kind: str, _message: object) -> None:
