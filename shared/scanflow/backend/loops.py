@@ -2,8 +2,9 @@
 
 For a new keyframe k the candidates are earlier keyframes j within `search_radius_m` of it by the
 current estimates and at least `min_travel_m` back along the path (nearer ones are already tied
-to k through the chain of keyframes). A candidate's submap is keyframes j-w .. j+w drawn into
-j's frame at their current relative poses, free space included (a small MatchingMap). Scan k is
+to k through the chain of keyframes). A candidate's submap is keyframes j-w .. j+w (those before
+k) drawn into j's frame at their current relative poses, free space included (a small
+MatchingMap). Scan k is
 searched on it by branch and bound over +-linear_m / +-angular_deg around the estimated
 relative pose, and the best pose is refined with `method` (Cartographer's constraint builder).
 The closure is kept when the refined match passes the front end's checks, scores at least
@@ -166,7 +167,9 @@ class LoopDetector:
         """Match keyframe k on keyframe j's submap: the closure, or why there is none."""
         s = self.settings
         guess = Pose2D.from_array(poses[j]).inverse() * Pose2D.from_array(poses[k])
-        submap = self.submap(nodes, poses, j)
+        # Keyframes before k only: k's own scan in the window (j within w of k, the odometer
+        # run up by culled inserts) would match itself at the guess, a closure out of nothing.
+        submap = self.submap(nodes[:k], poses, j)
         points = nodes[k].points
         coarse = match(
             points, submap, guess, method="csm", linear_m=s.linear_m,

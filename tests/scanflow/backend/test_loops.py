@@ -91,6 +91,22 @@ def test_a_place_that_is_not_there_gives_a_reason(drive) -> None:  # type: ignor
     assert found
 
 
+def test_a_keyframe_is_not_matched_on_its_own_scan(drive) -> None:  # type: ignore[no-untyped-def]
+    """Keyframe k, scanned in another world, claimed at keyframe j's place with k within j's
+    submap window (as after culled inserts ran the odometer past min_travel_m): its own scan
+    is not in the submap, so it closes no loop against itself (it did, scoring 0.77)."""
+    detector = LoopDetector(SETTINGS, occupancy_params(default_settings()))
+    angles = np.arange(360) * (2 * np.pi / 360)
+    elsewhere = static_scan(get_world("rooms").segments, Pose2D(12.5, 6.0, 0.3), angles, 12.0,
+                            0.01, np.random.default_rng(1))
+    nodes = [*_nodes(drive)[:6], ScanNode(8.0, elsewhere, np.zeros((0, 2)), IDENTITY)]
+    estimates = np.vstack((drive.truth[:6], drive.truth[5]))
+    k = len(nodes) - 1
+    for j in (2, 5):  # windows 0..7 and 0..10 reach k
+        found = detector.verify(nodes, estimates, j, k)
+        assert isinstance(found, str), found
+
+
 def test_submaps_are_cached_until_forgotten(drive) -> None:  # type: ignore[no-untyped-def]
     detector = LoopDetector(SETTINGS, occupancy_params(default_settings()))
     nodes = _nodes(drive)
