@@ -46,3 +46,33 @@ def test_rejection_reasons(res: MatchResult, needle: str) -> None:
 def test_degenerate_can_be_refused() -> None:
     strict = AcceptanceLimits(0.5, 0.2, 0.3, 0.2, 0.1, accept_degenerate=False)
     assert "degenerate" in rejection_reason(result(status=MatchStatus.DEGENERATE), Pose2D(), strict)
+
+
+def with_covariance(cov: np.ndarray, status: MatchStatus = MatchStatus.OK) -> MatchResult:
+    return MatchResult(IDENTITY, cov, 0.9, 5, status is MatchStatus.OK, status, "gn", "")
+
+
+@pytest.mark.parametrize("status", [MatchStatus.OK, MatchStatus.DEGENERATE])
+@pytest.mark.parametrize("entry", [(0, 0), (1, 1), (2, 2), (0, 1)])
+def test_a_nan_in_the_covariance_is_rejected(status: MatchStatus, entry: tuple[int, int]) -> None:
+    """A NaN anywhere in the covariance (the y variance too, which max() with x let by) is
+    refused by name, not trusted and not passed on to the pose graph."""
+    cov = np.diag([1e-4, 1e-4, 1e-6])
+    cov[entry] = math.nan
+    reason = rejection_reason(with_covariance(cov, status), IDENTITY, LIMITS)
+    assert "NaN in its covariance" in reason
+
+
+def test_a_variance_rounded_below_zero_is_a_zero() -> None:
+    """An exact fit's variances can come out at -1e-20: accepted, not a math domain error."""
+    cov = np.diag([-1e-20, -1e-20, -1e-22])
+    assert rejection_reason(with_covariance(cov), IDENTITY, LIMITS) == ""
+
+
+def test_an_infinite_variance_is_judged_as_wide_not_refused_outright() -> None:
+    """inf is a direction nothing is known along: too wide for an OK match, and by design
+    allowed along a degenerate match's weak direction."""
+    cov = np.diag([1e-4, math.inf, 1e-6])
+    assert "position std inf" in rejection_reason(with_covariance(cov), IDENTITY, LIMITS)
+    degenerate = with_covariance(cov, MatchStatus.DEGENERATE)
+    assert rejection_reason(degenerate, IDENTITY, LIMITS) == ""
