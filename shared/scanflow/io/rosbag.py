@@ -32,7 +32,8 @@ frame.
 The robot id is `robot_id` when given, else the first segment of a namespaced topic
 ("/robot1/scan" -> "robot1"), else "robot". Messages that make an invalid scan (e.g.
 range_max below range_min) are skipped and recorded in `BagReader.errors` (or raise
-`BagFormatError` with `strict=True`).
+`BagFormatError` with `strict=True`). A bag that cannot be opened, or read on past some point
+(damaged, cut short), raises `BagFormatError` naming it; the records before stand.
 """
 
 from __future__ import annotations
@@ -265,12 +266,16 @@ class BagReader:
             reader.open()
         except AnyReaderError as exc:
             raise BagFormatError(f"cannot open bag {self.path}: {exc}") from exc
+        except Exception as exc:  # a damaged bag: whatever rosbags' parsers hit
+            raise BagFormatError(
+                f"cannot open bag {self.path}: {type(exc).__name__}: {exc}"
+            ) from exc
         try:
             connections = self._selected(reader.connections)
             tree = self._transform_tree(reader, connections)
             mounts: dict[str, Mount] = {}
             counts = {SCAN_TYPE: 0, ODOM_TYPE: 0}
-            for conn, time_ns, raw in reader.messages(connections=connections):
+            for conn, time_ns, raw in _messages(reader, connections, self.path):
                 robot = self.robot_id or _topic_robot(conn.topic)
                 bag_time_s = time_ns * 1e-9
                 try:
@@ -304,15 +309,15 @@ class BagReader:
         static = [c for c in tf_conns if c.topic.rsplit("/", 1)[-1] == STATIC_TF_TOPIC]
         dynamic = [c for c in tf_conns if c.topic.rsplit("/", 1)[-1] == TF_TOPIC]
         if static:  # an empty selection would read every message
-            for conn, time_ns, raw in reader.messages(connections=static):
+            for conn, time_ns, raw in _messages(reader, static, self.path):
                 self._add_transforms(reader, tree, conn, time_ns, raw, override=True)
-        frames = _first_scan_frames(reader, connections)
+        frames = _first_scan_frames(reader, connections, self.path)
 
         def placed() -> bool:
             return all(tree.chain(frame) is not None for frame in frames)
 
         if dynamic and not placed():
-            for conn, time_ns, raw in reader.messages(connections=dynamic):
+            for conn, time_ns, raw in _messages(reader, dynamic, self.path):
                 self._add_transforms(reader, tree, conn, time_ns, raw, override=False)
                 if placed():
                     break
@@ -359,13 +364,37 @@ def _deserialize(reader: AnyReader, raw: bytes, msgtype: str) -> Any:
         raise ValueError(f"cannot deserialize {msgtype}: {exc}") from None
 
 
-def _first_scan_frames(reader: AnyReader, connections: Sequence[Connection]) -> set[str]:
+def _messages(
+    reader: AnyReader, connections: Sequence[Connection], path: Path
+) -> Iterator[tuple[Connection, int, bytes]]:
+    """`reader.messages(connections)`, with a damaged or cut bag's failure (whatever rosbags'
+    parsers or sqlite raise) turned into BagFormatError naming the bag and where it broke."""
+    messages, last_s = reader.messages(connections=connections), None
+    while True:
+        try:
+            conn, time_ns, raw = next(messages)
+            if not (isinstance(time_ns, int) and isinstance(raw, bytes)):
+                raise TypeError(f"time {time_ns!r} is no integer or data is no bytes")
+        except StopIteration:
+            return
+        except Exception as exc:
+            after = "" if last_s is None else f" after {last_s:.9f} s"
+            raise BagFormatError(
+                f"{path}: the bag cannot be read{after}: {type(exc).__name__}: {exc}"
+            ) from exc
+        last_s = time_ns * 1e-9
+        yield conn, time_ns, raw
+
+
+def _first_scan_frames(
+    reader: AnyReader, connections: Sequence[Connection], path: Path
+) -> set[str]:
     """The frame of each scan topic's first message: the frames the pre-pass must place."""
     frames = set()
     for conn in connections:
         if conn.msgtype != SCAN_TYPE:
             continue
-        for _, _, raw in reader.messages(connections=[conn]):
+        for _, _, raw in _messages(reader, [conn], path):
             with suppress(ValueError):  # the main pass reports a broken message
                 frames.add(_deserialize(reader, raw, SCAN_TYPE).header.frame_id or DEFAULT_FRAME_ID)
             break

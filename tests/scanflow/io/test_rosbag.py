@@ -281,6 +281,27 @@ def test_broken_bag_raises_a_format_error(tmp_path: Path) -> None:
         list(read_bag(path))
 
 
+@pytest.mark.filterwarnings("ignore:overflow:RuntimeWarning")  # a damaged quaternion's norm
+def test_a_damaged_or_cut_bag_gives_its_records_or_a_format_error_naming_it(bag: Path) -> None:
+    """Bytes overwritten or cut off anywhere in the storage file: reading ends or raises
+    BagFormatError naming the bag, never what rosbags' parsers or sqlite hit on the way
+    (AssertionError, KeyError, UnicodeDecodeError, apsw.CorruptError, ...)."""
+    storage = bag if bag.is_file() else next(p for p in bag.iterdir() if p.suffix != ".yaml")
+    data = np.frombuffer(storage.read_bytes(), dtype=np.uint8)
+    rng = np.random.default_rng(7)
+    damaged = [data[:cut] for cut in range(0, data.size, max(1, data.size // 50))]
+    for _ in range(150):
+        copy = data.copy()
+        copy[rng.integers(data.size, size=3)] = rng.integers(256, size=3)
+        damaged.append(copy)
+    for version in damaged:
+        storage.write_bytes(version.tobytes())
+        try:
+            list(read_bag(bag))
+        except BagFormatError as exc:
+            assert str(bag) in str(exc)
+
+
 # Sensor mounts from tf: bags written with a /tf_static (or /tf) chain down to the scan frame.
 
 Build = Callable[[MessageFactory], Any]
