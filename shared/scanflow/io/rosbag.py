@@ -272,6 +272,8 @@ class BagReader:
             ) from exc
         try:
             connections = self._selected(reader.connections)
+            if not connections:  # rosbags reads every connection when given none
+                return
             tree = self._transform_tree(reader, connections)
             mounts: dict[str, Mount] = {}
             counts = {SCAN_TYPE: 0, ODOM_TYPE: 0}

@@ -268,6 +268,12 @@ def test_topic_selection(bag: Path) -> None:
         list(read_bag(bag, topics=["/nope"]))
 
 
+def test_an_empty_topic_selection_reads_nothing(bag: Path) -> None:
+    """No topics selected is no records, not every topic: rosbags reads all connections when
+    given none to filter on."""
+    assert list(read_bag(bag, topics=[])) == []
+
+
 def test_detect_and_open_any_log(bag: Path) -> None:
     assert detect_format(bag) == ("rosbag1" if bag.suffix == ".bag" else "rosbag2")
     payloads = [record_payload(r) for r in open_log(bag)]
