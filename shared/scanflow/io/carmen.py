@@ -460,7 +460,11 @@ class Keyframe:
 
 
 def load_keyframes(
-    path: str | Path, robot_id: str = "robot", *, max_range_m: float | None = None
+    path: str | Path,
+    robot_id: str = "robot",
+    *,
+    max_range_m: float | None = None,
+    on_error: Callable[[str, int, str], None] | None = None,
 ) -> list[Keyframe]:
     """Front-laser records with the robot's poses, plus odometry chained from the raw increments.
 
@@ -472,12 +476,14 @@ def load_keyframes(
     it is the odometry at the record). These are wheel, so robot, motions; chaining them from
     the first keyframe's `true_pose` gives the trajectory. When no ODOM lies between two
     records, the increment is the difference of their stored odom poses. Rear lasers and
-    RAWLASER1 (no pose) are left out.
+    RAWLASER1 (no pose) are left out. Lines that cannot be read are skipped, each passed to
+    `on_error` (path, line number, reason) when given.
     """
     frames: list[Keyframe] = []
     prev_anchor: Pose2D | None = None
     last_odom: Pose2D | None = None
-    for rec in read_carmen(path, robot_id=robot_id, max_range_m=max_range_m):
+    records = read_carmen(path, robot_id=robot_id, max_range_m=max_range_m, on_error=on_error)
+    for rec in records:
         if isinstance(rec, CarmenOdom):
             last_odom = rec.odom.pose
             continue

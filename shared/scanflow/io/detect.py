@@ -6,6 +6,7 @@ anything else readable (plain or gzip text) is treated as a CARMEN log.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Literal
 
@@ -32,12 +33,28 @@ def detect_format(path: str | Path) -> LogFormat:
 
 
 def open_log(
-    path: str | Path, *, robot_id: str | None = None, strict: bool = False
+    path: str | Path,
+    *,
+    robot_id: str | None = None,
+    strict: bool = False,
+    on_error: Callable[[str], None] | None = None,
 ) -> CarmenReader | BagReader:
-    """A reader for any supported log; iterate it, then read its `errors` / `error_count`."""
+    """A reader for any supported log; iterate it, then read its `errors` / `error_count`.
+    `on_error` hears of each record skipped as it happens, as "path:line: reason" (CARMEN)
+    or "path: reason" (bags)."""
     if detect_format(path) == "carmen":
-        return CarmenReader(path, robot_id=robot_id or "robot", strict=strict)
-    return BagReader(path, robot_id=robot_id, strict=strict)
+        return CarmenReader(path, robot_id=robot_id or "robot", strict=strict,
+                            on_error=carmen_error_handler(on_error))
+    return BagReader(path, robot_id=robot_id, strict=strict, on_error=on_error)
+
+
+def carmen_error_handler(
+    on_error: Callable[[str], None] | None,
+) -> Callable[[str, int, str], None] | None:
+    """The CARMEN readers' (path, line, reason) callback that hands `on_error` one message."""
+    if on_error is None:
+        return None
+    return lambda path, line_no, reason: on_error(f"{path}:{line_no}: {reason}")
 
 
 def record_payload(record: CarmenLaser | CarmenOdom | BagScan | BagOdom) -> LaserScan | Odometry:

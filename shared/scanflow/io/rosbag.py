@@ -31,15 +31,16 @@ frame.
 
 The robot id is `robot_id` when given, else the first segment of a namespaced topic
 ("/robot1/scan" -> "robot1"), else "robot". Messages that make an invalid scan (e.g.
-range_max below range_min) are skipped and recorded in `BagReader.errors` (or raise
-`BagFormatError` with `strict=True`). A bag that cannot be opened, or read on past some point
-(damaged, cut short), raises `BagFormatError` naming it; the records before stand.
+range_max below range_min) are skipped, recorded in `BagReader.errors` and passed to
+`on_error` if given (or raise `BagFormatError` with `strict=True`). A bag that cannot be
+opened, or read on past some point (damaged, cut short), raises `BagFormatError` naming it;
+the records before stand.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import suppress
 from dataclasses import dataclass
 from pathlib import Path
@@ -239,8 +240,10 @@ class BagReader:
         odom_frame: str = "odom",
         base_frame: str = "base_link",
         strict: bool = False,
+        on_error: Callable[[str], None] | None = None,
     ) -> None:
         self.path = Path(path)
+        self.on_error = on_error
         self.topics = None if topics is None else list(topics)
         self.robot_id = robot_id
         self.odom_frame = odom_frame
@@ -356,6 +359,8 @@ class BagReader:
         self.error_count += 1
         if len(self.errors) < MAX_RECORDED_ERRORS:
             self.errors.append(reason)
+        if self.on_error is not None:
+            self.on_error(f"{self.path}: {reason}")
 
 
 def _deserialize(reader: AnyReader, raw: bytes, msgtype: str) -> Any:

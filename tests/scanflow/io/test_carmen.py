@@ -324,6 +324,15 @@ def test_keyframe_odometry_chains_the_raw_increments(tmp_path: Path) -> None:
     assert frames[0].odom_pose == true[0]
 
 
+def test_keyframes_skip_malformed_lines_and_tell_on_error(tmp_path: Path) -> None:
+    good = flaser([1.0] * 180, Pose2D())
+    seen: list[tuple[str, int, str]] = []
+    path = write_log(tmp_path, [good, MALFORMED["truncated robotlaser"], good])
+    frames = load_keyframes(path, on_error=lambda p, n, r: seen.append((p, n, r)))
+    assert len(frames) == 2
+    assert [(p, n) for p, n, _ in seen] == [(str(path), 2)]
+
+
 def test_keyframe_without_odom_uses_stored_odom_difference(tmp_path: Path) -> None:
     o0, o1 = Pose2D(1, 1, 0.2), Pose2D(1.5, 1.2, 0.4)
     path = write_log(

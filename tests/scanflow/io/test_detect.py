@@ -94,6 +94,18 @@ def test_open_log_reads_a_carmen_log_with_the_given_robot_id(tmp_path: Path, pac
     assert default.robot_id == "robot" and not default.strict
 
 
+def test_open_log_tells_on_error_of_each_skipped_carmen_line_with_its_number(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "run.log"
+    path.write_text("FLASER 3 1.0 oops\n" + CARMEN_LINES + "ODOM 1 2\n")
+    heard: list[str] = []
+    reader = open_log(path, on_error=heard.append)
+    assert len(list(reader)) == 2 and reader.error_count == 2
+    assert [m.split(": ", 1)[0] for m in heard] == [f"{path}:1", f"{path}:4"]
+    assert heard == [f"{e.path}:{e.line_no}: {e.reason}" for e in reader.errors]
+
+
 def test_open_log_gives_bags_a_bag_reader_with_the_options(tmp_path: Path) -> None:
     ros1 = tmp_path / "broken.bag"
     ros1.write_bytes(ROSBAG1_MAGIC + b"\n" + b"\x00" * 32)

@@ -572,9 +572,11 @@ def test_a_message_that_does_not_deserialize_is_reported_and_skipped(
     damaged = (topic, msgtype, stamp, _cut(build, msgtype, kind == "ros1"))
     records = sorted([*scans_and_odometry(), damaged], key=lambda r: r[2])
     path = write_records(tmp_path, kind, records)
-    scans, reader = read_scans(path)
+    heard: list[str] = []
+    scans, reader = read_scans(path, on_error=heard.append)
     assert len(scans) == 3 and reader.error_count >= 1
     assert all(e.startswith(f"{topic} @ {stamp:.2f}") for e in reader.errors)
+    assert heard == [f"{path}: {e}" for e in reader.errors]  # as it happens, the bag named
     with pytest.raises(BagFormatError, match=f"{topic} @ {stamp:.2f}"):
         list(read_bag(path, strict=True))
 
