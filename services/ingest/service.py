@@ -3,19 +3,28 @@
 Pacing: `rate` times real time, or (rate 0) as fast as the pipeline takes them: then a
 credit window on the matcher's published pose seqs holds ingest back (backpressure, no drops).
 At the end it waits for the pose of its last scan before closing, so the tail is not lost.
+A log's unreadable records are skipped and logged (the first LOGGED_SKIPS of them; all are
+counted); a log that breaks off (a damaged bag) ends the replays where it broke, and what was
+published before is drained as usual: the process exits cleanly, not in a restart loop.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 from scanflow import keys
 from scanflow.config import IngestSettings, ZenohSettings
+from scanflow.io.carmen import CarmenFormatError
+from scanflow.io.rosbag import BagFormatError
 from scanflow.scan import LaserScan
 from scanflow.wire import PoseEstimateMessage
 
 from services.common.process import init_process, require_settings
 from services.common.shell import ServiceShell
 from services.ingest.flow import CreditWindow, Pacer
-from services.ingest.sources import bus_message, source_events
+from services.ingest.sources import Event, bus_message, source_events
+
+LOGGED_SKIPS = 10  # unreadable records logged one by one per replay; the rest are counted
 
 
 class Ingest:
@@ -29,6 +38,8 @@ class Ingest:
         window = settings.window if settings.rate == 0 else 0
         self.credit = CreditWindow(window, settings.stall_timeout_s, stop)
         self._last_scan: dict[str, int] = {}
+        self._scans = self._skipped = 0  # scans published, unreadable records: this replay
+        self.broken = False  # the source broke off: no further replays
         self.shell.subscribe(
             keys.pose("*", self.shell.prefix), "pose", PoseEstimateMessage.decode, self._on_pose
         )
@@ -37,16 +48,38 @@ class Ingest:
     def _on_pose(self, _kind: str, message: PoseEstimateMessage) -> None:
         self.credit.on_pose(message.robot_id, message.seq)
 
+    def _on_skipped(self, message: str) -> None:
+        self._skipped += 1
+        self.shell.counters.add("source.skipped")
+        if self._skipped <= LOGGED_SKIPS:
+            self.shell.log.warning("skipped an unreadable record: %s", message)
+
     def replay_once(self) -> int:
         """Publish one pass over the source; returns the number of scans published."""
         s = self.settings
-        pacer = Pacer(s.rate, self.shell.stop_event)
-        prefix = self.shell.prefix
-        scans = 0
+        self._scans = self._skipped = 0
         events = source_events(
             s.log, s.robot_id, s.sim_duration_s, s.sim_seed, s.limit, s.mount_pose(),
             sim_world=s.sim_world, sim_odom_scale_error=s.sim_odom_scale_error,
+            on_error=self._on_skipped,
         )
+        try:
+            self._publish(events)
+        except (CarmenFormatError, BagFormatError) as exc:
+            self.broken = True
+            self.shell.counters.add("source.broken")
+            self.shell.log.error("the log cannot be read on, replays end here (%d scans of "
+                                 "it published): %s", self._scans, exc)
+        if self._skipped > LOGGED_SKIPS:
+            self.shell.log.warning("%d unreadable records skipped in all (the first %d logged)",
+                                   self._skipped, LOGGED_SKIPS)
+        self.shell.counters.add("published.scan", self._scans)
+        return self._scans
+
+    def _publish(self, events: Iterable[Event]) -> None:
+        """Publish `events` paced and within the credit window, counting the scans."""
+        pacer = Pacer(self.settings.rate, self.shell.stop_event)
+        prefix = self.shell.prefix
         for event in events:
             if self.shell.stop_event.is_set():
                 break
@@ -61,12 +94,10 @@ class Ingest:
                 self.shell.put(*bus_message(event, prefix))
                 self._last_scan[robot] = event.seq
                 self.shell.seqs.observe(f"{robot}/scan", event.seq)
-                scans += 1
+                self._scans += 1
             else:
                 self.shell.put(*bus_message(event, prefix))
                 self.shell.seqs.observe(f"{robot}/odom", event.seq)
-        self.shell.counters.add("published.scan", scans)
-        return scans
 
     def _wait_for_pipeline(self, key: str) -> None:
         """Scans published before anyone subscribes are lost: wait for a subscriber first."""
@@ -93,7 +124,7 @@ class Ingest:
         self.shell.start()
         total = 0
         for replay in range(self.settings.replays):
-            if self.shell.stop_event.is_set():
+            if self.shell.stop_event.is_set() or self.broken:
                 break
             total += self.replay_once()
             self.drain()

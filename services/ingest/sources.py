@@ -9,7 +9,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 from collections import defaultdict
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 from scanflow import keys
@@ -46,19 +46,23 @@ def sim_events(
         yield frame.scan
 
 
-def log_events(path: str | Path, robot_id: str) -> Iterator[Event]:
+def log_events(
+    path: str | Path, robot_id: str, on_error: Callable[[str], None] | None = None
+) -> Iterator[Event]:
     """A recorded log. CARMEN logs give keyframes with their continuous wheel odometry
     (the raw ODOM stream re-anchors at every laser record, see the data README); ROS bags
-    give their scan and odometry messages in bag order."""
+    give their scan and odometry messages in bag order. Each record skipped as unreadable
+    is passed to `on_error` (see `open_log`); a bag that breaks off raises BagFormatError."""
     from scanflow.io.carmen import load_keyframes
-    from scanflow.io.detect import detect_format, open_log, record_payload
+    from scanflow.io.detect import carmen_error_handler, detect_format, open_log, record_payload
 
     if detect_format(path) == "carmen":
-        for frame in load_keyframes(path, robot_id=robot_id):
+        frames = load_keyframes(path, robot_id=robot_id, on_error=carmen_error_handler(on_error))
+        for frame in frames:
             yield Odometry(stamp_s=frame.scan.stamp_s, pose=frame.odom_pose, robot_id=robot_id)
             yield frame.scan
         return
-    for record in open_log(path, robot_id=robot_id):
+    for record in open_log(path, robot_id=robot_id, on_error=on_error):
         yield record_payload(record)
 
 
@@ -96,15 +100,17 @@ def source_events(
     *,
     sim_world: str = "rooms",
     sim_odom_scale_error: float = 0.01,
+    on_error: Callable[[str], None] | None = None,
 ) -> Iterator[Event]:
     """The numbered, limited stream of one replay of the configured source; `mount` (when
-    given) places the simulator's lidar, or overrides what a log says about its lidar."""
+    given) places the simulator's lidar, or overrides what a log says about its lidar;
+    `on_error` hears of a log's unreadable records (see `log_events`)."""
     if log is None:
         raw = sim_events(
             sim_duration_s, sim_seed, robot_id, mount or IDENTITY, sim_world,
             sim_odom_scale_error,
         )
     else:
-        raw = log_events(log, robot_id)
+        raw = log_events(log, robot_id, on_error)
         raw = raw if mount is None else mounted(raw, mount)
     return numbered(limited(raw, limit))

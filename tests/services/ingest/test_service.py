@@ -1,6 +1,9 @@
-"""The ingest service on real processes: it publishes nothing before a subscriber is there."""
+"""The ingest service on real processes: it publishes nothing before a subscriber is there,
+and a log's damage is named, never a crash."""
 
 from __future__ import annotations
+
+import gzip
 
 import pytest
 from scanflow import keys
@@ -19,3 +22,37 @@ def test_ingest_waits_for_a_subscriber_before_publishing(launcher, bus, start):
     start("deskew")
     bus.wait_until(lambda: len(deskewed) == 10, 30.0, "all 10 scans, none published into nothing")
     assert [m.seq for m in deskewed] == list(range(10))
+
+
+def test_ingest_skips_a_logs_unreadable_lines_and_says_which(launcher, bus, start, data_file):
+    """The good records are published, each bad line is logged by its number, and the
+    process ends cleanly (before, CARMEN lines were skipped without a word)."""
+    lines = gzip.decompress(data_file("aces-corrected.log.gz").read_bytes()).split(b"\n")[:200]
+    lines[150:150] = [b"FLASER 180 1.0 oops"]  # line 151, between the 2nd and 3rd scan
+    log = launcher.log_dir / "damaged.log"
+    log.write_bytes(b"\n".join(lines) + b"\n")
+    scans = sum(line.startswith(b"FLASER 180 ") for line in lines) - 1
+    start("deskew")
+    deskewed = bus.record(keys.deskewed_scan())
+    proc = launcher.start("ingest", SCANFLOW_INGEST_LOG=str(log), SCANFLOW_INGEST_WINDOW="0",
+                          SCANFLOW_INGEST_DRAIN_TIMEOUT_S="0.5")
+    proc.wait(60)
+    text = launcher.log_text("ingest")
+    assert proc.returncode == 0, text
+    assert f"skipped an unreadable record: {log}:151: " in text
+    bus.wait_until(lambda: len(deskewed) == scans, 30.0, f"all {scans} good scans")
+
+
+def test_ingest_ends_cleanly_where_a_bag_breaks(launcher, bus):
+    """A bag that cannot be read: named in the log, and an exit of 0 rather than a traceback
+    (compose restarts a failed ingest, which would replay the log and break again, forever)."""
+    bag = launcher.log_dir / "broken_bag"
+    bag.mkdir()
+    (bag / "metadata.yaml").write_text("not: a bag\n")
+    proc = launcher.start("ingest", SCANFLOW_INGEST_LOG=str(bag),
+                          SCANFLOW_INGEST_DRAIN_TIMEOUT_S="0.5")
+    proc.wait(60)
+    text = launcher.log_text("ingest")
+    assert proc.returncode == 0, text
+    assert "the log cannot be read on, replays end here (0 scans of it published)" in text
+    assert f"cannot open bag {bag}" in text and "Traceback" not in text
