@@ -9,6 +9,7 @@ down explicitly; the core library takes plain arguments and never reads the envi
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Annotated, Literal, TypeVar
 
 from pydantic import Field, SecretStr, ValidationError, field_validator
@@ -84,6 +85,13 @@ def _check_pose(value: list[float]) -> list[float]:
     """A pose setting: empty (unset) or 'x_m,y_m,yaw_deg', all finite."""
     if value and (len(value) != 3 or not all(math.isfinite(v) for v in value)):
         raise ValueError(f"must be 3 finite numbers 'x_m,y_m,yaw_deg', got {value!r}")
+    return value
+
+
+def _check_log(value: str | None) -> str | None:
+    """A log setting: unset, or a path that exists (a file, or a ROS 2 bag's directory)."""
+    if value is not None and not Path(value).exists():
+        raise ValueError(f"no log at {value!r}")
     return value
 
 
@@ -234,6 +242,7 @@ class IngestSettings(ServiceSettings):
 
     _split = field_validator("mount", mode="before")(_split_csv)
     _check_mount = field_validator("mount")(_check_pose)
+    _check_log = field_validator("log")(_check_log)
 
     def mount_pose(self) -> Pose2D | None:
         """`mount` as a pose (yaw in radians), None when unset."""

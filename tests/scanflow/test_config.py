@@ -190,6 +190,17 @@ def test_ingest_mount_is_x_y_and_yaw_in_degrees(clean_env) -> None:
             config.IngestSettings()
 
 
+def test_an_ingest_log_that_is_not_there_is_refused_when_settings_load(clean_env, tmp_path) -> None:
+    """Named at start-up, not by a traceback from the first read (and, under compose's
+    restart: on-failure, again at every restart)."""
+    missing = tmp_path / "nope.log.gz"
+    clean_env.setenv("SCANFLOW_INGEST_LOG", str(missing))
+    with pytest.raises(config.SettingsError, match=f"SCANFLOW_INGEST_LOG.*no log at '{missing}'"):
+        config.check_environment(config.IngestSettings)
+    missing.write_text("")
+    assert config.IngestSettings().log == str(missing)
+
+
 def test_frontend_initial_pose_is_x_y_and_yaw_in_degrees_or_unknown(clean_env) -> None:
     assert config.FrontendSettings().start_pose() is None
     clean_env.setenv("SCANFLOW_FRONTEND_INITIAL_POSE", "1.5,-2,180")

@@ -24,7 +24,9 @@ from scanflow.frontend.prior import PriorMapError, load_prior_map
 
 @app.command()
 def up(
-    log: Annotated[Path | None, typer.Option(help="CARMEN log or ROS bag; default: sim")] = None,
+    log: Annotated[
+        Path | None, typer.Option(exists=True, help="CARMEN log or ROS bag; default: sim")
+    ] = None,
     rate: Annotated[float, typer.Option(help="x real time; 0 = as fast as possible")] = 1.0,
     port: Annotated[int, typer.Option(help="gateway HTTP port")] = 8000,
     zenoh_port: Annotated[int, typer.Option(help="router TCP port on 127.0.0.1")] = 7447,

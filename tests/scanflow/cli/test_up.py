@@ -136,6 +136,7 @@ def test_up_passes_every_option_on_as_a_setting_with_absolute_paths(run_up, tmp_
     prior = OccupancyGrid()
     prior.insert_scan([[1.0, 0.0]], (0.0, 0.0))  # one occupied cell: a usable prior map
     save_map(prior, tmp_path / "prior.npz")
+    (tmp_path / "run.log").write_text("")
     result, plan = run_up(
         "--log", "run.log", "--rate", "0", "--port", "8123", "--zenoh-port", "7500",
         "--data-dir", "data", "--limit", "15", "--prior-map", "prior.npz", "--loop-closure",
@@ -233,6 +234,13 @@ def test_up_refuses_a_bad_environment_variable_before_starting_anything(
 def test_up_refuses_a_missing_prior_map_before_starting_anything(run_up) -> None:
     result, plan = run_up("--prior-map", "none.npz")
     assert result.exit_code == 2 and "no file at none.npz" in result.output
+    assert plan.launchers == []
+
+
+def test_up_refuses_a_missing_log_before_starting_anything(run_up) -> None:
+    result, plan = run_up("--log", "none.log.gz")
+    assert result.exit_code == 2 and "none.log.gz" in result.output, result.output
+    assert "does not exist" in result.output
     assert plan.launchers == []
 
 
