@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Annotated
 
@@ -19,7 +19,7 @@ from scanflow.config import BackendSettings, FrontendSettings, SettingsError, ch
 from scanflow.frontend import save_tum
 from scanflow.frontend.prior import FrontendStart, PriorMapError
 from scanflow.io.carmen import load_keyframes
-from scanflow.io.detect import detect_format, open_log
+from scanflow.io.detect import carmen_error_handler, detect_format, open_log
 from scanflow.io.rosbag import BagFormatError, BagOdom
 from scanflow.maps.export import save_map
 from scanflow.pipeline import Pipeline, PipelineOutput
@@ -33,13 +33,32 @@ def _sim_outputs(pipeline: Pipeline, config: SimConfig) -> Iterator[PipelineOutp
         yield pipeline.process(frame.scan)
 
 
-def _log_outputs(pipeline: Pipeline, path: Path) -> Iterator[PipelineOutput]:
-    """CARMEN: keyframes with their chained wheel odometry; bags: scans and odometry streams."""
+class _Skipped:
+    """A log's unreadable records, as its reader reports them: how many, the first few."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.first: list[str] = []
+
+    def __call__(self, message: str) -> None:
+        self.count += 1
+        if len(self.first) < SHOWN_SKIPS:
+            self.first.append(message)
+
+
+SHOWN_SKIPS = 5
+
+
+def _log_outputs(
+    pipeline: Pipeline, path: Path, on_error: Callable[[str], None]
+) -> Iterator[PipelineOutput]:
+    """CARMEN: keyframes with their chained wheel odometry; bags: scans and odometry streams.
+    Each record skipped as unreadable is passed to `on_error`."""
     if detect_format(path) == "carmen":
-        for kf in load_keyframes(path):
+        for kf in load_keyframes(path, on_error=carmen_error_handler(on_error)):
             yield pipeline.process(kf.scan, kf.odom_pose)
         return
-    for record in open_log(path):
+    for record in open_log(path, on_error=on_error):
         if isinstance(record, BagOdom):
             pipeline.add_odometry(record.odom)
         else:
@@ -97,7 +116,9 @@ def run_command(
     if loop_closure:
         backend = backend.model_copy(update={"loop_closure": True})
     pipeline = Pipeline(settings, initial_pose=start.pose, grid=start.grid(), backend=backend)
-    outputs = _log_outputs(pipeline, log) if log is not None else _sim_outputs(pipeline, sim)
+    skipped, broken = _Skipped(), ""
+    outputs = (_log_outputs(pipeline, log, skipped) if log is not None
+               else _sim_outputs(pipeline, sim))
     total = limit or (None if log is not None else math.ceil(duration * sim.rate_hz))
     statuses: dict[str, int] = {}
     sources: dict[str, int] = {}
@@ -114,9 +135,11 @@ def run_command(
             redraws += out.backend is not None and out.backend.redrawn
             if limit is not None and scans >= limit:
                 break
-    except BagFormatError as exc:  # a bag that cannot be opened
-        typer.echo(f"error: cannot read {log}: {exc}", err=True)
-        raise typer.Exit(code=2) from exc
+    except BagFormatError as exc:
+        if scans == 0:  # a bag that cannot be opened: nothing to show
+            typer.echo(f"error: cannot read {log}: {exc}", err=True)
+            raise typer.Exit(code=2) from exc
+        broken = str(exc)  # it broke off: the scans before it are tracked, mapped and written
     final = pipeline.finish()
     wall_s = time.perf_counter() - t0
     frontend, mapper = pipeline.frontend, pipeline.mapper
@@ -138,6 +161,10 @@ def run_command(
         "scans_per_s": round(scans / wall_s, 2) if wall_s > 0 else None,
         "map_bytes": matching_map.nbytes,
     }
+    if log is not None:
+        summary["skipped_records"] = skipped.count
+    if broken:
+        summary["log_error"] = broken
     if mapper is not None:
         summary["loop_closure"] = {
             "keyframes": mapper.graph.node_count,
@@ -156,6 +183,7 @@ def run_command(
         summary["written"] = [str(p) for p in written]
     if as_json:
         typer.echo(json.dumps(summary))
+        _end(skipped, broken, as_json)
         return
     typer.echo(
         f"{scans} scans ({statuses}) over {distance_m:.1f} m, {inserted} inserted, "
@@ -168,3 +196,17 @@ def run_command(
         )
     for path in written:
         typer.echo(f"wrote {path}")
+    _end(skipped, broken, as_json)
+
+
+def _end(skipped: _Skipped, broken: str, as_json: bool) -> None:
+    """Warn of the log's skipped records (unless --json, whose summary counts them); exit 1
+    when the log broke off before its end."""
+    if skipped.count and not as_json:
+        typer.echo(f"warning: {skipped.count} unreadable records of the log skipped, the first "
+                   f"{len(skipped.first)}:", err=True)
+        for message in skipped.first:
+            typer.echo(f"  {message}", err=True)
+    if broken:
+        typer.echo(f"error: the log broke off, the run ends where it did: {broken}", err=True)
+        raise typer.Exit(code=1)

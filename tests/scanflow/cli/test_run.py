@@ -140,3 +140,60 @@ def test_run_refuses_an_unreadable_log_or_a_file_as_map_out_without_a_traceback(
         assert result.exit_code == 2, result.output
         assert isinstance(result.exception, SystemExit)
         assert named in result.output
+
+
+def circle_log(path: Path, scans: int, bad_after: tuple[int, ...]) -> Path:
+    """A CARMEN log of `scans` FLASER records (3 m all round, the robot still) with a
+    malformed line after each scan index in `bad_after`."""
+    ranges = " ".join(["3.0"] * 180)
+    lines = []
+    for i in range(scans):
+        stamp = 10.0 + 0.2 * i
+        lines.append(f"FLASER 180 {ranges} 0 0 0 0 0 0 {stamp} host {stamp}")
+        if i in bad_after:
+            lines.append("FLASER 180 1.0 oops")
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_run_counts_and_shows_the_unreadable_records_it_skipped(tmp_path: Path) -> None:
+    """Skipped lines are no longer silent: counted in the summary, the first shown by number."""
+    _register()
+    log = circle_log(tmp_path / "run.log", 6, bad_after=(1, 3))
+    result = CliRunner().invoke(app, ["run", "--log", str(log), "--json"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)
+    assert summary["scans"] == 6 and summary["skipped_records"] == 2
+    assert "log_error" not in summary
+    text = CliRunner().invoke(app, ["run", "--log", str(log)])
+    assert text.exit_code == 0, text.output
+    assert "warning: 2 unreadable records of the log skipped" in text.stderr
+    assert f"{log}:3: " in text.stderr and f"{log}:6: " in text.stderr
+
+
+def test_run_keeps_what_it_read_of_a_bag_that_breaks_off(tmp_path: Path, monkeypatch) -> None:
+    """A bag damaged past some point: the scans before it are tracked, summarised and
+    written, the break is named, and the exit status is 1 (not a usage error's 2 with the
+    run thrown away)."""
+    import scanflow.cli.run as run_module
+    from scanflow.io.rosbag import BagFormatError, BagScan
+    from scanflow.sim import SimConfig, simulate
+
+    frames = list(simulate(SimConfig(duration_s=1.0, seed=0)))
+
+    def broken_bag(path: Path, **_options: object):
+        for frame in frames[:6]:
+            yield BagScan(frame.scan, "/scan", frame.scan.stamp_s)
+        raise BagFormatError(f"{path}: the bag cannot be read after 10.5 s: ReaderError: cut")
+
+    bag = tmp_path / "cut.bag"
+    bag.write_bytes(b"#ROSBAG V2.0\n")
+    monkeypatch.setattr(run_module, "open_log", broken_bag)
+    _register()
+    out = tmp_path / "out"
+    result = CliRunner().invoke(app, ["run", "--log", str(bag), "--json", "--map-out", str(out)])
+    assert result.exit_code == 1, result.output
+    summary = json.loads(result.stdout)
+    assert summary["scans"] == 6 and "cannot be read after 10.5 s" in summary["log_error"]
+    assert len(load_tum(out / "trajectory.tum")[0]) == 6
+    assert "error: the log broke off" in result.stderr
