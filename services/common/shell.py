@@ -393,6 +393,18 @@ class ServiceShell:
         """Set the stop event: `run` returns after the item in hand; nothing is closed here."""
         self.stop_event.set()
 
+    def __enter__(self) -> ServiceShell:
+        return self
+
+    def __exit__(self, exc_type: object, exc: BaseException | None, tb: object) -> None:
+        """Close the shell however the block ends: after an uncaught error an open session's
+        Zenoh threads keep the process, and its health token, alive for good (SIGTERM only
+        sets the stop event), where it should exit and be restarted."""
+        if exc is not None:
+            self.log.critical("%s/%s stops on an error: %r", self.service, self.instance, exc)
+        if not self._closed.is_set():
+            self.close(flush_s=0.0 if exc is not None else 0.2)
+
     def close(self, flush_s: float = 0.2, drain_s: float = 10.0) -> None:
         """Send what the outbox holds (at most `drain_s`), let Zenoh's queues empty for
         `flush_s`, then undeclare everything and close the session."""

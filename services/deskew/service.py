@@ -210,15 +210,15 @@ class DeskewService:
 
     def run(self) -> None:
         """Warm up (if set), serve until stopped, then deskew every scan still held, and close."""
-        if self.settings.warm_up:  # before the health token: the first scan at full speed
-            warm_up()
-        self.shell.start()
-        poll_s = min(max(self.settings.odom_wait_s / 5, _MIN_POLL_S), 0.1)
-        self.shell.run(self.handle, self.idle, poll_s)
-        for robot_id, robot in self.robots.items():
-            self._finish_previous(robot_id, robot)
-            self._flush(robot_id, robot, force=True)
-        self.shell.close()
+        with self.shell:
+            if self.settings.warm_up:  # before the health token: the first scan at full speed
+                warm_up()
+            self.shell.start()
+            poll_s = min(max(self.settings.odom_wait_s / 5, _MIN_POLL_S), 0.1)
+            self.shell.run(self.handle, self.idle, poll_s)
+            for robot_id, robot in self.robots.items():
+                self._finish_previous(robot_id, robot)
+                self._flush(robot_id, robot, force=True)
 
 
 def main() -> None:

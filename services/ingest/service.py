@@ -121,18 +121,18 @@ class Ingest:
 
     def run(self) -> None:
         """Publish the source `replays` times, each time waiting for its last scan's pose; close."""
-        self.shell.start()
-        total = 0
-        for replay in range(self.settings.replays):
-            if self.shell.stop_event.is_set() or self.broken:
-                break
-            total += self.replay_once()
-            self.drain()
-            self.shell.log.info(
-                "replay %d done: %d scans published, %d credit stalls",
-                replay + 1, total, self.credit.stalls,
-            )
-        self.shell.close()
+        with self.shell:
+            self.shell.start()
+            total = 0
+            for replay in range(self.settings.replays):
+                if self.shell.stop_event.is_set() or self.broken:
+                    break
+                total += self.replay_once()
+                self.drain()
+                self.shell.log.info(
+                    "replay %d done: %d scans published, %d credit stalls",
+                    replay + 1, total, self.credit.stalls,
+                )
 
 
 def main() -> None:

@@ -295,13 +295,13 @@ class MapServer:
     def run(self) -> None:
         """Warm up (if set), serve until stopped, then publish the last change notices, snapshot
         every robot and close."""
-        if self.settings.warm_up:  # before the health token: the first scan at full speed
-            warm_up()
-        self.shell.start()
-        self.shell.run(self.handle, self.idle)
-        self._publish_changes()
-        self.snapshot()
-        self.shell.close()
+        with self.shell:
+            if self.settings.warm_up:  # before the health token: the first scan at full speed
+                warm_up()
+            self.shell.start()
+            self.shell.run(self.handle, self.idle)
+            self._publish_changes()
+            self.snapshot()
 
 
 def _image(robot: RobotMap, params: zenoh.Parameters) -> Message:

@@ -423,11 +423,11 @@ class MatcherService:
 
     def run(self) -> None:
         """Warm up (if set, the match methods too), serve until stopped, then close."""
-        if self.settings.warm_up:  # before the health token: the first scan at full speed
-            warm_up(methods=True)
-        self.shell.start()
-        self.shell.run(self.handle)
-        self.shell.close()
+        with self.shell:
+            if self.settings.warm_up:  # before the health token: the first scan at full speed
+                warm_up(methods=True)
+            self.shell.start()
+            self.shell.run(self.handle)
 
 
 class _NoMapServerYetError(Exception):

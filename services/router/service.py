@@ -21,8 +21,8 @@ def main() -> None:
     settings = RouterSettings()
     init_process(settings)
     zenoh_settings = router_zenoh_settings(settings, ZenohSettings().prefix)
-    shell = ServiceShell("router", settings, zenoh_settings)
-    shell.start()
-    shell.log.info("router listening on %s", ", ".join(settings.listen))
-    shell.run(lambda _kind, _message: None)
-    shell.close(flush_s=0.0)
+    with ServiceShell("router", settings, zenoh_settings) as shell:
+        shell.start()
+        shell.log.info("router listening on %s", ", ".join(settings.listen))
+        shell.run(lambda _kind, _message: None)
+        shell.close(flush_s=0.0)

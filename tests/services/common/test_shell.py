@@ -366,3 +366,24 @@ def test_queries_are_answered_through_the_drain() -> None:
         shell.close(flush_s=0.0)
         router.close()
     assert answers == [([b"map"], []), ([b"map"], [])]
+
+
+def test_a_block_that_raises_closes_the_shell_and_passes_the_error_on(caplog) -> None:
+    """`with shell:` closes the session on an uncaught error (an open one keeps Zenoh's
+    threads, so the process, alive), logs it, and lets it propagate; a clean block is closed
+    once, however it closed itself."""
+    shell = ServiceShell("deskew", DeskewSettings(), ZenohSettings(mode="peer", connect=[]))
+    with caplog.at_level(logging.CRITICAL, logger="scanflow.deskew"):
+        try:
+            with shell:
+                shell.start(install_signals=False)
+                raise RuntimeError("a bug")
+        except RuntimeError as exc:
+            assert str(exc) == "a bug"
+        else:
+            raise AssertionError("the error was swallowed")
+    assert shell._closed.is_set()
+    assert "deskew/0 stops on an error: RuntimeError('a bug')" in caplog.text
+    with ServiceShell("deskew", DeskewSettings(), ZenohSettings(mode="peer", connect=[])) as other:
+        other.close(flush_s=0.0)  # closed inside: the exit does not close it again
+    assert other._closed.is_set()

@@ -4,6 +4,9 @@ and a log's damage is named, never a crash."""
 from __future__ import annotations
 
 import gzip
+import os
+import subprocess
+import sys
 
 import pytest
 from scanflow import keys
@@ -56,3 +59,20 @@ def test_ingest_ends_cleanly_where_a_bag_breaks(launcher, bus):
     assert proc.returncode == 0, text
     assert "the log cannot be read on, replays end here (0 scans of it published)" in text
     assert f"cannot open bag {bag}" in text and "Traceback" not in text
+
+
+def test_an_unexpected_error_ends_the_process_rather_than_hanging_it(launcher):
+    """An error no handler expects (here from the source) ends the process with status 1 and
+    the error logged: before, the open session's threads kept it alive, ignoring SIGTERM."""
+    script = (
+        "import services.ingest.service as s\n"
+        "def broken(*args, **kwargs):\n"
+        "    raise RuntimeError('a bug in the source')\n"
+        "s.source_events = broken\n"
+        "s.main()\n"
+    )
+    env = {**os.environ, "SCANFLOW_ZENOH_CONNECT": f"tcp/127.0.0.1:{launcher.zenoh_port}"}
+    done = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
+                          text=True, timeout=60, check=False)
+    assert done.returncode == 1, done.stderr
+    assert "ingest/0 stops on an error: RuntimeError('a bug in the source')" in done.stderr
