@@ -11,9 +11,12 @@ with its 1 % odometry error, this cuts the mount's error from 1 cm / 0.7 deg to 
 0.03 deg). t_X is eliminated in closed form and phi_X found on the unit circle (dense search,
 then refined), which is the exact constrained least squares.
 Observability: t_X needs turning (R_A - I has singular values 2 |sin(theta_A / 2)|), phi_X
-needs driving (t_B != 0). Pairs whose rotations disagree by more than `max_rotation_gap_rad`
-are dropped (a failed match or an odometry glitch); then the fit alternates with trimming the
-pairs whose residual exceeds 3x the median (and TRIM_FLOOR_M) until the kept set settles.
+needs driving: lidar translation that no choice of t_X explains as turning (turns about one
+point, on the spot or along arcs of one radius, move an offset lidar yet leave a whole family
+of mounts, R(phi_X)^T (t_X - c) fixed). Pairs whose rotations disagree by more than
+`max_rotation_gap_rad` are dropped (a failed match or an odometry glitch); then the fit
+alternates with trimming the pairs whose residual exceeds 3x the median (and TRIM_FLOOR_M) until
+the kept set settles.
 """
 
 from __future__ import annotations
@@ -30,7 +33,8 @@ from scanflow.geometry import Pose2D, normalize_angles
 # Summed 4 sin^2(theta / 2) of the pairs' turns below this: t_X is not observable
 # (e.g. one 5 deg turn gives 0.0076, twenty of them 0.15).
 MIN_TURNING = 0.05
-# Summed squared lidar translation below this (m^2): phi_X is not observable.
+# Summed squared lidar translation not explained by turning below this (m^2): phi_X is not
+# observable.
 MIN_DRIVING_M2 = 0.05
 MIN_PAIRS = 5
 # A pair is trimmed when its residual exceeds 3x the median and this (the range noise of a
@@ -110,6 +114,16 @@ def _residuals(
     return np.hypot(r[:, 0], r[:, 1])
 
 
+def _driving(robot: NDArray[np.float64], sensor: NDArray[np.float64]) -> float:
+    """Information on phi_X with t_X unknown (m^2): the summed squared lidar translation left
+    once turning about any one point explains what it can (the Schur complement; the same for
+    every phi_X). Straight stretches keep theirs, turns about one point none."""
+    a1, a2, _ = _design(robot, sensor)
+    v = a2[:, 1]  # d/d phi of A2 (cos, sin) at phi = 0
+    proj = a1.T @ v
+    return float(v @ v - proj @ np.linalg.pinv(a1.T @ a1) @ proj)
+
+
 def _std(robot: NDArray[np.float64], sensor: NDArray[np.float64], phi: float,
          rms: float) -> tuple[tuple[float, float], float]:
     """Linearised standard deviations of t_X and phi_X from the residual spread."""
@@ -167,11 +181,12 @@ def estimate_mount(
             f"the robot hardly turned (sum of 4 sin^2(theta/2) = {turning:.4f} < {MIN_TURNING}):"
             " the mount's position cannot be told; drive turns"
         ))
-    driving = float(np.sum(sensor[:, 0] ** 2 + sensor[:, 1] ** 2))
+    driving = _driving(robot, sensor)
     if driving < MIN_DRIVING_M2:
         return failed(MountStatus.NO_DRIVING, (
-            f"the lidar hardly moved (sum of squared translations {driving:.4f} m^2 < "
-            f"{MIN_DRIVING_M2}): the mount's yaw cannot be told; drive straight stretches"
+            f"the lidar hardly moved other than by turning about one point (sum of squared "
+            f"translations left {driving:.4f} m^2 < {MIN_DRIVING_M2}): the mount's yaw cannot "
+            "be told; drive straight stretches"
         ))
     t, phi = _fit(robot, sensor)
     rms = float(np.sqrt(np.mean(_residuals(robot, sensor, t, phi) ** 2)))

@@ -101,3 +101,22 @@ def test_trimming_away_every_turn_is_reported_not_fitted() -> None:
     found = estimate_mount(robot, sensor)
     assert found.status is MountStatus.NO_TURNING, found
     assert "drive turns" in found.message
+
+
+def test_turning_about_one_point_cannot_tell_the_yaw_and_says_so() -> None:
+    """Turning on the spot, or driving arcs of one radius, turns the robot about one point:
+    the mount's yaw and position trade off along a whole family (R(phi)^T (t_X - c) fixed),
+    however far an offset lidar moves. Before, the lidar's translations passed the driving
+    check and an exact fit returned OK, metres and degrees off, with a std of 1e-17."""
+    mount = Pose2D(0.3, 0.1, math.radians(20.0))
+    turns = np.random.default_rng(0).uniform(0.1, 0.5, 40)
+    on_the_spot = [Pose2D(0.0, 0.0, th) for th in turns]
+    arcs = [Pose2D(math.sin(th), 1.0 - math.cos(th), th) for th in turns]  # radius 1 m
+    for robot in (on_the_spot, arcs):
+        found = estimate_mount(robot, seen_by(mount, robot))
+        assert found.status is MountStatus.NO_DRIVING, found
+        assert "drive straight stretches" in found.message
+    # One straight stretch among the arcs breaks the family: the mount is found exactly.
+    robot = [*arcs, Pose2D(0.5, 0.0, 0.0)]
+    found = estimate_mount(robot, seen_by(mount, robot))
+    assert found.ok and close(found.mount, mount, 1e-6, 1e-6)
