@@ -8,6 +8,7 @@ quaternion of a rotation by theta about z: (0, 0, sin(theta/2), cos(theta/2)). M
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -99,8 +100,13 @@ def save_tum(path: Path | str, stamps_s: NDArray[np.float64], poses: NDArray[np.
 
 
 def load_tum(path: Path | str) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """(stamps_s, (N, 3) x y theta) from a planar TUM file (comments '#' skipped)."""
-    data = np.loadtxt(path, comments="#", ndmin=2)
+    """(stamps_s, (N, 3) x y theta) from a planar TUM file (comments '#' skipped); an empty
+    one, as an empty trajectory is saved, gives no poses."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "loadtxt: input contained no data", UserWarning)
+        data = np.loadtxt(path, comments="#", ndmin=2)
+    if data.size == 0:
+        return np.zeros(0), np.zeros((0, 3))
     if data.shape[1] != 8:
         raise ValueError(f"{path}: TUM rows need 8 columns, got {data.shape[1]}")
     theta = normalize_angles(2.0 * np.arctan2(data[:, 6], data[:, 7]))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -39,3 +40,16 @@ def test_tum_quaternion_is_a_yaw_rotation(theta: float) -> None:
 def test_tum_shape_error_names_the_field() -> None:
     with pytest.raises(ValueError, match="poses must have shape"):
         tum_text(np.zeros(2), np.zeros((3, 3)))
+
+
+def test_an_empty_trajectory_round_trips(tmp_path: Path) -> None:
+    """A run that tracked no scan writes an empty TUM file (`scanflow run` on a log that broke
+    off at once): it reads back as no poses, not as a file of 1 column, and without a warning."""
+    path = TrajectoryStore().save_tum(tmp_path / "empty.tum")
+    commented = tmp_path / "commented.tum"
+    commented.write_text("# timestamp tx ty tz qx qy qz qw\n")
+    for tum in (path, commented):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            stamps, poses = load_tum(tum)
+        assert stamps.shape == (0,) and poses.shape == (0, 3)
