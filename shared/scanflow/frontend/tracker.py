@@ -296,12 +296,15 @@ class Frontend:
 
     def redraw(self, matching_map: MatchingMap, correction: Pose2D) -> None:
         """Track on `matching_map` from now on: the map redrawn in another frame (T_new_old =
-        `correction`), as the back end does after optimising its pose graph. The last pose and
-        the last insertion move with the frame; the odometry chain and velocity carry on. The
-        trajectory already recorded stays in the frame it was estimated in."""
+        `correction`), as the back end does after optimising its pose graph. The last pose, its
+        uncertainty and the last insertion move with the frame; the odometry chain and velocity
+        carry on. The trajectory already recorded stays in the frame it was estimated in."""
         self.map = matching_map
         self._predictor.move_frame(correction)
         self._filter.move_frame(correction)
+        if np.all(np.isfinite(self._covariance)):  # "no information" (inf) stays as it is
+            turn = correction.frame_jacobian()
+            self._covariance = turn @ self._covariance @ turn.T
 
     def _search_due(self) -> bool:
         """After every `global_after_rejections` rejected scans in a row (each search costs

@@ -365,6 +365,27 @@ def test_an_estimate_moved_into_a_redrawn_frame_turns_its_covariance() -> None:
     assert np.isinf(np.diag(lost.covariance)).all() and not np.isnan(lost.covariance).any()
 
 
+def test_a_redraw_turns_the_uncertainty_the_next_rejected_scans_grow_from(
+    scan_at: Scanner,
+) -> None:
+    """A rejected scan's covariance is the last match's grown by the motion: after a redraw
+    that turned the frame it is the last match's turned with it, as `in_frame` turns an
+    estimate. Before, the last match's stayed in the old frame's axes (a corridor's long axis
+    pointing the old way)."""
+    settings = FrontendSettings.model_construct()
+    poses = straight_path(START, 0.1, 5)
+    clean, redrawn = (Frontend(settings, initial_pose=START_IN_MAP) for _ in range(2))
+    for frontend in (clean, redrawn):
+        run(frontend, scan_at, poses[:4], poses[:4])
+    correction = Pose2D(3.0, -1.0, math.pi / 2)  # T_new_old
+    redrawn.redraw(redrawn.map, correction)
+    outs = [f.process(np.zeros((0, 2)), 0.4, poses[4], 4) for f in (clean, redrawn)]
+    assert all(o.status is FrontendStatus.TOO_FEW_POINTS for o in outs)
+    expected = outs[0].in_frame(correction)
+    assert outs[1].pose.relative_to(expected.pose).translation_norm() < 1e-9
+    np.testing.assert_allclose(outs[1].covariance, expected.covariance, rtol=1e-9, atol=1e-15)
+
+
 @pytest.fixture
 def stays_put(monkeypatch: pytest.MonkeyPatch) -> str:
     """A local matcher with no basin at all, registered for one test: it scores its guess on
