@@ -33,8 +33,12 @@ from services.common.keyframes import scan_nodes
 from services.mapserver.keyframes import FIELDS, Keyframes
 
 # What a damaged file raises as it is read: a missing or cut one, a broken zip or deflate stream,
-# an array or key that is not there (a file cut short, a disk that filled, a foreign file).
-UNREADABLE = (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error)
+# an array or key that is not there (a file cut short, a disk that filled, a foreign file), or
+# arrays and a map header that read but do not fit (another scanflow version, a file edited).
+UNREADABLE = (
+    OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, TypeError,
+    AttributeError, IndexError, ArithmeticError,
+)
 
 SUFFIX = ".snapshot.npz"
 _PER_FILE = "keyframes_per_file"
@@ -136,9 +140,10 @@ def load_snapshots(data_dir: Path) -> tuple[list[Snapshot], list[str]]:
             keys.check_robot_id(robot_id)  # a file not written by a map server: never served
             with np.load(path, allow_pickle=False) as data:
                 grid = grid_from_npz(data, path)
-                stamps_s, poses = data["stamps_s"], data["poses"]
-                if poses.shape != (len(stamps_s), 3):
-                    raise ValueError(f"poses {poses.shape} do not fit {len(stamps_s)} stamps")
+                stamps_s = np.asarray(data["stamps_s"], dtype=np.float64)
+                poses = np.asarray(data["poses"], dtype=np.float64)
+                if stamps_s.ndim != 1 or poses.shape != (len(stamps_s), 3):
+                    raise ValueError(f"poses {poses.shape} do not fit stamps {stamps_s.shape}")
                 last_seq = int(data["last_seq"])
                 redrawn_seq = int(data.get("redrawn_seq", -1))
                 # Older files: the inserts up to the last pose are likely in.

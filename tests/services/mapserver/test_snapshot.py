@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from scanflow.geometry import Pose2D
@@ -203,3 +205,53 @@ def test_a_snapshot_file_whose_name_is_no_robot_id_is_skipped(tmp_path, new_robo
     (tmp_path / "r.snapshot.npz").rename(tmp_path / "*.snapshot.npz")
     snaps, skipped = load_snapshots(tmp_path)
     assert snaps == [] and "robot *" in skipped[0] and "invalid" in skipped[0]
+
+
+def _meta_with(path, **changes) -> dict:
+    with np.load(path) as data:
+        meta = json.loads(str(data["meta"]))
+    meta.update(changes)
+    return {"meta": np.array(json.dumps(meta))}
+
+
+@pytest.mark.parametrize("damage", [
+    "newer_params", "box_not_a_list", "meta_not_a_map", "last_seq_not_one", "per_file_zero",
+    "poses_not_numbers", "stamps_not_a_row",
+])
+def test_a_foreign_or_other_version_snapshot_is_skipped_and_named_the_others_load(
+    tmp_path, damage, new_robot, insert, pose, kept_robot
+):
+    """A file of another scanflow version, or edited by hand, whose arrays read but do not fit:
+    an escaping TypeError, AttributeError or ZeroDivisionError stopped the map server at start
+    (a restart loop), and poses that were no numbers stopped it building the robot's map."""
+    other = new_robot()
+    other.insert(insert(0))
+    other.apply(pose(0))
+    save_snapshot(tmp_path / "ok", other.snapshot())
+    robot = kept_robot(range(5))
+    save_snapshot(tmp_path, robot.snapshot(), 2)
+    path = tmp_path / "r.snapshot.npz"
+    (tmp_path / "ok" / "r.snapshot.npz").rename(tmp_path / "ok.snapshot.npz")
+    with np.load(path) as data:
+        params = json.loads(str(data["meta"]))["params"]
+    change = {
+        "newer_params": lambda: _meta_with(path, params={**params, "p_unknown": 0.5}),
+        "box_not_a_list": lambda: _meta_with(path, box=3),
+        "meta_not_a_map": lambda: {"meta": np.array("[1, 2]")},
+        "last_seq_not_one": lambda: {"last_seq": np.array([4, 5])},
+        "per_file_zero": lambda: {"keyframes_per_file": np.int64(0)},
+        "poses_not_numbers": lambda: {"poses": np.array([["a", "b", "c"]])},
+        "stamps_not_a_row": lambda: {"stamps_s": np.zeros((1, 1))},
+    }[damage]()
+    with np.load(path) as data:
+        arrays = {**{k: data[k] for k in data.files}, **change}
+    np.savez_compressed(path, **arrays)
+    snaps, skipped = load_snapshots(tmp_path)
+    loaded = {s.robot_id: s for s in snaps}
+    assert "ok" in loaded and len(skipped) == 1 and "robot r:" in skipped[0], skipped
+    if damage == "per_file_zero":  # only the keyframes' files are unreadable
+        assert loaded["r"].keyframes is None and "keyframes not loaded" in skipped[0]
+    else:
+        assert "r" not in loaded and "snapshot not loaded" in skipped[0]
+    for snap in snaps:  # what loads, the map server can build a robot's map of
+        RobotMap(snap.robot_id, lambda: OccupancyGrid(OccupancyParams()), snap, True)
