@@ -132,7 +132,8 @@ def _load_chunks(
 
 def load_snapshots(data_dir: Path) -> tuple[list[Snapshot], list[str]]:
     """Every robot snapshot in `data_dir` (none if the directory does not exist), and why any
-    other was skipped (unreadable, or not a snapshot): it must not stop the service starting."""
+    other was skipped (unreadable, or not a snapshot): it must not stop the service starting,
+    and is set aside (renamed) so that the robot's fresh run does not overwrite it."""
     snaps, skipped = [], []
     for path in sorted(data_dir.glob(f"*{SUFFIX}")):
         robot_id = path.name.removesuffix(SUFFIX)
@@ -151,13 +152,30 @@ def load_snapshots(data_dir: Path) -> tuple[list[Snapshot], list[str]]:
                 last_odom = _last_odom(data)
                 keyframes = _keyframes(data_dir, robot_id, data, skipped)
         except UNREADABLE as exc:
-            skipped.append(f"robot {robot_id}: snapshot not loaded ({type(exc).__name__}: {exc})")
+            skipped.append(
+                f"robot {robot_id}: snapshot not loaded ({type(exc).__name__}: {exc}); "
+                f"{_set_aside(path)}"
+            )
             continue
         snaps.append(Snapshot(
             robot_id, grid, stamps_s, poses, last_seq, keyframes, redrawn_seq, last_insert_seq,
             last_odom,
         ))
     return snaps, skipped
+
+
+def _set_aside(path: Path) -> str:
+    """Rename a snapshot that cannot be loaded out of the way, so that the robot's fresh run
+    does not overwrite it (it may be all of a map a newer version can read); says where."""
+    aside, n = path.with_name(f"{path.name}.unreadable"), 0
+    while aside.exists():  # one set aside at an earlier start stays too
+        n += 1
+        aside = path.with_name(f"{path.name}.unreadable.{n}")
+    try:
+        path.rename(aside)
+    except OSError as exc:
+        return f"not set aside ({type(exc).__name__}: {exc})"
+    return f"set aside as {aside.name}"
 
 
 def _last_odom(data: Mapping[str, NDArray[np.generic]]) -> tuple[float, Pose2D] | None:

@@ -255,3 +255,29 @@ def test_a_foreign_or_other_version_snapshot_is_skipped_and_named_the_others_loa
         assert "r" not in loaded and "snapshot not loaded" in skipped[0]
     for snap in snaps:  # what loads, the map server can build a robot's map of
         RobotMap(snap.robot_id, lambda: OccupancyGrid(OccupancyParams()), snap, True)
+
+
+def test_a_skipped_snapshot_is_set_aside_not_overwritten_by_the_fresh_run(
+    tmp_path, new_robot, insert, pose
+):
+    """A snapshot this version cannot read (a newer scanflow's, after a rollback) is the robot's
+    whole map: the robot starts afresh, and its first snapshot used to replace the file."""
+    robot = new_robot()
+    robot.insert(insert(0))
+    robot.apply(pose(0))
+    save_snapshot(tmp_path, robot.snapshot())
+    path = tmp_path / "r.snapshot.npz"
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    np.savez_compressed(path, **{**arrays, **_meta_with(path, version=99)})
+    unreadable = path.read_bytes()
+    snaps, skipped = load_snapshots(tmp_path)
+    assert snaps == [] and len(skipped) == 1 and "robot r: snapshot not loaded" in skipped[0]
+    fresh = new_robot()
+    fresh.insert(insert(0))
+    fresh.apply(pose(0))
+    save_snapshot(tmp_path, fresh.snapshot())
+    kept = [p for p in tmp_path.iterdir() if p.read_bytes() == unreadable]
+    assert len(kept) == 1 and kept[0].name in skipped[0], skipped  # named in the log
+    (snap,), skipped = load_snapshots(tmp_path)  # the set-aside file is not read again
+    assert snap.robot_id == "r" and skipped == []
