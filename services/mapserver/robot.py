@@ -57,7 +57,13 @@ class RobotMap:
         self.keyframes: Keyframes | None = None
         if keep_keyframes:
             saved = snap.keyframes if snap is not None else None
-            self.keyframes = saved if saved is not None else Keyframes()
+            # A resumed map without its keyframes (unreadable, or loop closure was off) holds
+            # scans no kept keyframe would: none are kept, so a resumed matcher's redraw of the
+            # later ones alone cannot wipe the rest; a new run (`reset`) keeps them again.
+            if saved is not None:
+                self.keyframes = saved
+            elif snap is None or snap.last_insert_seq < 0:
+                self.keyframes = Keyframes()
         self.redrawn_seq = -1 if snap is None else snap.redrawn_seq
         self.last_seq = -1 if snap is None else snap.last_seq
         self.last_insert_seq = -1 if snap is None else snap.last_insert_seq
@@ -124,7 +130,8 @@ class RobotMap:
         if self.keyframes is None:
             raise ValueError(
                 f"robot {self.robot_id}: a map redraw came, but this map server keeps no "
-                "keyframes (SCANFLOW_BACKEND_LOOP_CLOSURE is off here, on in the matcher)"
+                "keyframes (SCANFLOW_BACKEND_LOOP_CLOSURE is off here, on in the matcher; or "
+                "this run's map was resumed without them)"
             )
         self.keyframes.check(redraw.keyframe_seqs)
         drawn = draw_keyframes(self.keyframes.nodes, redraw.keyframe_poses, params, self.new_grid())
@@ -139,7 +146,7 @@ class RobotMap:
         come after it are held in them."""
         self._replace_map(grid)
         self._replace_path(state.stamps_s, state.poses, state.seq)
-        if self.keyframes is not None and state.keyframes is not None:
+        if self.keep_keyframes and state.keyframes is not None:  # all of the map's keyframes
             self.keyframes = Keyframes.from_message(state.keyframes)
         self.last_insert_seq = state.insert_seq
         self.held = (after, state.insert_seq)

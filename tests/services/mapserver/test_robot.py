@@ -179,3 +179,23 @@ def test_a_taken_path_keeps_the_poses_before_a_restarted_trackers_first(
     robot.apply(pose(4))  # the path holds scan 4 already
     robot.apply(pose(5))
     assert len(robot.trajectory) == 6 and robot.trajectory.stamps_s[-1] == 0.5
+
+
+def test_a_map_resumed_without_its_keyframes_gives_no_keyframes_to_resume_from(
+    tmp_path, insert, pose, redraw, kept_robot
+):
+    """A snapshot whose keyframes could not be read (a lost chunk): its map holds scans no kept
+    keyframe has. Keyframes kept from then on used to go in the resume answer, and the restarted
+    matcher's first redraw, of those alone, would wipe the rest of the map (here and there)."""
+    save_snapshot(tmp_path, kept_robot(range(5)).snapshot(), 2)
+    next((tmp_path / "r.keyframes").iterdir()).unlink()
+    (snap,), _ = load_snapshots(tmp_path)
+    robot = RobotMap("r", lambda: OccupancyGrid(OccupancyParams()), snap, keep_keyframes=True)
+    robot.insert(replace(insert(5), keyframe=True))
+    robot.apply(pose(5))
+    assert replies.resume(robot).keyframes is None  # the matcher resumes without loop closure
+    with pytest.raises(ValueError, match="keeps no keyframes"):
+        robot.redraw(redraw([5], [Pose2D()], np.zeros((1, 3)), 5), OccupancyParams())
+    robot.reset()  # a new run starts its map afresh: its keyframes are all of it
+    robot.insert(insert(0))
+    assert replies.resume(robot).keyframes.seqs.tolist() == [0]
