@@ -249,7 +249,8 @@ class MatcherService:
             self.shell.counters.add("backend.resumed_without")
             self.shell.log.warning(
                 "robot %s: the map server %s; tracked without loop closure", robot_id,
-                "keeps no keyframes (SCANFLOW_BACKEND_LOOP_CLOSURE is off there)"
+                "keeps no keyframes of it (SCANFLOW_BACKEND_LOOP_CLOSURE is off there, or its "
+                "map was resumed from a snapshot without them)"
                 if kept is None else "has no keyframes to resume it from",
             )
             return None

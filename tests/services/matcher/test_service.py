@@ -150,7 +150,7 @@ def test_a_robot_resumes_from_the_map_servers_one_answer_or_says_why_not(
         np.testing.assert_array_equal(frontend.map.grid.log_odds, grid.log_odds)
         assert service._resumed_back_end("a", frontend, resumed) is None
         assert service.shell.counters.get("backend.resumed_without") == 1
-        assert "keeps no keyframes (SCANFLOW_BACKEND_LOOP_CLOSURE is off there)" in caplog.text
+        assert "keeps no keyframes of it (SCANFLOW_BACKEND_LOOP_CLOSURE is off there" in caplog.text
         assert service._seeded("b") is None
         assert "robot b: no map to resume from, starting fresh (its answer is unreadable" in (
             caplog.text
