@@ -47,6 +47,10 @@ _WAKE = "_wake"  # an inbox item that only wakes the worker to take feedback
 DRAIN_QUIET_S = 0.25
 
 
+# The error reply Zenoh gives a `get` whose queryable is there but did not finish in time.
+TIMED_OUT = "Timeout"
+
+
 class ServiceShell:
     """Session, liveliness token, stats queryable, counters and a bounded inbox for one service."""
 
@@ -184,7 +188,8 @@ class ServiceShell:
     def get(self, selector: str, timeout_s: float) -> tuple[list[bytes], list[str]]:
         """Query `selector` on the side session: every reply's payload (none merged away, as
         Zenoh's default does to replies on one key), and the error replies' texts (both empty
-        when nothing answered within `timeout_s`)."""
+        when no queryable matched; a queryable that did not finish within `timeout_s` gives
+        the error TIMED_OUT)."""
         payloads, errors = [], []
         t0 = time.perf_counter()
         replies = self._side_session().get(

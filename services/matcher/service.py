@@ -62,7 +62,7 @@ from services.common.keyframes import scan_nodes
 from services.common.process import init_process, require_settings
 from services.common.resend import resend_range
 from services.common.robots import RobotLimitError
-from services.common.shell import ServiceShell
+from services.common.shell import TIMED_OUT, ServiceShell
 from services.matcher.recent import (
     RecentInserts,
     culled_between,
@@ -264,11 +264,15 @@ class MatcherService:
     def _seeded(self, robot_id: str) -> tuple[Frontend, ResumeMessage] | None:
         """A front end continuing the map server's map and last pose of `robot_id`, and all
         it answered (the path, the keyframes), if it knows the robot. While no map server
-        answers at all (it is restarting too), _NoMapServerYetError, for up to resume_timeout_s:
-        a front end started afresh meanwhile would replace the map server's map with its own
-        (the robot's scans meanwhile are dropped, counted)."""
+        answers at all (it is restarting too, or too busy to answer in time),
+        _NoMapServerYetError, for up to resume_timeout_s: a front end started afresh meanwhile
+        would replace the map server's map with its own (the robot's scans meanwhile are
+        dropped, counted)."""
         selector = keys.map_key(robot_id, "resume", self.shell.prefix)
         payloads, errors = self.shell.get(selector, self.settings.resume_timeout_s)
+        # A map server there but too slow to answer (busy, its reply held up) has not answered
+        # yet either: a front end started afresh would replace its map all the same.
+        errors = [e for e in errors if e != TIMED_OUT]
         if not payloads and not errors:
             now = time.monotonic()
             since = self.awaiting.setdefault(robot_id, now)

@@ -35,7 +35,7 @@ from services.common.resend import FIRST, resend_selector
 from services.common.robots import RobotLimitError
 from services.matcher import service as service_module
 from services.matcher.recent import RecentInserts
-from services.matcher.service import MatcherService
+from services.matcher.service import MatcherService, _NoMapServerYetError
 
 LOOP_CLOSURE = BackendSettings.model_construct(loop_closure=True)
 
@@ -328,6 +328,28 @@ def test_a_search_request_runs_on_a_copy_of_the_map_without_the_lock(
         expected = real_answer(request, service._map_of)
         assert (response.status, response.pose) == (expected.status, expected.pose)
     finally:
+        service.shell.close(flush_s=0.0)
+
+
+def test_a_map_server_too_busy_to_answer_in_time_is_waited_for_not_started_over(caplog) -> None:
+    """A resume query the map server holds past resume_timeout_s gets Zenoh's 'Timeout' error
+    reply: that is no answer yet, as silence is (the robot waits, its scans counted), not an
+    answer that starts the robot afresh over the map server's map."""
+    caplog.set_level(logging.INFO)
+    service = MatcherService(
+        MatcherSettings(resume_timeout_s=0.5), FrontendSettings(),
+        ZenohSettings(mode="peer", connect=[]), BackendSettings(),
+    )
+    held: list[object] = []  # queries kept unanswered: the map server is busy
+    # A plain queryable that keeps its queries open (the shell's own serve closes each one).
+    busy = service.shell._side_session().declare_queryable("scanflow/*/map/resume", held.append)
+    try:
+        with pytest.raises(_NoMapServerYetError):
+            service._seeded("r")
+        assert held and "r" in service.awaiting and "r" not in service.frontends
+        assert "starting fresh" not in caplog.text
+    finally:
+        busy.undeclare()
         service.shell.close(flush_s=0.0)
 
 
