@@ -3,9 +3,10 @@
 Pacing: `rate` times real time, or (rate 0) as fast as the pipeline takes them: then a
 credit window on the matcher's published pose seqs holds ingest back (backpressure, no drops).
 At the end it waits for the pose of its last scan before closing, so the tail is not lost.
-A log's unreadable records are skipped and logged (the first LOGGED_SKIPS of them; all are
-counted); a log that breaks off (a damaged bag) ends the replays where it broke, and what was
-published before is drained as usual: the process exits cleanly, not in a restart loop.
+A log's unreadable records are skipped, counted and logged (the first 10, then every 100th:
+`worth_logging`); a log that breaks off (a damaged bag) ends the replays where it broke, and
+what was published before is drained as usual: the process exits cleanly, not in a restart
+loop.
 """
 
 from __future__ import annotations
@@ -19,12 +20,11 @@ from scanflow.io.rosbag import BagFormatError
 from scanflow.scan import LaserScan
 from scanflow.wire import PoseEstimateMessage
 
+from services.common.counters import worth_logging
 from services.common.process import init_process, require_settings
 from services.common.shell import ServiceShell
 from services.ingest.flow import CreditWindow, Pacer
 from services.ingest.sources import Event, bus_message, source_events
-
-LOGGED_SKIPS = 10  # unreadable records logged one by one per replay; the rest are counted
 
 
 class Ingest:
@@ -38,7 +38,7 @@ class Ingest:
         window = settings.window if settings.rate == 0 else 0
         self.credit = CreditWindow(window, settings.stall_timeout_s, stop)
         self._last_scan: dict[str, int] = {}
-        self._scans = self._skipped = 0  # scans published, unreadable records: this replay
+        self._scans = 0  # scans published in this replay
         self.broken = False  # the source broke off: no further replays
         self.shell.subscribe(
             keys.pose("*", self.shell.prefix), "pose", PoseEstimateMessage.decode, self._on_pose
@@ -49,15 +49,14 @@ class Ingest:
         self.credit.on_pose(message.robot_id, message.seq)
 
     def _on_skipped(self, message: str) -> None:
-        self._skipped += 1
-        self.shell.counters.add("source.skipped")
-        if self._skipped <= LOGGED_SKIPS:
+        n = self.shell.counters.add("source.skipped")
+        if worth_logging(n):
             self.shell.log.warning("skipped an unreadable record: %s", message)
 
     def replay_once(self) -> int:
         """Publish one pass over the source; returns the number of scans published."""
         s = self.settings
-        self._scans = self._skipped = 0
+        self._scans = 0
         events = source_events(
             s.log, s.robot_id, s.sim_duration_s, s.sim_seed, s.limit, s.mount_pose(),
             sim_world=s.sim_world, sim_odom_scale_error=s.sim_odom_scale_error,
@@ -70,9 +69,6 @@ class Ingest:
             self.shell.counters.add("source.broken")
             self.shell.log.error("the log cannot be read on, replays end here (%d scans of "
                                  "it published): %s", self._scans, exc)
-        if self._skipped > LOGGED_SKIPS:
-            self.shell.log.warning("%d unreadable records skipped in all (the first %d logged)",
-                                   self._skipped, LOGGED_SKIPS)
         self.shell.counters.add("published.scan", self._scans)
         return self._scans
 

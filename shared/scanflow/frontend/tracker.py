@@ -100,11 +100,17 @@ class FrontendOutput:
     def in_frame(self, correction: Pose2D) -> FrontendOutput:
         """The same estimate in another map frame (T_new_old = `correction`: the map was
         redrawn): the pose moved, the covariance's position block turned with it."""
-        covariance = self.covariance
-        if np.all(np.isfinite(covariance)):  # "no information" (inf) stays as it is
-            turn = correction.frame_jacobian()
-            covariance = turn @ covariance @ turn.T
+        covariance = _turned(self.covariance, correction)
         return replace(self, pose=correction * self.pose, covariance=covariance)
+
+
+def _turned(covariance: NDArray[np.float64], correction: Pose2D) -> NDArray[np.float64]:
+    """`covariance` in the frame `correction` (T_new_old) leads to: its position block turned
+    with the frame; "no information" (inf) stays as it is."""
+    if not np.all(np.isfinite(covariance)):
+        return covariance
+    turn = correction.frame_jacobian()
+    return turn @ covariance @ turn.T
 
 
 @dataclass
@@ -302,9 +308,7 @@ class Frontend:
         self.map = matching_map
         self._predictor.move_frame(correction)
         self._filter.move_frame(correction)
-        if np.all(np.isfinite(self._covariance)):  # "no information" (inf) stays as it is
-            turn = correction.frame_jacobian()
-            self._covariance = turn @ self._covariance @ turn.T
+        self._covariance = _turned(self._covariance, correction)
 
     def _search_due(self) -> bool:
         """After every `global_after_rejections` rejected scans in a row (each search costs
