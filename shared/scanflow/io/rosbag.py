@@ -30,17 +30,24 @@ times. Any other tilt has no 2D mount: such scans are skipped and recorded as er
 frame.
 
 The robot id is `robot_id` when given, else the first segment of a namespaced topic
-("/robot1/scan" -> "robot1"), else "robot". Messages that make an invalid scan (e.g.
-range_max below range_min) are skipped, recorded in `BagReader.errors` and passed to
-`on_error` if given (or raise `BagFormatError` with `strict=True`). A bag that cannot be
-opened, or read on past some point (damaged, cut short), raises `BagFormatError` naming it;
-the records before stand.
+("/robot1/scan" -> "robot1"), else "robot". Odometry on a global topic ("/odom", "/tf") goes
+to the scans' robot when every scan read is of one robot, so a robot recorded under its
+namespace with a global tf still gets its odometry; with several robots' scans, an odom -> base
+transform on a global tf topic goes to the robot its child frame's namespace names
+("robot2/base_link" -> "robot2"), if that robot has scans, so each robot of a shared tf gets its
+own odometry (an Odometry message likewise, by its child_frame_id).
+
+Messages that make an invalid scan (e.g. range_max below range_min) are skipped, recorded in
+`BagReader.errors` and passed to `on_error` if given (or raise `BagFormatError` with
+`strict=True`). A bag that cannot be opened, or read on past some point (damaged, cut short),
+raises `BagFormatError` naming it; the records before stand.
 """
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import suppress
 from dataclasses import dataclass
 from pathlib import Path
@@ -61,6 +68,7 @@ TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")
 MAX_RECORDED_ERRORS = 1000
 STATIC_TF_TOPIC, TF_TOPIC = "tf_static", "tf"  # last segment of the tf topics' names
 DEFAULT_FRAME_ID = "laser"  # for scans with an empty header.frame_id
+DEFAULT_ROBOT_ID = "robot"  # for messages no topic or frame tells the robot of
 MAX_TILT_RAD = math.radians(2.0)  # a projection error below 1 - cos(2 deg) = 0.06 %
 
 
@@ -191,9 +199,37 @@ class TransformTree:
         return Mount() if matrix is None else planar_mount(matrix, frame_id)
 
 
-def _topic_robot(topic: str) -> str:
-    segments = [s for s in topic.split("/") if s]
-    return segments[0] if len(segments) > 1 else "robot"
+def _namespace(name: str) -> str | None:
+    """The first segment of a namespaced topic or frame ("/robot1/scan" -> "robot1")."""
+    segments = [s for s in name.split("/") if s]
+    return segments[0] if len(segments) > 1 else None
+
+
+@dataclass(frozen=True)
+class RobotIds:
+    """Whose a message is, when the reader was given no robot id (module docstring)."""
+
+    scans: frozenset[str]  # the robots of the scan topics read
+
+    @classmethod
+    def of_connections(cls, connections: Iterable[Connection]) -> RobotIds:
+        scan_topics = (c.topic for c in connections if c.msgtype == SCAN_TYPE)
+        return cls(frozenset(_namespace(t) or DEFAULT_ROBOT_ID for t in scan_topics))
+
+    def of_topic(self, topic: str) -> str:
+        """A namespaced topic's robot, else the scans' one robot, else DEFAULT_ROBOT_ID."""
+        ns = _namespace(topic)
+        if ns is not None:
+            return ns
+        return next(iter(self.scans)) if len(self.scans) == 1 else DEFAULT_ROBOT_ID
+
+    def of_transform(self, topic: str, child_frame: str) -> str:
+        """A transform's robot: on a global topic, the one its child frame's namespace names
+        when that robot has scans; else the topic's."""
+        ns = _namespace(child_frame)
+        if _namespace(topic) is None and ns in self.scans:
+            return ns
+        return self.of_topic(topic)
 
 
 def scan_from_msg(msg: Any, robot_id: str, seq: int, mount: Mount = Mount()) -> LaserScan:
@@ -280,8 +316,9 @@ class BagReader:
             tree = self._transform_tree(reader, connections)
             mounts: dict[str, Mount] = {}
             counts = {SCAN_TYPE: 0, ODOM_TYPE: 0}
+            robots = RobotIds.of_connections(connections)
             for conn, time_ns, raw in _messages(reader, connections, self.path):
-                robot = self.robot_id or _topic_robot(conn.topic)
+                robot = self.robot_id or robots.of_topic(conn.topic)
                 bag_time_s = time_ns * 1e-9
                 try:
                     msg = _deserialize(reader, raw, conn.msgtype)
@@ -293,11 +330,13 @@ class BagReader:
                         yield BagScan(scan, conn.topic, bag_time_s)
                         counts[SCAN_TYPE] += 1
                     elif conn.msgtype == ODOM_TYPE:
-                        odom = odom_from_msg(msg, robot, counts[ODOM_TYPE])
+                        owner = self._owner(robots, conn.topic)(_tf_frame(msg.child_frame_id))
+                        odom = odom_from_msg(msg, owner, counts[ODOM_TYPE])
                         yield BagOdom(odom, conn.topic, bag_time_s)
                         counts[ODOM_TYPE] += 1
                     elif conn.msgtype in TF_TYPES:
-                        for odom in self._tf_odometry(msg, robot, counts[ODOM_TYPE]):
+                        owner = self._owner(robots, conn.topic)
+                        for odom in self._tf_odometry(msg, owner, counts[ODOM_TYPE]):
                             yield BagOdom(odom, conn.topic, bag_time_s)
                             counts[ODOM_TYPE] += 1
                 except (ScanError, ValueError) as exc:
@@ -343,13 +382,23 @@ class BagReader:
         except ValueError as exc:
             self._report(f"{conn.topic} @ {time_ns * 1e-9:.9f} s: {exc}")
 
-    def _tf_odometry(self, msg: Any, robot_id: str, seq: int) -> Iterator[Odometry]:
+    def _owner(self, robots: RobotIds, topic: str) -> Callable[[str], str]:
+        """The robot of a transform on `topic`, from its child frame."""
+        if self.robot_id is not None:
+            given = self.robot_id
+            return lambda _child: given
+        return functools.partial(robots.of_transform, topic)
+
+    def _tf_odometry(
+        self, msg: Any, owner: Callable[[str], str], seq: int
+    ) -> Iterator[Odometry]:
         for tf in msg.transforms:
             parent, child = _bare_frame(tf.header.frame_id), _bare_frame(tf.child_frame_id)
             if parent != self.odom_frame or child != self.base_frame:
                 continue
             tr, q = tf.transform.translation, tf.transform.rotation
             pose = Pose2D(tr.x, tr.y, yaw_from_quaternion(q))
+            robot_id = owner(_tf_frame(tf.child_frame_id))
             yield Odometry(stamp_to_s(tf.header.stamp), pose, None, robot_id, seq)
             seq += 1
 

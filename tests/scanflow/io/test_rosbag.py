@@ -120,7 +120,9 @@ class MessageFactory:
     def _vec(self, name: str, x: float, y: float, z: float) -> Any:
         return self._t(name)(x=x, y=y, z=z)
 
-    def odom(self, stamp_s: float, pose: Pose2D, v: tuple[float, float, float]) -> Any:
+    def odom(
+        self, stamp_s: float, pose: Pose2D, v: tuple[float, float, float], child: str = "base_link"
+    ) -> Any:
         p = self._t("geometry_msgs/msg/Pose")(
             position=self._vec("geometry_msgs/msg/Point", pose.x, pose.y, 0.0),
             orientation=self._quat(pose.theta),
@@ -131,7 +133,7 @@ class MessageFactory:
         )
         return self._t(ODOM)(
             header=self.header(stamp_s, "odom"),
-            child_frame_id="base_link",
+            child_frame_id=child,
             pose=self._t("geometry_msgs/msg/PoseWithCovariance")(pose=p, covariance=np.zeros(36)),
             twist=self._t("geometry_msgs/msg/TwistWithCovariance")(
                 twist=twist, covariance=np.zeros(36)
@@ -259,6 +261,84 @@ def test_tf_odom_to_base_link_when_no_odometry_topic(tmp_path: Path) -> None:
         np.testing.assert_allclose(odom.pose.to_array(), pose.to_array(), atol=1e-9)
         assert odom.velocity is None
         assert odom.stamp_s == pytest.approx(stamp, abs=1e-9)
+
+
+def robot_records(
+    scan_topics: list[str], tf_topic: str, frames: list[str], odom_topic: str | None = None
+) -> list[tuple[str, str, float, Build]]:
+    """A scan on each of `scan_topics`, then an odom -> base_link transform of each frame
+    namespace in `frames` ("" for bare frames) on `tf_topic`, or an Odometry message per
+    namespace on `odom_topic`; twice."""
+    out: list[tuple[str, str, float, Build]] = []
+    for i in range(2):
+        t = 100.0 + 0.1 * i
+        for topic in scan_topics:
+            out.append((topic, SCAN, t, lambda f, t=t: f.scan(t, np.full(N_BEAMS, 2.0), 0.0)))
+        for k, ns in enumerate(frames):
+            at, pose, base = t + 0.01, Pose2D(k, 0.1 * i, 0.0), f"{ns}base_link"
+            if odom_topic is None:
+                args = (at, pose, f"{ns}odom", base)
+                out.append((tf_topic, TF, at, lambda f, a=args: f.tf(*a)))
+            else:
+                args = (at, pose, (0.0, 0.0, 0.0), base)
+                out.append((odom_topic, ODOM, at, lambda f, a=args: f.odom(*a)))
+    return out
+
+
+def robots_of(path: Path, **options: Any) -> tuple[list[str], dict[str, list[float]]]:
+    """The scans' robots, and each robot's odometry x positions, as the reader names them."""
+    scans, odom_x = [], {}
+    for record in BagReader(path, **options):
+        if isinstance(record, BagScan):
+            scans.append(record.scan.robot_id)
+        else:
+            odom_x.setdefault(record.odom.robot_id, []).append(record.odom.pose.x)
+    return scans, odom_x
+
+
+@pytest.mark.parametrize("kind", ["ros1", "ros2-mcap"])
+def test_a_namespaced_robot_gets_the_odometry_of_a_global_tf_or_odom_topic(
+    tmp_path: Path, kind: str
+) -> None:
+    """Scans on /robot1/scan with odometry on the global /tf (or /odom): both are robot1's.
+    Named after their topics alone, the odometry went to "robot" and robot1 had none."""
+    for name, records in [
+        ("tf", robot_records(["/robot1/scan"], "/tf", [""])),
+        ("odom", robot_records(["/robot1/scan"], "/tf", [""], odom_topic="/odom")),
+    ]:
+        scans, odom_x = robots_of(write_records(tmp_path / name, kind, records))
+        assert scans == ["robot1", "robot1"]
+        assert odom_x == {"robot1": [0.0, 0.0]}
+
+
+@pytest.mark.parametrize("kind", ["ros1", "ros2-mcap"])
+def test_each_robot_of_a_shared_tf_gets_its_own_odometry_by_frame_namespace(
+    tmp_path: Path, kind: str
+) -> None:
+    """Two robots' scans under their namespaces and one global /tf with robot1/odom ->
+    robot1/base_link and robot2/...: each robot gets its own transforms (they were all
+    "robot"'s, two robots' poses in one stream)."""
+    records = robot_records(["/robot1/scan", "/robot2/scan"], "/tf", ["robot1/", "robot2/"])
+    scans, odom_x = robots_of(write_records(tmp_path, kind, records))
+    assert sorted(scans) == ["robot1", "robot1", "robot2", "robot2"]
+    assert odom_x == {"robot1": [0.0, 0.0], "robot2": [1.0, 1.0]}
+
+
+def test_global_odometry_stays_apart_when_the_scans_are_of_several_robots(
+    tmp_path: Path,
+) -> None:
+    """A global scan topic beside a namespaced one, or bare frames shared by two robots: no
+    robot is the one, so global odometry stays "robot"'s, as the global scans are; a frame
+    namespace no scan topic names does not make a robot; a given robot_id takes everything."""
+    both = robot_records(["/scan", "/robot2/scan"], "/tf", [""])
+    scans, odom_x = robots_of(write_records(tmp_path / "a", "ros1", both))
+    assert sorted(scans) == ["robot", "robot", "robot2", "robot2"]
+    assert odom_x == {"robot": [0.0, 0.0]}
+    stray = robot_records(["/robot1/scan", "/robot2/scan"], "/tf", ["robot3/"])
+    assert robots_of(write_records(tmp_path / "b", "ros1", stray))[1] == {"robot": [0.0, 0.0]}
+    shared = robot_records(["/robot1/scan", "/robot2/scan"], "/tf", ["robot1/", "robot2/"])
+    scans, odom_x = robots_of(write_records(tmp_path / "c", "ros1", shared), robot_id="r")
+    assert scans == ["r"] * 4 and odom_x == {"r": [0.0, 1.0, 0.0, 1.0]}
 
 
 def test_topic_selection(bag: Path) -> None:
