@@ -133,6 +133,21 @@ def _yaml_float(
         raise ValueError(f"{source}: field {key!r} is not a number: {fields[key]!r}") from None
 
 
+YAML_TRUE = ("1", "true", "yes", "on", "y")
+YAML_FALSE = ("0", "false", "no", "off", "n")
+
+
+def _yaml_flag(fields: dict[str, str], key: str, source: Path) -> bool:
+    """Field `key` as map_server reads a flag (0/1 or a YAML boolean, false when absent): any
+    other word is refused, never taken for true (`negate: FALSE` used to invert the map)."""
+    value = fields.get(key, "0").lower()
+    if value not in YAML_TRUE + YAML_FALSE:
+        raise ValueError(
+            f"{source}: field {key!r} must be 0, 1, true or false, got {fields[key]!r}"
+        )
+    return value in YAML_TRUE
+
+
 def _occupancy_from_pixels(
     shade: NDArray[np.float64], mode: str, occupied_thresh: float, free_thresh: float
 ) -> NDArray[np.int8]:
@@ -195,7 +210,7 @@ def load_map_server(yaml_path: Path | str, params: OccupancyParams | None = None
     if len(origin) != 3 or origin[2] != 0.0:
         raise ValueError(f"{yaml_path}: field 'origin' must be [x, y, 0.0], got {origin_text!r}")
     shade = _shade_of(yaml_path.parent / fields["image"])
-    if fields.get("negate", "0") not in ("0", "false", "False"):
+    if _yaml_flag(fields, "negate", yaml_path):
         shade = 255.0 - shade
     data = _occupancy_from_pixels(shade[::-1], mode, occupied_thresh, free_thresh)
     grid_params = replace(params or OccupancyParams(), resolution_m=resolution_m)

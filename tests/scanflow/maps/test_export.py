@@ -368,3 +368,30 @@ def test_a_floating_point_image_is_a_value_error_naming_it(tmp_path: Path):
     (tmp_path / "f.yaml").write_text("image: f.tiff\nresolution: 0.05\norigin: [0, 0, 0]\n")
     with pytest.raises(ValueError, match=r"f\.tiff: floating-point image"):
         load_map(tmp_path / "f.yaml")
+
+
+@pytest.mark.parametrize(
+    ("negate", "inverted"),
+    [("0", False), ("false", False), ("FALSE", False), ("no", False), ("off", False),
+     ("1", True), ("true", True), ("True", True), ("yes", True), ("ON", True)],
+)
+def test_negate_is_read_as_map_server_reads_a_flag(tmp_path: Path, negate: str, inverted: bool):
+    """Every YAML spelling of false keeps the map as drawn: `negate: FALSE` or `no` used to
+    invert it (anything but 0, false and False was taken for true)."""
+    image = np.array([[0, 254, 205], [254, 0, 254]], dtype=np.uint8)  # top row first
+    Image.fromarray(image, mode="L").save(tmp_path / "a.pgm")
+    (tmp_path / "a.yaml").write_text(
+        f"image: a.pgm\nresolution: 0.5\norigin: [-1.0, -2.0, 0.0]\nnegate: {negate}\n"
+    )
+    occupied = load_map(tmp_path / "a.yaml").occupied_mask()[::-1]
+    np.testing.assert_array_equal(occupied, (image != 0) if inverted else (image == 0))
+
+
+@pytest.mark.parametrize("negate", ["2", "0.0", "maybe"])
+def test_a_negate_that_is_no_flag_is_named(tmp_path: Path, negate: str):
+    Image.fromarray(np.full((2, 3), 254, np.uint8), mode="L").save(tmp_path / "a.pgm")
+    (tmp_path / "bad.yaml").write_text(
+        f"image: a.pgm\nresolution: 0.05\norigin: [0.0, 0.0, 0.0]\nnegate: {negate}\n"
+    )
+    with pytest.raises(ValueError, match=r"bad\.yaml: field 'negate' must be 0, 1, true or false"):
+        load_map(tmp_path / "bad.yaml")
