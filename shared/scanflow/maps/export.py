@@ -149,27 +149,37 @@ def _yaml_flag(fields: dict[str, str], key: str, source: Path) -> bool:
 
 
 def _occupancy_from_pixels(
-    shade: NDArray[np.float64], mode: str, occupied_thresh: float, free_thresh: float
+    shade: NDArray[np.float64],
+    opacity: NDArray[np.float64] | None,
+    mode: str,
+    negate: bool,
+    occupied_thresh: float,
+    free_thresh: float,
 ) -> NDArray[np.int8]:
-    """map_server's pixel -> ROS occupancy (-1, 0..100) for trinary and scale modes."""
-    occ = (255.0 - shade) / 255.0
+    """map_server's pixel -> ROS occupancy (-1, 0..100) for trinary and scale modes. With an
+    alpha channel, trinary averages the opacity in as a fourth channel and scale calls every
+    pixel that is not opaque unknown, as map_server and nav2 do (scale maps mark unknown so)."""
+    if opacity is not None and mode == "trinary":
+        shade = (3.0 * shade + opacity) / 4.0
+    occ = shade / 255.0 if negate else (255.0 - shade) / 255.0
     if mode == "trinary":
         middle = np.full(shade.shape, -1.0)
     else:
         middle = np.rint(99.0 * (occ - free_thresh) / (occupied_thresh - free_thresh))
     data = np.where(occ > occupied_thresh, 100.0, np.where(occ < free_thresh, 0.0, middle))
+    if opacity is not None and mode == "scale":
+        data[opacity < 255.0] = -1.0
     return data.astype(np.int8)
 
 
-def _shade_of(image_path: Path) -> NDArray[np.float64]:
-    """The image's grey level per pixel on map_server's 0..255 scale: colour channels averaged
-    as map_server does, 16-bit images (PGM with maxval > 255, PNG) scaled down from 0..65535
-    rather than clipped at 255 (Pillow reads both as 0..65535)."""
+def _shade_of(image_path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+    """The image's grey level per pixel on map_server's 0..255 scale, and its opacity (0..255)
+    when it has an alpha channel or a transparent colour (None otherwise): colour channels
+    averaged as map_server does, 16-bit images (PGM with maxval > 255, PNG) scaled down from
+    0..65535 rather than clipped at 255 (Pillow reads both as 0..65535)."""
     try:
         with Image.open(image_path) as img:
             mode = img.mode
-            if mode == "L":
-                return np.asarray(img, dtype=np.float64)
             if mode == "I" or mode.startswith("I;16"):
                 pixels = np.asarray(img, dtype=np.float64)
                 if pixels.size and (pixels.min() < 0.0 or pixels.max() > 65535.0):
@@ -177,10 +187,17 @@ def _shade_of(image_path: Path) -> NDArray[np.float64]:
                         f"{image_path}: mode {mode} pixels outside 0..65535 "
                         f"({pixels.min():.0f}..{pixels.max():.0f}): not a 16-bit grey map"
                     )
-                return pixels * (255.0 / 65535.0)
+                transparent = img.info.get("transparency")  # a 16-bit PNG's tRNS grey level
+                opacity = None if transparent is None else 255.0 * (pixels != transparent)
+                return pixels * (255.0 / 65535.0), opacity
+            if "A" in mode or "transparency" in img.info:
+                rgba = np.asarray(img.convert("RGBA"), dtype=np.float64)
+                return rgba[..., :3].mean(axis=2), rgba[..., 3]
+            if mode == "L":
+                return np.asarray(img, dtype=np.float64), None
             if mode == "F":
                 raise ValueError(f"{image_path}: floating-point image (mode F): not a map image")
-            return np.asarray(img.convert("RGB"), dtype=np.float64).mean(axis=2)
+            return np.asarray(img.convert("RGB"), dtype=np.float64).mean(axis=2), None
     except Image.DecompressionBombError as exc:  # a size no map has: a corrupt header
         raise ValueError(f"{image_path}: {exc}") from exc
 
@@ -209,10 +226,10 @@ def load_map_server(yaml_path: Path | str, params: OccupancyParams | None = None
         origin = []
     if len(origin) != 3 or origin[2] != 0.0:
         raise ValueError(f"{yaml_path}: field 'origin' must be [x, y, 0.0], got {origin_text!r}")
-    shade = _shade_of(yaml_path.parent / fields["image"])
-    if _yaml_flag(fields, "negate", yaml_path):
-        shade = 255.0 - shade
-    data = _occupancy_from_pixels(shade[::-1], mode, occupied_thresh, free_thresh)
+    shade, opacity = _shade_of(yaml_path.parent / fields["image"])
+    negate = _yaml_flag(fields, "negate", yaml_path)
+    data = _occupancy_from_pixels(shade, opacity, mode, negate, occupied_thresh, free_thresh)
+    data = data[::-1]  # image row 0 is the top of the map, grid row 0 its bottom
     grid_params = replace(params or OccupancyParams(), resolution_m=resolution_m)
     return OccupancyGrid.from_int8(data, origin[0], origin[1], grid_params)
 

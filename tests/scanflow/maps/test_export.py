@@ -395,3 +395,45 @@ def test_a_negate_that_is_no_flag_is_named(tmp_path: Path, negate: str):
     )
     with pytest.raises(ValueError, match=r"bad\.yaml: field 'negate' must be 0, 1, true or false"):
         load_map(tmp_path / "bad.yaml")
+
+
+@pytest.mark.parametrize("image_mode", ["RGBA", "LA", "P", "I;16"])
+def test_transparent_pixels_of_a_scale_map_are_unknown(tmp_path: Path, image_mode: str):
+    """nav2's map_saver in scale mode marks unknown cells by transparency (grey 128, alpha 0):
+    the alpha channel used to be dropped, so they read as half-occupied observed cells, and as
+    walls where occupied_thresh is below 0.5."""
+    grey = np.array([[0, 128, 255], [127, 128, 0]], dtype=np.uint8)  # top row first
+    opaque = np.array([[True, False, True], [True, False, True]])
+    rgba = np.dstack([grey, grey, grey, np.where(opaque, 255, 0).astype(np.uint8)])
+    image = Image.fromarray(rgba, mode="RGBA")
+    options = {}
+    if image_mode == "LA":
+        image = image.convert("LA")
+    elif image_mode == "P":  # a palette with a transparent entry (PNG tRNS)
+        image = image.quantize(colors=8)
+    elif image_mode == "I;16":  # 16-bit grey with a transparent grey level (PNG tRNS)
+        image, options = Image.fromarray(grey.astype(np.uint16) * 257), {"transparency": 128 * 257}
+    image.save(tmp_path / "scale.png", **options)
+    (tmp_path / "scale.yaml").write_text(
+        "image: scale.png\nmode: scale\nresolution: 0.05\norigin: [0.0, 0.0, 0.0]\n"
+        "negate: 0\noccupied_thresh: 0.45\nfree_thresh: 0.25\n"
+    )
+    grid = load_map(tmp_path / "scale.yaml")
+    np.testing.assert_array_equal(grid.observed[::-1], opaque)
+    np.testing.assert_array_equal(grid.occupied_mask()[::-1], opaque & (255 - grey > 0.45 * 255))
+
+
+def test_a_trinary_map_with_alpha_reads_as_map_server_reads_it(tmp_path: Path):
+    """Trinary mode averages the opacity in with the colour channels (map_server and nav2
+    alike), so an opaque unknown grey (205) lightens to free; negate applies after."""
+    grey = np.array([[0, 254, 205], [205, 0, 254]], dtype=np.uint8)
+    alpha = np.array([[255, 255, 255], [0, 0, 255]], dtype=np.uint8)
+    Image.fromarray(np.dstack([grey, grey, grey, alpha]), mode="RGBA").save(tmp_path / "t.png")
+    for negate in (0, 1):
+        (tmp_path / "t.yaml").write_text(
+            f"image: t.png\nresolution: 0.05\norigin: [0.0, 0.0, 0.0]\nnegate: {negate}\n"
+        )
+        shade = (3.0 * grey + alpha) / 4.0
+        occ = shade / 255.0 if negate else (255.0 - shade) / 255.0
+        want = np.where(occ > 0.65, 1, np.where(occ < 0.196, 0, 2))
+        np.testing.assert_array_equal(classes(load_map(tmp_path / "t.yaml"))[::-1], want)
