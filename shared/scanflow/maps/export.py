@@ -205,7 +205,8 @@ def _shade_of(image_path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64
 def load_map_server(yaml_path: Path | str, params: OccupancyParams | None = None) -> OccupancyGrid:
     """Read a map_server YAML and its image (PGM, PNG, ...) into an OccupancyGrid."""
     yaml_path = Path(yaml_path)
-    fields = _parse_flat_yaml(yaml_path.read_text(encoding="utf-8"), yaml_path)
+    text = yaml_path.read_text(encoding="utf-8-sig")  # a byte order mark is no part of a key
+    fields = _parse_flat_yaml(text, yaml_path)
     if "image" not in fields:
         raise ValueError(f"{yaml_path}: missing field 'image'")
     resolution_m = _yaml_float(fields, "resolution", yaml_path)

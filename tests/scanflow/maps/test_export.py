@@ -437,3 +437,16 @@ def test_a_trinary_map_with_alpha_reads_as_map_server_reads_it(tmp_path: Path):
         occ = shade / 255.0 if negate else (255.0 - shade) / 255.0
         want = np.where(occ > 0.65, 1, np.where(occ < 0.196, 0, 2))
         np.testing.assert_array_equal(classes(load_map(tmp_path / "t.yaml"))[::-1], want)
+
+
+def test_a_map_server_yaml_with_a_byte_order_mark_and_crlf_lines_reads(
+    tmp_path: Path, grid: OccupancyGrid
+):
+    """As a Windows editor saves it: the BOM used to stick to the first key ('missing field
+    image' for a file that has one)."""
+    yaml_path = save_map_server(grid, tmp_path / "win.yaml")
+    text = yaml_path.read_text().replace("\n", "\r\n")
+    yaml_path.write_bytes(b"\xef\xbb\xbf" + text.encode("utf-8"))
+    loaded = load_map(yaml_path)
+    assert loaded.spec == grid.spec
+    np.testing.assert_array_equal(classes(loaded), classes(grid))
