@@ -9,7 +9,13 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scanflow.maps.export import npz_arrays, npz_bytes, save_map_server, save_png
+from scanflow.maps.export import (
+    map_server_zip,
+    npz_arrays,
+    npz_bytes,
+    save_map_server,
+    save_png,
+)
 from scanflow.maps.grid import CellBox
 from scanflow.wire import (
     MAX_POSITION_M,
@@ -30,11 +36,14 @@ def meta(robot: RobotMap) -> MapMetaMessage:
 
 
 def image(robot: RobotMap, fmt: str) -> MapImageMessage:
-    """The map exported by the library's writers: png, pgm or yaml (map_server), npz (native,
-    built in memory: a resume asks for it under the map server's lock)."""
+    """The map exported by the library's writers: png, pgm or yaml (map_server), zip (that
+    yaml and pgm together), npz (native, built in memory: a resume asks for it under the map
+    server's lock)."""
     grid = robot.map.grid
     if fmt == "npz":
         data = npz_bytes(npz_arrays(grid))
+    elif fmt == "zip":
+        data = map_server_zip(grid, robot.robot_id)
     elif fmt in ("png", "pgm", "yaml"):
         with tempfile.TemporaryDirectory(prefix="scanflow-map-") as tmp:
             base = Path(tmp) / robot.robot_id
@@ -45,7 +54,7 @@ def image(robot: RobotMap, fmt: str) -> MapImageMessage:
                 path = base.with_suffix(f".{fmt}")
             data = path.read_bytes()
     else:
-        raise ValueError(f"format must be png, pgm, yaml or npz, got {fmt!r}")
+        raise ValueError(f"format must be png, pgm, yaml, zip or npz, got {fmt!r}")
     return MapImageMessage(robot.robot_id, robot.map.revision, fmt, data)  # type: ignore[arg-type]
 
 

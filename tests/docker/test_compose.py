@@ -21,7 +21,7 @@ import httpx
 import numpy as np
 import pytest
 import scanflow
-from scanflow.maps.export import save_map_server
+from scanflow.maps.export import map_server_zip, save_map_server
 from scanflow.matching import match
 from scanflow.scan import LaserScan
 
@@ -211,6 +211,9 @@ def test_map_equals_the_in_process_map(stack, expected):
     png = client.get(f"/api/v1/robots/{ROBOT}/map.png")
     assert png.status_code == 200 and png.content.startswith(b"\x89PNG")
     assert "resolution:" in client.get(f"/api/v1/robots/{ROBOT}/map.yaml").text
+    bundle = client.get(f"/api/v1/robots/{ROBOT}/map.zip")
+    assert bundle.status_code == 200, bundle.text
+    assert bundle.content == map_server_zip(grid, ROBOT)
 
 
 def test_match_requests_equal_the_library(stack, expected):

@@ -1,4 +1,5 @@
-"""A robot's map from the map server: metadata, PNG, PGM + YAML (map_server), optional region.
+"""A robot's map from the map server: metadata, PNG, PGM + YAML (map_server) apart or in one
+zip, optionally a region.
 
 The whole map comes from the map server's image queryable as it exported it; a region (world
 box x0, y0, x1, y1 in metres) comes from its region queryable and is written by the library's
@@ -14,7 +15,7 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, HTTPException, Query
 from fastapi.responses import Response
 from scanflow import keys
-from scanflow.maps.export import save_map_server, save_png
+from scanflow.maps.export import map_server_zip, save_map_server, save_png
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
 from scanflow.wire import MapImageMessage, MapMetaMessage, MapRegionMessage
 from starlette.concurrency import run_in_threadpool
@@ -25,7 +26,8 @@ from services.gateway.models import MapMetaOut
 
 router = APIRouter(prefix=API_PREFIX, tags=["maps"])
 Bound = Annotated[float | None, Query(ge=-1e6, le=1e6, description="metres")]
-MEDIA = {"png": "image/png", "pgm": "image/x-portable-graymap", "yaml": "application/yaml"}
+MEDIA = {"png": "image/png", "pgm": "image/x-portable-graymap", "yaml": "application/yaml",
+         "zip": "application/zip"}
 ANSWERS = {404: {"description": "no map for this robot"}, 422: {"description": "bad region"},
            503: {"description": "no map server answers"}, 504: {"description": "timed out"},
            **BAD_GATEWAY}
@@ -44,19 +46,21 @@ async def map_meta(robot: Robot, backend: Backend) -> MapMetaOut:
     response_class=Response,
     responses={**ANSWERS, 200: {"content": {m: {} for m in MEDIA.values()},
                                 "description": "the map file"}},
-    summary="The map as PNG, or PGM + YAML for ROS map_server (optionally a region)",
+    summary="The map as PNG, or PGM + YAML for ROS map_server, or both of those in one zip "
+    "(optionally a region)",
 )
 async def map_file(
     robot: Robot,
     backend: Backend,
-    fmt: Literal["png", "pgm", "yaml"],
+    fmt: Literal["png", "pgm", "yaml", "zip"],
     x0: Bound = None,
     y0: Bound = None,
     x1: Bound = None,
     y1: Bound = None,
 ) -> Response:
     """The whole map as the map server exported it, or with all of x0, y0, x1, y1 (metres, map
-    frame) the cells inside that box; `X-Map-Revision` says which revision it is."""
+    frame) the cells inside that box; `X-Map-Revision` says which revision it is. A growing map
+    can change between a .yaml and a .pgm download: .zip holds the two of one revision."""
     bounds = (x0, y0, x1, y1)
     headers = {"Cache-Control": "no-cache"}
     if all(b is None for b in bounds):
@@ -88,6 +92,8 @@ def export_region(region: MapRegionMessage, fmt: str) -> bytes:
     spec = region.window_spec
     params = OccupancyParams(resolution_m=spec.resolution_m)
     grid = OccupancyGrid.from_int8(region.occupancy, spec.origin_x_m, spec.origin_y_m, params)
+    if fmt == "zip":
+        return map_server_zip(grid)
     with tempfile.TemporaryDirectory(prefix="scanflow-region-") as tmp:
         base = Path(tmp) / "map"
         if fmt == "png":

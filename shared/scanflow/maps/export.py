@@ -13,6 +13,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import zipfile
 from collections.abc import Mapping
 from dataclasses import asdict, replace
 from pathlib import Path
@@ -82,6 +83,28 @@ def pgm_bytes(image: NDArray[np.uint8]) -> bytes:
     return header + np.ascontiguousarray(image, dtype=np.uint8).tobytes()
 
 
+def map_server_files(
+    grid: OccupancyGrid,
+    name: str,
+    occupied_thresh: float = OCCUPIED_THRESH,
+    free_thresh: float = FREE_THRESH,
+) -> tuple[bytes, bytes]:
+    """The map_server pair of one map, in memory: `<name>.yaml` (naming `<name>.pgm` as its
+    image) and that trinary PGM."""
+    spec = grid.spec
+    pgm = pgm_bytes(trinary_image(grid, occupied_thresh, free_thresh))
+    text = (
+        f"image: {name}.pgm\n"
+        "mode: trinary\n"
+        f"resolution: {spec.resolution_m!r}\n"
+        f"origin: [{spec.origin_x_m!r}, {spec.origin_y_m!r}, 0.0]\n"
+        "negate: 0\n"
+        f"occupied_thresh: {occupied_thresh!r}\n"
+        f"free_thresh: {free_thresh!r}\n"
+    )
+    return text.encode("utf-8"), pgm
+
+
 def save_map_server(
     grid: OccupancyGrid,
     yaml_path: Path | str,
@@ -90,19 +113,23 @@ def save_map_server(
 ) -> Path:
     """Write `<name>.yaml` and `<name>.pgm` beside it, loadable by map_server/nav2 (trinary)."""
     yaml_path = Path(yaml_path)
-    pgm_path = yaml_path.with_suffix(".pgm")
-    spec = grid.spec
-    _write_atomic(pgm_path, pgm_bytes(trinary_image(grid, occupied_thresh, free_thresh)))
-    text = (
-        f"image: {pgm_path.name}\n"
-        "mode: trinary\n"
-        f"resolution: {spec.resolution_m!r}\n"
-        f"origin: [{spec.origin_x_m!r}, {spec.origin_y_m!r}, 0.0]\n"
-        "negate: 0\n"
-        f"occupied_thresh: {occupied_thresh!r}\n"
-        f"free_thresh: {free_thresh!r}\n"
-    )
-    return _write_atomic(yaml_path, text.encode("utf-8"))
+    text, pgm = map_server_files(grid, yaml_path.stem, occupied_thresh, free_thresh)
+    _write_atomic(yaml_path.with_suffix(".pgm"), pgm)
+    return _write_atomic(yaml_path, text)
+
+
+def map_server_zip(grid: OccupancyGrid, name: str = "map") -> bytes:
+    """`<name>.yaml` and `<name>.pgm` in one zip: a pair that cannot come from two revisions of
+    a growing map, as two downloads can. Stamped 1980-01-01, so one map gives the same bytes."""
+    text, pgm = map_server_files(grid, name)
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+        for suffix, data in ((".yaml", text), (".pgm", pgm)):
+            entry = zipfile.ZipInfo(f"{name}{suffix}", date_time=(1980, 1, 1, 0, 0, 0))
+            entry.compress_type = zipfile.ZIP_DEFLATED
+            entry.external_attr = 0o644 << 16  # rw-r--r-- when unzipped
+            archive.writestr(entry, data)
+    return buffer.getvalue()
 
 
 def _parse_flat_yaml(text: str, source: Path) -> dict[str, str]:

@@ -40,8 +40,8 @@ from scanflow.wire.schema import (
     optional,
 )
 
-MAP_IMAGE_FORMATS = ("png", "pgm", "yaml", "npz")
-MapImageFormat = Literal["png", "pgm", "yaml", "npz"]
+MAP_IMAGE_FORMATS = ("png", "pgm", "yaml", "zip", "npz")
+MapImageFormat = Literal["png", "pgm", "yaml", "zip", "npz"]
 
 
 @dataclass(frozen=True, eq=False)

@@ -1,7 +1,9 @@
 """Map files: exact native round trip, map_server PGM/YAML as ROS reads it, PNG for people."""
 
+import io
 import json
 import math
+import zipfile
 from dataclasses import asdict
 from pathlib import Path
 
@@ -15,6 +17,7 @@ from scanflow.maps.export import (
     UNKNOWN_PIXEL,
     grid_from_npz_bytes,
     load_map,
+    map_server_zip,
     npz_arrays,
     npz_bytes,
     save_map,
@@ -191,6 +194,22 @@ def test_map_server_round_trip_keeps_free_occupied_unknown(tmp_path: Path, grid:
     want = classes(grid)
     assert {0, 1, 2} <= set(np.unique(want))
     np.testing.assert_array_equal(classes(loaded), want)
+
+
+def test_a_map_server_zip_holds_the_pair_that_reads_back(tmp_path: Path, grid: OccupancyGrid):
+    """One download for map_server / nav2: `<name>.yaml` naming `<name>.pgm`, the same files
+    save_map_server writes, which read back to the same map."""
+    data = map_server_zip(grid, "office")
+    assert map_server_zip(grid, "office") == data  # no clock in it
+    archive = zipfile.ZipFile(io.BytesIO(data))
+    assert sorted(archive.namelist()) == ["office.pgm", "office.yaml"]
+    archive.extractall(tmp_path / "zip")
+    save_map_server(grid, tmp_path / "office.yaml")
+    for name in ("office.yaml", "office.pgm"):
+        assert (tmp_path / "zip" / name).read_bytes() == (tmp_path / name).read_bytes()
+    loaded = load_map(tmp_path / "zip" / "office.yaml")
+    assert loaded.spec.shape == grid.spec.shape
+    np.testing.assert_array_equal(classes(loaded), classes(grid))
 
 
 def test_reads_a_hand_written_map_server_map(tmp_path: Path):

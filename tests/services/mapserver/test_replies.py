@@ -1,6 +1,9 @@
-"""The map server's replies: a region query's cells and bounds."""
+"""The map server's replies: a region query's cells and bounds, the exported files."""
 
 from __future__ import annotations
+
+import io
+import zipfile
 
 import pytest
 
@@ -19,3 +22,13 @@ def test_a_region_apart_from_the_map_has_no_cells_and_bad_bounds_are_named(new_r
         replies.region(robot, (float("nan"), 0.0, 1.0, 1.0))
     with pytest.raises(ValueError, match="x0 <= x1"):
         replies.region(robot, (2.0, 0.0, 1.0, 1.0))
+
+
+def test_the_zip_export_is_the_yaml_and_pgm_exports_of_one_revision(new_robot, insert):
+    robot = new_robot()
+    robot.insert(insert(0))
+    archive = zipfile.ZipFile(io.BytesIO(replies.image(robot, "zip").data))
+    assert archive.read("r.yaml") == replies.image(robot, "yaml").data
+    assert archive.read("r.pgm") == replies.image(robot, "pgm").data
+    with pytest.raises(ValueError, match="png, pgm, yaml, zip or npz"):
+        replies.image(robot, "tiff")

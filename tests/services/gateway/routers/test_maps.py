@@ -1,8 +1,9 @@
-"""GET /robots/{robot}/map and map.{png,pgm,yaml}: metadata, the whole map, a region."""
+"""GET /robots/{robot}/map and map.{png,pgm,yaml,zip}: metadata, the whole map, a region."""
 
 from __future__ import annotations
 
 import io
+import zipfile
 
 import numpy as np
 from PIL import Image
@@ -26,6 +27,8 @@ def test_map_meta_and_png(client, peer):
     r = client.get("/api/v1/robots/r1/map.png")
     assert r.headers["content-type"] == "image/png" and r.content == png.getvalue()
     assert r.headers["x-map-revision"] == "3"
+    bundle = client.get("/api/v1/robots/r1/map.zip")
+    assert bundle.headers["content-type"] == "application/zip"
 
 
 def test_map_region_is_exported_by_the_library(client, peer):
@@ -47,6 +50,11 @@ def test_map_region_is_exported_by_the_library(client, peer):
     png = client.get("/api/v1/robots/r1/map.png", params={"x0": 0, "y0": -1.5, "x1": 1, "y1": -1})
     pixels = np.asarray(Image.open(io.BytesIO(png.content)))
     assert pixels.shape == (2, 3) and pixels[1, 0] == 0 and pixels[0, 2] == 254  # y up
+    bundle = client.get("/api/v1/robots/r1/map.zip",
+                        params={"x0": 0, "y0": -1.5, "x1": 1, "y1": -1})
+    assert bundle.headers["content-type"] == "application/zip"
+    archive = zipfile.ZipFile(io.BytesIO(bundle.content))
+    assert archive.read("map.yaml") == yaml.content and archive.read("map.pgm") == r.content
 
 
 def test_partial_region_and_missing_map(client, peer):
