@@ -258,8 +258,11 @@ def load_map_server(yaml_path: Path | str, params: OccupancyParams | None = None
     negate = _yaml_flag(fields, "negate", yaml_path)
     data = _occupancy_from_pixels(shade, opacity, mode, negate, occupied_thresh, free_thresh)
     data = data[::-1]  # image row 0 is the top of the map, grid row 0 its bottom
-    grid_params = replace(params or OccupancyParams(), resolution_m=resolution_m)
-    return OccupancyGrid.from_int8(data, origin[0], origin[1], grid_params)
+    try:  # a resolution or origin the grid refuses (not positive, not finite): name the file
+        grid_params = replace(params or OccupancyParams(), resolution_m=resolution_m)
+        return OccupancyGrid.from_int8(data, origin[0], origin[1], grid_params)
+    except ValueError as exc:
+        raise ValueError(f"{yaml_path}: {exc}") from exc
 
 
 def npz_arrays(grid: OccupancyGrid) -> dict[str, NDArray]:

@@ -252,6 +252,22 @@ def test_bad_map_server_yaml_names_the_field(tmp_path: Path, text: str, field: s
         load_map(tmp_path / "bad.yaml")
 
 
+@pytest.mark.parametrize(
+    ("resolution", "origin", "reason"),
+    [("-0.05", "[0, 0, 0]", "resolution_m must be positive"),
+     ("nan", "[0, 0, 0]", "resolution_m must be positive"),
+     ("0.05", "[nan, 0, 0]", "must be finite"), ("0.05", "[0, inf, 0]", "must be finite")],
+)
+def test_a_resolution_or_origin_the_grid_refuses_names_the_file(
+    tmp_path: Path, resolution: str, origin: str, reason: str
+):
+    Image.fromarray(np.full((3, 4), FREE_PIXEL, np.uint8)).save(tmp_path / "a.pgm")
+    (tmp_path / "bad.yaml").write_text(f"image: a.pgm\nresolution: {resolution}\n"
+                                       f"origin: {origin}\n")
+    with pytest.raises(ValueError, match=f"^{tmp_path / 'bad.yaml'}: .*{reason}"):
+        load_map(tmp_path / "bad.yaml")
+
+
 def test_png_for_people(tmp_path: Path, grid: OccupancyGrid):
     path = save_map(grid, tmp_path / "map.png")
     with Image.open(path) as img:
