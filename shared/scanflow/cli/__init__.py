@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import typer
 
 app = typer.Typer(
@@ -15,6 +17,12 @@ app = typer.Typer(
 @app.callback()
 def _root() -> None:
     """2D LiDAR pipeline: simulate, inspect logs, run the services, benchmark."""
+
+
+def finite_or_none(value: float) -> float | None:
+    """`value` rounded to 4 decimals for a --json summary, None for NaN or an infinity (JSON
+    has neither: `json.dumps` would write tokens no JSON parser reads)."""
+    return round(value, 4) if math.isfinite(value) else None
 
 
 def main() -> None:

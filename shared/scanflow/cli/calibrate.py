@@ -11,7 +11,7 @@ from typing import Annotated
 import typer
 
 from scanflow.calibration import estimate_mount, paired_motions
-from scanflow.cli import app
+from scanflow.cli import app, finite_or_none
 from scanflow.geometry import IDENTITY
 from scanflow.io.carmen import load_keyframes
 from scanflow.io.detect import detect_format
@@ -41,9 +41,10 @@ def calibrate_command(
         "log": str(log),
         "status": str(estimate.status),
         "message": estimate.message,
-        "mount_m_m_deg": [m.x, m.y, math.degrees(m.theta)],
-        "std_m_m_deg": [*estimate.std_xy_m, math.degrees(estimate.std_yaw_rad)],
-        "residual_rms_m": estimate.residual_rms_m,
+        "mount_m_m_deg": [finite_or_none(v) for v in (m.x, m.y, math.degrees(m.theta))],
+        "std_m_m_deg": [finite_or_none(v) for v in
+                        (*estimate.std_xy_m, math.degrees(estimate.std_yaw_rad))],
+        "residual_rms_m": finite_or_none(estimate.residual_rms_m),
         "pairs_used": estimate.pairs_used,
         "pairs_matched": len(robot),
         "keyframes": len(frames),

@@ -12,7 +12,7 @@ import numpy as np
 import typer
 from tqdm import tqdm
 
-from scanflow.cli import app
+from scanflow.cli import app, finite_or_none
 from scanflow.io.detect import detect_format, open_log, record_payload
 from scanflow.scan import LaserScan, Odometry
 
@@ -88,17 +88,13 @@ class LogSummary:
                 round(self.dropped_total / self.beam_total, 6) if self.beam_total else None
             ),
             "range_m": {
-                "min": _finite_or_none(self.range_min_m),
-                "max": _finite_or_none(self.range_max_m),
+                "min": finite_or_none(self.range_min_m),
+                "max": finite_or_none(self.range_max_m),
                 "mean": round(self.valid_range_sum_m / valid_total, 6) if valid_total else None,
             },
-            "no_return_at_m": sorted(_finite_or_none(v) for v in self.no_return_m if v < math.inf),
+            "no_return_at_m": sorted(finite_or_none(v) for v in self.no_return_m if v < math.inf),
             "lidar_mounts_m_m_deg": sorted(list(m) for m in self.mounts),
         }
-
-
-def _finite_or_none(value: float) -> float | None:
-    return round(value, 4) if math.isfinite(value) else None
 
 
 def _deg_or_none(angle_rad: float) -> float | None:

@@ -43,3 +43,23 @@ def test_calibrate_names_a_missing_log(tmp_path: Path) -> None:
     _register()
     result = CliRunner().invoke(app, ["calibrate", "--log", str(tmp_path / "none.log")])
     assert result.exit_code == 2 and "no log at" in result.output
+
+
+def _strict_json(text: str) -> object:
+    """`text` parsed as JSON proper: NaN and Infinity, which Python would take, are refused."""
+    def refuse(token: str) -> object:
+        raise ValueError(f"{token} is not JSON")
+    return json.loads(text, parse_constant=refuse)
+
+
+def test_no_estimate_in_json_is_valid_json(tmp_path: Path) -> None:
+    """A log with too few keyframes: the spreads of no estimate are null, not NaN tokens."""
+    log = tmp_path / "few.log"
+    ranges = " ".join(["3.0"] * 180)
+    log.write_text("".join(f"FLASER 180 {ranges} 0 0 0 0 0 0 {t} host {t}\n" for t in (1, 2)))
+    _register()
+    result = CliRunner().invoke(app, ["calibrate", "--log", str(log), "--json"])
+    assert result.exit_code == 1, result.output
+    out = _strict_json(result.output)
+    assert out["status"] == "too_few_pairs"
+    assert out["std_m_m_deg"] == [None, None, None] and out["residual_rms_m"] is None
