@@ -112,6 +112,12 @@ def run_command(
         start = FrontendStart(settings)
     except PriorMapError as exc:
         raise typer.BadParameter(str(exc), param_hint="--prior-map") from exc
+    if map_out is not None:
+        try:  # made now: a place that cannot be written fails here, not after the whole run
+            map_out.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise typer.BadParameter(f"cannot make {map_out}: {exc.strerror}",
+                                     param_hint="--map-out") from exc
     backend = BackendSettings()
     if loop_closure:
         backend = backend.model_copy(update={"loop_closure": True})
@@ -174,7 +180,6 @@ def run_command(
         }
     written: list[Path] = []
     if map_out is not None:
-        map_out.mkdir(parents=True, exist_ok=True)
         written = [save_map(matching_map.grid, map_out / f"map{suffix}")
                    for suffix in (".png", ".yaml", ".npz")]
         written.append(

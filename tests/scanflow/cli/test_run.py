@@ -142,6 +142,16 @@ def test_run_refuses_an_unreadable_log_or_a_file_as_map_out_without_a_traceback(
         assert named in result.output
 
 
+def test_run_refuses_a_map_out_it_cannot_make_before_the_run(tmp_path: Path) -> None:
+    """A --map-out under a file: a usage error naming it at start (before, a traceback after
+    the whole run, its map and trajectory lost)."""
+    (tmp_path / "taken").write_text("")
+    assert_usage_error(
+        ["run", "--duration", "0.5", "--json", "--map-out", str(tmp_path / "taken" / "out")],
+        "cannot make",
+    )
+
+
 def circle_log(path: Path, scans: int, bad_after: tuple[int, ...]) -> Path:
     """A CARMEN log of `scans` FLASER records (3 m all round, the robot still) with a
     malformed line after each scan index in `bad_after`."""
