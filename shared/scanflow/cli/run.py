@@ -171,6 +171,8 @@ def run_command(
         summary["skipped_records"] = skipped.count
     if broken:
         summary["log_error"] = broken
+    failure = (f"the log broke off, the run ends where it did: {broken}" if broken
+               else f"no scans in {log}" if log is not None and scans == 0 else "")
     if mapper is not None:
         summary["loop_closure"] = {
             "keyframes": mapper.graph.node_count,
@@ -180,15 +182,17 @@ def run_command(
         }
     written: list[Path] = []
     if map_out is not None:
-        written = [save_map(matching_map.grid, map_out / f"map{suffix}")
-                   for suffix in (".png", ".yaml", ".npz")]
+        written = [] if matching_map.grid.is_empty else [  # no scan inserted: no map to draw
+            save_map(matching_map.grid, map_out / f"map{suffix}")
+            for suffix in (".png", ".yaml", ".npz")
+        ]
         written.append(
             save_tum(map_out / "trajectory.tum", frontend.trajectory.stamps_s, poses)
         )
         summary["written"] = [str(p) for p in written]
     if as_json:
         typer.echo(json.dumps(summary))
-        _end(skipped, broken, as_json)
+        _end(skipped, failure, as_json)
         return
     typer.echo(
         f"{scans} scans ({statuses}) over {distance_m:.1f} m, {inserted} inserted, "
@@ -199,19 +203,21 @@ def run_command(
             f"loop closure: {len(mapper.closures)} closures between {mapper.graph.node_count} "
             f"keyframes ({len(mapper.culled_seqs)} inserts culled); map and trajectory optimised"
         )
+    if map_out is not None and matching_map.grid.is_empty:
+        typer.echo("warning: no scan was inserted: no map written", err=True)
     for path in written:
         typer.echo(f"wrote {path}")
-    _end(skipped, broken, as_json)
+    _end(skipped, failure, as_json)
 
 
-def _end(skipped: _Skipped, broken: str, as_json: bool) -> None:
+def _end(skipped: _Skipped, failure: str, as_json: bool) -> None:
     """Warn of the log's skipped records (unless --json, whose summary counts them); exit 1
-    when the log broke off before its end."""
+    naming the `failure` when there is one (the log broke off, or held no scan)."""
     if skipped.count and not as_json:
         typer.echo(f"warning: {skipped.count} unreadable records of the log skipped, the first "
                    f"{len(skipped.first)}:", err=True)
         for message in skipped.first:
             typer.echo(f"  {message}", err=True)
-    if broken:
-        typer.echo(f"error: the log broke off, the run ends where it did: {broken}", err=True)
+    if failure:
+        typer.echo(f"error: {failure}", err=True)
         raise typer.Exit(code=1)

@@ -207,3 +207,31 @@ def test_run_keeps_what_it_read_of_a_bag_that_breaks_off(tmp_path: Path, monkeyp
     assert summary["scans"] == 6 and "cannot be read after 10.5 s" in summary["log_error"]
     assert len(load_tum(out / "trajectory.tum")[0]) == 6
     assert "error: the log broke off" in result.stderr
+
+
+def test_run_of_a_log_with_no_scan_is_an_error_naming_it(tmp_path: Path) -> None:
+    """A file that holds no scan (here only lines CARMEN does not know): exit 1 naming it,
+    not an empty summary and exit 0; its trajectory (empty) is still written."""
+    _register()
+    log = tmp_path / "notes.log"
+    log.write_text("hello\nworld\n")
+    out = tmp_path / "out"
+    result = CliRunner().invoke(app, ["run", "--log", str(log), "--json", "--map-out", str(out)])
+    assert result.exit_code == 1, result.output
+    assert json.loads(result.stdout)["scans"] == 0
+    assert f"error: no scans in {log}" in result.stderr
+    assert [p.name for p in out.iterdir()] == ["trajectory.tum"]
+
+
+def test_run_that_inserts_nothing_writes_its_trajectory_and_no_map(tmp_path: Path) -> None:
+    """Scans that are all rejected (no valid beam): no map to draw, said so, the trajectory
+    written (before, a traceback from drawing the empty map)."""
+    _register()
+    log = circle_log(tmp_path / "blind.log", 4, bad_after=())
+    log.write_text(log.read_text().replace(" 3.0", " 0.0"))
+    out = tmp_path / "out"
+    result = CliRunner().invoke(app, ["run", "--log", str(log), "--map-out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "no map written" in result.stderr
+    assert [p.name for p in out.iterdir()] == ["trajectory.tum"]
+    assert len(load_tum(out / "trajectory.tum")[0]) == 4
