@@ -19,7 +19,7 @@ import zenoh
 from scanflow import keys
 from scanflow.config import BackendSettings, FrontendSettings, MapServerSettings, ZenohSettings
 from scanflow.frontend import default_settings, occupancy_params
-from scanflow.frontend.prior import FrontendStart
+from scanflow.frontend.prior import FrontendStart, PriorMapError
 from scanflow.maps.export import grid_from_npz_bytes
 from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.warmup import warm_up
@@ -330,4 +330,8 @@ def main() -> None:
     )
     settings = MapServerSettings()
     init_process(settings)
-    MapServer(settings, ZenohSettings(), FrontendSettings(), BackendSettings()).run()
+    try:  # a bad prior map: stop at start, naming it
+        server = MapServer(settings, ZenohSettings(), FrontendSettings(), BackendSettings())
+    except PriorMapError as exc:
+        raise SystemExit(f"mapserver: {exc}") from exc
+    server.run()

@@ -60,12 +60,14 @@ def up(
         settings["SCANFLOW_INGEST_LOG"] = str(log.resolve())
     if limit is not None:
         settings["SCANFLOW_INGEST_LIMIT"] = str(limit)
+    frontend = FrontendSettings()
     if prior_map is not None:
-        try:  # read as the matcher and map server will: a bad map would stop them at start-up
-            load_prior_map(FrontendSettings(prior_map=str(prior_map)))
-        except PriorMapError as exc:
-            raise typer.BadParameter(str(exc), param_hint="--prior-map") from exc
+        frontend = frontend.model_copy(update={"prior_map": str(prior_map)})
         settings["SCANFLOW_FRONTEND_PRIOR_MAP"] = str(prior_map.resolve())
+    try:  # read as the matcher and map server will: a bad map would stop them at start-up
+        load_prior_map(frontend)
+    except PriorMapError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--prior-map") from exc
     if loop_closure:
         settings["SCANFLOW_BACKEND_LOOP_CLOSURE"] = "true"
     log_dir = Path(tempfile.mkdtemp(prefix="scanflow-up-"))

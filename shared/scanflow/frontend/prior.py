@@ -14,12 +14,17 @@ from scanflow.maps.occupancy import OccupancyGrid
 
 
 class PriorMapError(ValueError):
-    """The prior map a setting names cannot be used (missing, unreadable or empty)."""
+    """The prior map a setting names cannot be used (missing, unreadable or empty), or none is
+    named where localising only needs one."""
 
 
 def load_prior_map(settings: FrontendSettings) -> OccupancyGrid | None:
-    """The grid of `settings.prior_map`, None when unset."""
+    """The grid of `settings.prior_map`, None when unset; refused unset with update_map off
+    (localise only), which the tracker would otherwise refuse at each robot's first scan."""
     if not settings.prior_map:
+        if not settings.update_map:
+            raise PriorMapError("update_map=false (localise only) needs a prior map; prior_map "
+                                "is unset")
         return None
     path = Path(settings.prior_map)
     if not path.is_file():

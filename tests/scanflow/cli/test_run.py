@@ -58,6 +58,12 @@ def test_run_names_a_missing_prior_map(tmp_path: Path) -> None:
     assert result.exit_code == 2 and "no file at" in result.output
 
 
+def test_run_localising_only_without_a_prior_map_is_a_usage_error(monkeypatch) -> None:
+    """SCANFLOW_FRONTEND_UPDATE_MAP=false and no map: named at start (before, a traceback)."""
+    monkeypatch.setenv("SCANFLOW_FRONTEND_UPDATE_MAP", "false")
+    assert_usage_error(["run", "--duration", "0.5", "--json"], "update_map=false")
+
+
 def test_run_with_loop_closure_writes_the_optimised_map_and_trajectory(tmp_path: Path) -> None:
     """Two laps of the simulator's tour: closures are found and reported, and every scan's
     optimised pose is written."""

@@ -237,6 +237,22 @@ def test_up_refuses_a_missing_prior_map_before_starting_anything(run_up) -> None
     assert plan.launchers == []
 
 
+@pytest.mark.parametrize(
+    ("variable", "value", "named"),
+    [("SCANFLOW_FRONTEND_PRIOR_MAP", "none.npz", "no file at none.npz"),
+     ("SCANFLOW_FRONTEND_UPDATE_MAP", "false", "prior_map is unset")],
+)
+def test_up_refuses_the_environments_unusable_start_before_starting_anything(
+    run_up, monkeypatch, variable: str, value: str, named: str
+) -> None:
+    """A prior map the environment names, or its lack where localising only: read first as
+    with --prior-map (before, every service started, and the matcher and map server exited)."""
+    monkeypatch.setenv(variable, value)
+    result, plan = run_up()
+    assert result.exit_code == 2 and named in result.output, result.output
+    assert plan.launchers == []
+
+
 def test_up_refuses_a_missing_log_before_starting_anything(run_up) -> None:
     result, plan = run_up("--log", "none.log.gz")
     assert result.exit_code == 2 and "none.log.gz" in result.output, result.output

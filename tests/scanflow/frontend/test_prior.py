@@ -65,3 +65,10 @@ def test_a_prior_map_with_cells_but_none_occupied_is_refused(
         yaml.write_text(f"image: {name}.pgm\nresolution: 0.05\norigin: [0.0, 0.0, 0.0]\n")
         with pytest.raises(PriorMapError, match="no occupied cell"):
             load_prior_map(settings.model_copy(update={"prior_map": str(yaml)}))
+
+
+def test_localise_only_without_a_prior_map_is_refused_at_start(settings: FrontendSettings) -> None:
+    """update_map off and no map: refused when the start is read, not by the tracker at each
+    robot's first scan (a traceback in `scanflow run`, every robot refused in a matcher)."""
+    with pytest.raises(PriorMapError, match=r"update_map=false .* prior_map is unset"):
+        FrontendStart(settings.model_copy(update={"update_map": False}))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import replace
 
 import numpy as np
@@ -332,3 +333,14 @@ def test_stats_gathered_while_robots_are_admitted_do_not_fail(tmp_path) -> None:
     finally:
         server.shell.close(flush_s=0.0)
     assert failures == []
+
+
+def test_a_bad_prior_map_stops_the_start_with_one_line_naming_it(tmp_path, monkeypatch) -> None:
+    """As the matcher does: `mapserver: prior_map: ...` and exit, not a traceback."""
+    from services.mapserver.service import main
+
+    for name in [n for n in os.environ if n.startswith("SCANFLOW_")]:
+        monkeypatch.delenv(name)
+    monkeypatch.setenv("SCANFLOW_FRONTEND_PRIOR_MAP", str(tmp_path / "none.npz"))
+    with pytest.raises(SystemExit, match=r"^mapserver: prior_map: no file at "):
+        main()
