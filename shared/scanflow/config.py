@@ -89,9 +89,11 @@ def _check_pose(value: list[float]) -> list[float]:
 
 
 def _check_log(value: str | None) -> str | None:
-    """A log setting: unset, or a path that exists (a file, or a ROS 2 bag's directory)."""
-    if value is not None and not Path(value).exists():
-        raise ValueError(f"no log at {value!r}")
+    """A log setting: unset, or a file, or a ROS 2 bag's directory (empty is no path: it
+    would name the current directory)."""
+    if value is not None and not (value and (Path(value).is_file()
+                                             or (Path(value) / "metadata.yaml").is_file())):
+        raise ValueError(f"no log at {value!r} (a file, or a ROS 2 bag's directory)")
     return value
 
 
@@ -139,10 +141,10 @@ class ProcessSettings(Section):
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(
         "INFO", description="the process's log level (logs go to stderr)"
     )
-    cpus: Annotated[list[int], NoDecode] = Field(
+    cpus: Annotated[list[Annotated[int, Field(ge=0)]], NoDecode] = Field(
         default_factory=list, description="CPU ids the process runs on (Linux); empty = any"
     )
-    io_cpus: Annotated[list[int], NoDecode] = Field(
+    io_cpus: Annotated[list[Annotated[int, Field(ge=0)]], NoDecode] = Field(
         default_factory=list,
         description="CPU ids for the Zenoh runtime's own threads (network I/O, routing), "
         "away from a CPU-bound worker's; empty = the process's CPUs",

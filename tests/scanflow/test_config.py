@@ -173,6 +173,14 @@ def test_every_process_takes_its_cpus_as_csv_or_json(clean_env, section) -> None
         section()
 
 
+@pytest.mark.parametrize("field", ["CPUS", "IO_CPUS"])
+def test_a_negative_cpu_id_is_refused_when_settings_load(clean_env, field: str) -> None:
+    """Named at start, not by a traceback from pinning the process ('negative CPU number')."""
+    clean_env.setenv(f"SCANFLOW_DESKEW_{field}", "0,-1")
+    with pytest.raises(config.SettingsError, match=f"SCANFLOW_DESKEW_{field}='-1'"):
+        config.check_environment(config.DeskewSettings)
+
+
 def test_launch_pins_one_matcher_by_default_and_refuses_a_negative_count(clean_env) -> None:
     assert config.LaunchSettings().matcher_cpus == 1
     clean_env.setenv("SCANFLOW_LAUNCH_MATCHER_CPUS", "-1")
@@ -199,6 +207,17 @@ def test_an_ingest_log_that_is_not_there_is_refused_when_settings_load(clean_env
         config.check_environment(config.IngestSettings)
     missing.write_text("")
     assert config.IngestSettings().log == str(missing)
+
+
+def test_an_empty_ingest_log_or_a_directory_that_is_no_bag_is_refused(clean_env, tmp_path) -> None:
+    """'' named the current directory, and any directory passed as a log: both were taken,
+    and ingest failed on its first read; a ROS 2 bag's directory is still a log."""
+    for bad in ("", str(tmp_path)):
+        clean_env.setenv("SCANFLOW_INGEST_LOG", bad)
+        with pytest.raises(config.SettingsError, match=r"SCANFLOW_INGEST_LOG='.*no log at"):
+            config.check_environment(config.IngestSettings)
+    (tmp_path / "metadata.yaml").write_text("")
+    assert config.IngestSettings().log == str(tmp_path)
 
 
 def test_frontend_initial_pose_is_x_y_and_yaw_in_degrees_or_unknown(clean_env) -> None:
