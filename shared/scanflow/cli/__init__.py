@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import typer
 
@@ -23,6 +24,17 @@ def finite_or_none(value: float) -> float | None:
     """`value` rounded to 4 decimals for a --json summary, None for NaN or an infinity (JSON
     has neither: `json.dumps` would write tokens no JSON parser reads)."""
     return round(value, 4) if math.isfinite(value) else None
+
+
+def check_log(log: Path) -> None:
+    """Refuse a --log that is no log (missing, unreadable, a directory that is no ROS 2 bag)
+    as a usage error naming it, before anything runs."""
+    from scanflow.io.detect import detect_format
+
+    try:
+        detect_format(log)
+    except (OSError, ValueError) as exc:
+        raise typer.BadParameter(str(exc), param_hint="--log") from exc
 
 
 def main() -> None:

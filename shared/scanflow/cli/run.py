@@ -14,7 +14,7 @@ import numpy as np
 import typer
 from tqdm import tqdm
 
-from scanflow.cli import app
+from scanflow.cli import app, check_log
 from scanflow.config import BackendSettings, FrontendSettings, SettingsError, check_environment
 from scanflow.frontend import save_tum
 from scanflow.frontend.prior import FrontendStart, PriorMapError
@@ -91,10 +91,7 @@ def run_command(
     if log is not None and not log.exists():
         raise typer.BadParameter(f"no log at {log}", param_hint="--log")
     if log is not None:
-        try:
-            detect_format(log)
-        except (OSError, ValueError) as exc:  # a directory that is no ROS 2 bag, unreadable
-            raise typer.BadParameter(str(exc), param_hint="--log") from exc
+        check_log(log)
     if map_out is not None and map_out.exists() and not map_out.is_dir():
         raise typer.BadParameter(f"{map_out} is not a directory", param_hint="--map-out")
     try:

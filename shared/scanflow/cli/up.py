@@ -11,7 +11,7 @@ from typing import Annotated
 
 import typer
 
-from scanflow.cli import app
+from scanflow.cli import app, check_log
 from scanflow.config import (
     SECTIONS,
     BackendSettings,
@@ -27,11 +27,17 @@ def up(
     log: Annotated[
         Path | None, typer.Option(exists=True, help="CARMEN log or ROS bag; default: sim")
     ] = None,
-    rate: Annotated[float, typer.Option(help="x real time; 0 = as fast as possible")] = 1.0,
-    port: Annotated[int, typer.Option(help="gateway HTTP port")] = 8000,
-    zenoh_port: Annotated[int, typer.Option(help="router TCP port on 127.0.0.1")] = 7447,
+    rate: Annotated[
+        float, typer.Option(min=0.0, help="x real time; 0 = as fast as possible")
+    ] = 1.0,
+    port: Annotated[int, typer.Option(min=1, max=65535, help="gateway HTTP port")] = 8000,
+    zenoh_port: Annotated[
+        int, typer.Option(min=1, max=65535, help="router TCP port on 127.0.0.1")
+    ] = 7447,
     data_dir: Annotated[Path, typer.Option(help="map snapshots")] = Path("scanflow-data"),
-    limit: Annotated[int | None, typer.Option(help="publish at most this many scans")] = None,
+    limit: Annotated[
+        int | None, typer.Option(min=1, help="publish at most this many scans")
+    ] = None,
     prior_map: Annotated[
         Path | None,
         typer.Option("--prior-map", help="start every robot on this map (.npz or .yaml)"),
@@ -57,6 +63,7 @@ def up(
         "SCANFLOW_GATEWAY_PORT": str(port),
     }
     if log is not None:
+        check_log(log)  # as ingest will read it: it would stop at its start, the rest running
         settings["SCANFLOW_INGEST_LOG"] = str(log.resolve())
     if limit is not None:
         settings["SCANFLOW_INGEST_LIMIT"] = str(limit)

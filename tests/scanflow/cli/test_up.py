@@ -160,9 +160,9 @@ def test_up_passes_every_option_on_as_a_setting_with_absolute_paths(run_up, tmp_
     rate=st.floats(0.0, 1e3, allow_nan=False),
     port=st.integers(1, 65535),
     zenoh_port=st.integers(1, 65535),
-    limit=st.none() | st.integers(0, 10**9),
+    limit=st.none() | st.integers(1, 10**9),
 )
-@example(rate=0.0, port=1, zenoh_port=65535, limit=0)  # as fast as possible; a limit of 0
+@example(rate=0.0, port=1, zenoh_port=65535, limit=1)  # as fast as possible; one scan
 def test_up_carries_rates_ports_and_limits_unchanged(
     run_up, rate: float, port: int, zenoh_port: int, limit: int | None
 ) -> None:
@@ -249,6 +249,22 @@ def test_up_refuses_the_environments_unusable_start_before_starting_anything(
     with --prior-map (before, every service started, and the matcher and map server exited)."""
     monkeypatch.setenv(variable, value)
     result, plan = run_up()
+    assert result.exit_code == 2 and named in result.output, result.output
+    assert plan.launchers == []
+
+
+@pytest.mark.parametrize(
+    ("option", "value", "named"),
+    [("--limit", "0", "--limit"), ("--rate", "-1", "--rate"), ("--rate", "nan", "--rate"),
+     ("--port", "0", "--port"), ("--zenoh-port", "70000", "--zenoh-port"),
+     ("--log", ".", "is a directory")],
+)
+def test_up_refuses_an_option_a_service_would_refuse_before_starting_anything(
+    run_up, option: str, value: str, named: str
+) -> None:
+    """Before, each became a setting its service refused at its own start: every other
+    service ran on, and `up` with them, until Ctrl-C."""
+    result, plan = run_up(option, value)
     assert result.exit_code == 2 and named in result.output, result.output
     assert plan.launchers == []
 
