@@ -27,6 +27,7 @@ from scanflow.scan import LaserScan, Odometry
 from scanflow.warmup import warm_up
 from scanflow.wire import DeskewedScanMessage, OdometryMessage, PoseEstimateMessage, ScanMessage
 
+from services.common.counters import worth_logging
 from services.common.process import init_process, require_settings
 from services.common.shell import ServiceShell
 
@@ -79,6 +80,7 @@ class DeskewService:
         self.shell = ServiceShell("deskew", settings, zenoh_settings)
         prefix = self.shell.prefix
         self.robots: dict[str, _Robot] = {}
+        self._last_stamps: dict[str, float] = {}  # per robot stream: where its clock is
         # Exactly its inputs: a robot-tree wildcard would also carry the matcher's output, and
         # a full inbox would then hold up the matcher's puts too. Scans wait for covering
         # odometry anyway, so the two subscribers' callbacks need not keep their relative order.
@@ -94,7 +96,8 @@ class DeskewService:
         self, kind: str, message: ScanMessage | OdometryMessage | PoseEstimateMessage
     ) -> None:
         """A pose updates the robot's prior (its frame too, after a redraw) and releases its scans;
-        a scan or odometry sample of an admitted robot joins its run (a restart: a new run)."""
+        a scan or odometry sample of an admitted robot joins its run (its clock going back: a new
+        run, see `_starts_run`)."""
         robot_id = message.robot_id
         if isinstance(message, PoseEstimateMessage):
             robot = self.robots.get(robot_id)
@@ -109,9 +112,9 @@ class DeskewService:
         if not self.shell.admits(robot_id, self.robots):
             return
         stream = f"{robot_id}/{kind}"
-        restarted = self.shell.seqs.is_restart(stream, message.seq)
-        self.shell.seqs.observe(stream, message.seq)
         robot = self.robots.setdefault(robot_id, _Robot())
+        restarted = self._starts_run(kind, message, robot.stage.odometry.max_age_s)
+        self.shell.seqs.observe(stream, message.seq)
         if restarted and kind in robot.streams:
             robot = self._new_run(robot_id, robot, kind)
         elif kind in robot.awaiting:
@@ -127,6 +130,33 @@ class DeskewService:
         else:
             robot.pending.append((time.monotonic() + self.settings.odom_wait_s, message.scan))
         self.idle()
+
+    def _starts_run(
+        self, kind: str, message: ScanMessage | OdometryMessage, window_s: float
+    ) -> bool:
+        """Whether the robot's stream `kind` starts a new run: its stamps go back with a seq that
+        does not advance (a replay, a restarted source), or further than the odometry window
+        `window_s` with one that does (a clock reset, counted as clock_reset.<kind>: the odometry
+        held would drop the new samples as too old). A seq that starts again on the same clock
+        (a driver restarted, a message sent twice) continues the run: its odometry still covers
+        the scans (a new run would wait for the other stream to restart, maybe for ever)."""
+        stream = f"{message.robot_id}/{kind}"
+        stamp_s = message.scan.stamp_s if isinstance(message, ScanMessage) else message.odom.stamp_s
+        last_s = self._last_stamps.get(stream, -math.inf)
+        self._last_stamps[stream] = stamp_s
+        if stamp_s >= last_s:
+            return False
+        if self.shell.seqs.is_restart(stream, message.seq):
+            return True
+        if last_s - stamp_s <= window_s:
+            return False
+        n = self.shell.counters.add(f"clock_reset.{kind}")
+        if worth_logging(n):
+            self.shell.log.warning(
+                "%s: stamps went back %.3f s (from %.6f to %.6f s) at seq %d: a clock reset, "
+                "a new run (#%d)", stream, last_s - stamp_s, last_s, stamp_s, message.seq, n,
+            )
+        return True
 
     def _new_run(self, robot_id: str, old: _Robot, kind: str) -> _Robot:
         """The source restarted (a replay) on stream `kind`: a fresh robot for the new run.

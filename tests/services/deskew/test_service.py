@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 
@@ -25,16 +26,23 @@ pytestmark = [pytest.mark.integration]
 SIM = {"SCANFLOW_INGEST_SIM_DURATION_S": "3", "SCANFLOW_INGEST_SIM_SEED": "4"}
 
 
-def reference_deskew(events) -> dict[int, np.ndarray]:
-    """The library's deskew of each scan with all odometry published before it."""
+def reference_points(events) -> list[np.ndarray]:
+    """The library's deskew of each scan, in order, with all odometry published before it."""
     buffer = OdometryBuffer()
-    out = {}
+    out = []
     for event in events:
         if isinstance(event, LaserScan):
-            out[event.seq] = deskew(event, buffer).points
+            out.append(deskew(event, buffer).points)
         else:
             buffer.add_odometry(event)
     return out
+
+
+def reference_deskew(events) -> dict[int, np.ndarray]:
+    """`reference_points` by scan seq."""
+    events = list(events)
+    seqs = [event.seq for event in events if isinstance(event, LaserScan)]
+    return dict(zip(seqs, reference_points(events), strict=True))
 
 
 def test_every_scan_is_deskewed_like_the_library_and_junk_is_counted(launcher, bus, start):
@@ -194,3 +202,69 @@ def test_stats_gathered_while_robots_are_admitted_do_not_fail() -> None:
     finally:
         service.shell.close(flush_s=0.0)
     assert failures == []
+
+
+def in_process(odom_wait_s: float) -> tuple[DeskewService, list[DeskewedScanMessage]]:
+    """A deskew service on its own peer session whose puts are decoded into the list."""
+    service = DeskewService(
+        DeskewSettings(odom_wait_s=odom_wait_s), ZenohSettings(mode="peer", connect=[])
+    )
+    out: list[DeskewedScanMessage] = []
+    service.shell.put = lambda key, payload: out.append(DeskewedScanMessage.decode(payload))
+    return service, out
+
+
+def handle_all(service: DeskewService, events) -> None:
+    """Hand each scan and odometry sample to the service's worker as the inbox would."""
+    for event in events:
+        if isinstance(event, LaserScan):
+            service.handle("scan", ScanMessage(event))
+        else:
+            service.handle("odom", OdometryMessage(event))
+
+
+def test_a_seq_that_starts_again_on_the_same_clock_keeps_the_odometry() -> None:
+    """A lidar driver restarted (its seq from 0, its stamps going on, odometry going on), or a
+    scan sent twice: the same run. It began a new run that waited for odometry to restart
+    too, so every later scan went out without odometry (an audit saw them all 'none')."""
+    events = list(source_events(None, "robot", 2.0, 4, None))
+    half = len(events) // 2
+    restarted = [
+        dataclasses.replace(e, seq=e.seq - 10) if isinstance(e, LaserScan) and i >= half else e
+        for i, e in enumerate(events)
+    ]
+    twice = [*events[:half], *[e for e in events[:half] if isinstance(e, LaserScan)][-1:],
+             *events[half:]]
+    for feed in (restarted, twice):
+        service, out = in_process(odom_wait_s=10.0)
+        try:
+            handle_all(service, feed)
+        finally:
+            service.shell.close(flush_s=0.0)
+        expected = reference_points(feed)
+        assert len(out) == len(expected)
+        assert {m.source_used for m in out} == {"odometry"}
+        for message, points in zip(out, expected, strict=True):
+            np.testing.assert_array_equal(message.points, points, strict=True)
+
+
+def test_a_clock_reset_starts_a_new_run_named_in_the_stats() -> None:
+    """The robot's clock jumps back a minute, seqs going on: its odometry went into the old
+    run's buffer, which dropped every sample as older than its window (uncounted), and every
+    later scan went out without odometry. Now a new run, counted and logged."""
+    events = list(source_events(None, "robot", 2.0, 4, None))
+    half = len(events) // 2
+    reset = [dataclasses.replace(e, stamp_s=e.stamp_s - 60.0) if i >= half else e
+             for i, e in enumerate(events)]
+    service, out = in_process(odom_wait_s=10.0)
+    try:
+        handle_all(service, reset)
+    finally:
+        service.shell.close(flush_s=0.0)
+    expected = {**reference_deskew(reset[:half]), **reference_deskew(reset[half:])}
+    assert [m.seq for m in out] == sorted(expected)
+    assert {m.source_used for m in out} == {"odometry"}
+    for message in out:
+        np.testing.assert_array_equal(message.points, expected[message.seq], strict=True)
+    counters = service.shell.counters.snapshot()
+    assert counters["clock_reset.scan"] == counters["clock_reset.odom"] == 1
