@@ -18,7 +18,7 @@ from scanflow.config import IngestSettings, ZenohSettings
 from scanflow.io.carmen import CarmenFormatError
 from scanflow.io.rosbag import BagFormatError
 from scanflow.scan import LaserScan
-from scanflow.wire import PoseEstimateMessage
+from scanflow.wire import MessageError, PoseEstimateMessage
 
 from services.common.counters import worth_logging
 from services.common.process import init_process, require_settings
@@ -73,13 +73,19 @@ class Ingest:
         return self._scans
 
     def _publish(self, events: Iterable[Event]) -> None:
-        """Publish `events` paced and within the credit window, counting the scans."""
+        """Publish `events` paced and within the credit window, counting the scans; a record
+        no message can carry (odometry beyond MAX_POSITION_M) is skipped as unreadable."""
         pacer = Pacer(self.settings.rate, self.shell.stop_event)
         prefix = self.shell.prefix
         for event in events:
             if self.shell.stop_event.is_set():
                 break
             robot = event.robot_id
+            try:
+                message = bus_message(event, prefix)
+            except MessageError as exc:
+                self._on_skipped(f"{type(event).__name__} {robot} seq {event.seq}: {exc}")
+                continue
             pacer.wait(event.stamp_s)
             if isinstance(event, LaserScan):
                 if event.seq == 0:
@@ -87,12 +93,12 @@ class Ingest:
                     self._wait_for_pipeline(keys.raw_scan(robot, prefix))
                 if not self.credit.acquire(robot, event.seq):
                     break
-                self.shell.put(*bus_message(event, prefix))
+                self.shell.put(*message)
                 self._last_scan[robot] = event.seq
                 self.shell.seqs.observe(f"{robot}/scan", event.seq)
                 self._scans += 1
             else:
-                self.shell.put(*bus_message(event, prefix))
+                self.shell.put(*message)
                 self.shell.seqs.observe(f"{robot}/odom", event.seq)
 
     def _wait_for_pipeline(self, key: str) -> None:

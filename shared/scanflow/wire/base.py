@@ -105,7 +105,7 @@ def check_finite(name: str, value: float) -> float:
     return value
 
 
-MAX_POSITION_M = 1e6  # an operator's pose: no map is larger (the gateway bounds the same)
+MAX_POSITION_M = 1e6  # an operator's pose, odometry: no map is larger (the gateway bounds the same)
 MAX_COUNT = 2**62  # seqs and counts: int64 with room to add one (snapshots, numpy arrays)
 
 
@@ -127,6 +127,14 @@ def check_pose(name: str, value: Any) -> Pose2D:
     if not isinstance(value, Pose2D):
         raise MessageError(f"{name} must be a Pose2D, got {type(value).__name__}")
     return value
+
+
+def check_position(name: str, pose: Pose2D) -> Pose2D:
+    """`pose` when it lies within +-MAX_POSITION_M, else MessageError naming `name`: a pose
+    further out is its source's fault, and differences of such poses overflow to inf."""
+    if max(abs(pose.x), abs(pose.y)) > MAX_POSITION_M:
+        raise MessageError(f"{name} ({pose.x}, {pose.y}) m is beyond +-{MAX_POSITION_M:g} m")
+    return pose
 
 
 def check_text(name: str, value: str, allow_empty: bool = False) -> str:

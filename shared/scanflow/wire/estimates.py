@@ -16,13 +16,13 @@ from numpy.typing import NDArray
 from scanflow.geometry import Pose2D
 from scanflow.scan import LaserScan
 from scanflow.wire.base import (
-    MAX_POSITION_M,
     Message,
     check_array,
     check_count,
     check_finite,
     check_path,
     check_pose,
+    check_position,
     check_robot_id,
     check_text,
 )
@@ -147,11 +147,7 @@ class InitialPoseMessage(Message):
 
     def __post_init__(self) -> None:
         check_robot_id(self.robot_id)
-        check_pose("pose", self.pose)
-        if max(abs(self.pose.x), abs(self.pose.y)) > MAX_POSITION_M:
-            raise MessageError(
-                f"pose ({self.pose.x}, {self.pose.y}) m is beyond +-{MAX_POSITION_M:g} m"
-            )
+        check_position("pose", check_pose("pose", self.pose))
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,7 @@ from scanflow.wire.base import (
     check_count,
     check_finite,
     check_pose,
+    check_position,
     check_robot_id,
     check_text,
 )
@@ -191,6 +192,7 @@ class OdometryMessage(Message):
             raise MessageError(f"odom must be an Odometry, got {type(self.odom).__name__}")
         check_robot_id(self.odom.robot_id)
         check_count("odom.seq", self.odom.seq)
+        check_position("odom.pose", self.odom.pose)
 
     @property
     def robot_id(self) -> str:

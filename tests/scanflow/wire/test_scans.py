@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scanflow import wire
 from scanflow.geometry import Pose2D
-from scanflow.scan import LaserScan, ScanError
+from scanflow.scan import LaserScan, Odometry, ScanError
 
 
 def test_nan_ranges_keep_their_exact_bits() -> None:
@@ -99,3 +99,12 @@ def test_scan_errors_surface_as_chained_decode_errors(
     with pytest.raises(wire.SchemaError, match="beam_time_offsets_s has shape") as info:
         wire.decode_any(data)
     assert isinstance(info.value.__cause__, ScanError)
+
+
+def test_odometry_beyond_max_position_is_malformed(payload: Callable[..., bytes]) -> None:
+    """A glitching odometry driver's 1e308 m went into the deskewer's buffer: the differences
+    of two such poses overflowed, and every scan it covered was lost to a failed publish."""
+    odom = wire.OdometryMessage(Odometry(1.0, Pose2D(), robot_id="r"))
+    with pytest.raises(wire.DecodeError, match=r"odom\.pose \(1e\+308, 0\.0\) m is beyond"):
+        wire.decode_any(payload(odom, pose=[1e308, 0.0, 0.0]))
+    wire.OdometryMessage(Odometry(1.0, Pose2D(0.0, -wire.MAX_POSITION_M, 0.0), robot_id="r"))

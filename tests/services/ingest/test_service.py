@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 from scanflow import keys
 
@@ -76,3 +77,31 @@ def test_an_unexpected_error_ends_the_process_rather_than_hanging_it(launcher):
                           text=True, timeout=60, check=False)
     assert done.returncode == 1, done.stderr
     assert "ingest/0 stops on an error: RuntimeError('a bug in the source')" in done.stderr
+
+
+def test_odometry_no_message_can_carry_is_skipped_and_named() -> None:
+    """A log's odometry 1e308 m out (a glitching driver): the wire refuses it (it broke the
+    deskewer's scans), so ingest skips the record, counted and logged, and publishes the
+    rest; it must not end the replay on the error."""
+    from scanflow.config import IngestSettings, ZenohSettings
+    from scanflow.geometry import Pose2D
+    from scanflow.scan import LaserScan, Odometry
+    from scanflow.wire import OdometryMessage, ScanMessage, decode_any
+
+    from services.ingest.service import Ingest
+
+    far = Odometry(0.05, Pose2D(1e308, 0.0, 0.0), robot_id="robot", seq=1)
+    events = [
+        Odometry(0.0, Pose2D(), robot_id="robot", seq=0), far,
+        LaserScan(np.ones(8), 0.0, 0.1, stamp_s=0.1, robot_id="robot", seq=0),
+    ]
+    ingest = Ingest(IngestSettings(window=0, wait_subscribers_s=0.0),
+                    ZenohSettings(mode="peer", connect=[]))
+    sent: list = []
+    ingest.shell.put = lambda key, payload: sent.append(decode_any(payload))
+    try:
+        ingest._publish(events)
+    finally:
+        ingest.shell.close(flush_s=0.0)
+    assert [type(m) for m in sent] == [OdometryMessage, ScanMessage]
+    assert ingest.shell.counters.get("source.skipped") == 1
