@@ -215,8 +215,19 @@ class DeskewService:
         return covered or motion_free_reason(scan) is not None or robot.has_prior()
 
     def _publish(self, robot_id: str, scan: LaserScan, stage: DeskewStage) -> None:
+        """Deskew `scan` and publish it; a scan with motion to correct that the robot's odometry
+        did not cover is counted as odometry_missed and logged with the reason (a clock offset
+        between the two streams, odometry later than the budget, a gap in it)."""
         result = stage.process(scan)
         self.shell.counters.add(f"deskewed.{result.source_used}")
+        if (result.source_used != "odometry" and len(stage.odometry)
+                and motion_free_reason(scan) is None):
+            n = self.shell.counters.add("odometry_missed")
+            if worth_logging(n):
+                self.shell.log.warning(
+                    "robot %s: scan %d deskewed by %s, not odometry (#%d): %s", robot_id,
+                    scan.seq, result.source_used, n, result.message,
+                )
         message = DeskewedScanMessage(
             robot_id=robot_id,
             seq=scan.seq,

@@ -268,3 +268,19 @@ def test_a_clock_reset_starts_a_new_run_named_in_the_stats() -> None:
         np.testing.assert_array_equal(message.points, expected[message.seq], strict=True)
     counters = service.shell.counters.snapshot()
     assert counters["clock_reset.scan"] == counters["clock_reset.odom"] == 1
+
+
+def test_odometry_on_a_clock_seconds_off_the_scans_is_named(caplog) -> None:
+    """Odometry stamped 3 s behind the scans covers none of them: each went out uncorrected,
+    seen only as deskewed.none, the reason never said. Now counted and logged with it."""
+    events = [e if isinstance(e, LaserScan) else dataclasses.replace(e, stamp_s=e.stamp_s - 3.0)
+              for e in source_events(None, "robot", 1.0, 4, None)]
+    service, out = in_process(odom_wait_s=0.0)
+    try:
+        handle_all(service, events)
+    finally:
+        service.shell.close(flush_s=0.0)
+    assert {m.source_used for m in out} == {"none"}
+    assert service.shell.counters.get("odometry_missed") == len(out) == 10
+    assert "scan 0 deskewed by none, not odometry (#1): no pose source covers the sweep: " \
+           "odometry: sweep ends at 0.075000 s, 2.9950 s after the newest odometry" in caplog.text
