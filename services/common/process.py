@@ -50,18 +50,31 @@ def init_process(settings: ProcessSettings) -> None:
             list(settings.cpus), list(settings.io_cpus),
         )
         return
+    prefix = str(settings.model_config.get("env_prefix", ""))
     if settings.io_cpus:  # the kernel refuses CPUs outside the cgroup's set: check them now
-        with io_threads(settings.io_cpus):
+        with _named(f"{prefix}IO_CPUS"), io_threads(settings.io_cpus):
             pass
     if not settings.cpus:
         return
-    _pin_calling_thread(settings.cpus)
+    with _named(f"{prefix}CPUS"):
+        _pin_calling_thread(settings.cpus)
     for tid in _thread_ids():  # those started at import (numpy's BLAS pool) too
         try:
             os.sched_setaffinity(tid, settings.cpus)
         except ProcessLookupError:  # a thread that has just ended
             continue
     _log.info("running on CPUs %s", sorted(set(settings.cpus)))
+
+
+@contextmanager
+def _named(variable: str) -> Iterator[None]:
+    """Turn an unavailable CPU into an exit at start naming the setting, not a traceback."""
+    try:
+        yield
+    except ValueError as exc:
+        raise SystemExit(
+            f"bad settings: {variable}: {exc} (available: {available_cpus()})"
+        ) from None
 
 
 @contextmanager

@@ -47,14 +47,14 @@ def test_cpu_plan_gives_matchers_the_last_cpus_each_its_own_and_keeps_it_on_rest
     assert plan.io_cpus_for("router", "router") == []
 
 
-def _affinity_after_init(cpus: str) -> subprocess.CompletedProcess[str]:
-    """A fresh interpreter that runs `init_process` with `cpus`, then reports the affinity of
-    itself and of a thread started afterwards."""
+def _affinity_after_init(cpus: str, field: str = "cpus") -> subprocess.CompletedProcess[str]:
+    """A fresh interpreter that runs `init_process` with `cpus` (as deskew's `field`), then
+    reports the affinity of itself and of a thread started afterwards."""
     code = (
         "import os, threading\n"
-        "from scanflow.config import ProcessSettings\n"
+        "from scanflow.config import DeskewSettings\n"
         "from services.common.process import init_process\n"
-        f"init_process(ProcessSettings(log_level='INFO', cpus=[{cpus}]))\n"
+        f"init_process(DeskewSettings(log_level='INFO', {field}=[{cpus}]))\n"
         "seen = []\n"
         "t = threading.Thread(target=lambda: seen.append(sorted(os.sched_getaffinity(0))))\n"
         "t.start(); t.join()\n"
@@ -71,11 +71,15 @@ def test_init_process_pins_the_process_and_the_threads_it_starts_later():
     assert result.stdout.split("] [") == [f"[{last}", f"{last}]\n"]
 
 
-def test_init_process_names_cpus_the_process_cannot_have():
+@pytest.mark.parametrize("field", ["cpus", "io_cpus"])
+def test_init_process_names_cpus_the_process_cannot_have(field: str):
+    """An exit at start naming the variable and the CPUs there are, not a traceback."""
     missing = max(available_cpus() or [0]) + 1000
-    result = _affinity_after_init(str(missing))
-    assert result.returncode != 0
-    assert f"cpus [{missing}] are not available" in result.stderr
+    result = _affinity_after_init(str(missing), field)
+    assert result.returncode == 1
+    assert result.stderr.startswith(f"bad settings: SCANFLOW_DESKEW_{field.upper()}: cpus "
+                                    f"[{missing}] are not available"), result.stderr
+    assert "Traceback" not in result.stderr
 
 
 @needs_two_cpus
