@@ -16,6 +16,7 @@ from pydantic import Field, SecretStr, ValidationError, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from scanflow.geometry import Pose2D
+from scanflow.sim.run import MAX_DURATION_S as MAX_SIM_DURATION_S
 
 
 def _split_csv(value: object) -> object:
@@ -223,7 +224,10 @@ class IngestSettings(ServiceSettings):
     limit: int | None = Field(None, ge=1, description="publish at most this many scans")
     window: int = Field(32, ge=0, description="scans in flight before waiting for poses; 0 = off")
     replays: int = Field(1, ge=1, description="publish the source this many times in a row")
-    sim_duration_s: float = Field(60.0, gt=0.0, description="the simulator's run length")
+    sim_duration_s: float = Field(
+        60.0, gt=0.0, le=MAX_SIM_DURATION_S, description="the simulator's run length (longer: "
+        "replays)"
+    )
     sim_seed: int = Field(0, ge=0, description="the simulator's seed (runs are reproducible)")
     sim_world: Literal["rooms", "corridor", "loop", "campus"] = Field(
         "rooms", description="the simulator's world (loop: a ring corridor to close a loop in; "

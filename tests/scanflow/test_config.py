@@ -290,3 +290,13 @@ def test_a_negative_simulator_seed_is_refused_when_settings_load(monkeypatch) ->
     monkeypatch.setenv("SCANFLOW_INGEST_SIM_SEED", "-1")
     with pytest.raises(config.SettingsError, match="SCANFLOW_INGEST_SIM_SEED='-1'"):
         config.check_environment(config.IngestSettings)
+
+
+def test_a_simulator_run_longer_than_the_simulator_lays_out_is_refused_when_settings_load(
+    monkeypatch,
+) -> None:
+    """The simulator's tour is built in advance (an hour at most): named at start-up, not a
+    MemoryError in ingest."""
+    monkeypatch.setenv("SCANFLOW_INGEST_SIM_DURATION_S", "86400")
+    with pytest.raises(config.SettingsError, match="SCANFLOW_INGEST_SIM_DURATION_S='86400'"):
+        config.check_environment(config.IngestSettings)

@@ -28,5 +28,5 @@ def test_simulate_rejects_unknown_world():
 
 
 def test_simulate_refuses_a_bad_seed_or_duration_without_a_traceback():
-    for option, value in (("--seed", "-1"), ("--duration", "inf")):
+    for option, value in (("--seed", "-1"), ("--duration", "inf"), ("--duration", "7200")):
         assert_usage_error(["simulate", option, value, "--json"], value)

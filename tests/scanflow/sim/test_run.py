@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from scanflow.geometry import Pose2D
 from scanflow.sim import ConstantVelocityTrajectory, SimConfig, simulate
+from scanflow.sim.run import MAX_DURATION_S
 
 QUIET = {"range_noise_m": 0.0, "dropout_prob": 0.0, "odom_scale_error": 0.0, "odom_yaw_noise": 0.0}
 
@@ -122,6 +123,11 @@ def test_bad_config_names_the_field():
         SimConfig(beams=50)
     with pytest.raises(ValueError, match="max_speed_mps"):
         SimConfig(max_speed_mps=3.0)
+    # The tour is laid out in advance: a day would take minutes and most of a GB to build.
+    for duration_s in (0.0, float("nan"), MAX_DURATION_S + 1.0):
+        with pytest.raises(ValueError, match=r"SimConfig\.duration_s"):
+            SimConfig(duration_s=duration_s)
+    assert SimConfig(duration_s=MAX_DURATION_S).duration_s == MAX_DURATION_S
 
 
 def test_a_negative_seed_is_refused_naming_the_field():
