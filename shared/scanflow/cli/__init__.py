@@ -26,6 +26,30 @@ def finite_or_none(value: float) -> float | None:
     return round(value, 4) if math.isfinite(value) else None
 
 
+class SkippedRecords:
+    """A log's unreadable records, as its reader reports them (the `on_error` callback): how
+    many, and the first few to name."""
+
+    SHOWN = 5
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.first: list[str] = []
+
+    def __call__(self, message: str) -> None:
+        self.count += 1
+        if len(self.first) < self.SHOWN:
+            self.first.append(message)
+
+    def warn(self) -> None:
+        """Name them on stderr: a run on part of a log (cut short, damaged) says so."""
+        if self.count:
+            typer.echo(f"warning: {self.count} unreadable records of the log skipped, the "
+                       f"first {len(self.first)}:", err=True)
+            for message in self.first:
+                typer.echo(f"  {message}", err=True)
+
+
 def check_log(log: Path) -> None:
     """Refuse a --log that is no log (missing, unreadable, a directory that is no ROS 2 bag)
     as a usage error naming it, before anything runs."""

@@ -11,10 +11,10 @@ from typing import Annotated
 import typer
 
 from scanflow.calibration import estimate_mount, paired_motions
-from scanflow.cli import app, finite_or_none
+from scanflow.cli import SkippedRecords, app, check_log, finite_or_none
 from scanflow.geometry import IDENTITY
 from scanflow.io.carmen import load_keyframes
-from scanflow.io.detect import detect_format
+from scanflow.io.detect import carmen_error_handler, detect_format
 
 
 @app.command("calibrate")
@@ -24,12 +24,14 @@ def calibrate_command(
     as_json: bool = typer.Option(False, "--json", help="print the estimate as JSON"),
 ) -> None:
     """Fit T_base_laser to the log's odometry and scan matching (2D hand-eye calibration)."""
-    if not log.is_file():
+    if not log.exists():
         raise typer.BadParameter(f"no log at {log}", param_hint="--log")
+    check_log(log)
     if detect_format(log) != "carmen":
         raise typer.BadParameter("calibrate reads CARMEN logs (keyframes: scans without "
                                  "motion distortion)", param_hint="--log")
-    frames = load_keyframes(log)[:limit]
+    skipped = SkippedRecords()
+    frames = load_keyframes(log, on_error=carmen_error_handler(skipped))[:limit]
     # The log's declared mount (identity for FLASER) only seeds the scan matches.
     guess = frames[0].scan.mount if frames else IDENTITY
     robot, sensor = paired_motions(
@@ -48,7 +50,10 @@ def calibrate_command(
         "pairs_used": estimate.pairs_used,
         "pairs_matched": len(robot),
         "keyframes": len(frames),
+        "skipped_records": skipped.count,
     }
+    if not as_json:
+        skipped.warn()
     if as_json:
         typer.echo(json.dumps(summary))
     elif estimate.ok:

@@ -14,7 +14,7 @@ import numpy as np
 import typer
 from tqdm import tqdm
 
-from scanflow.cli import app, check_log
+from scanflow.cli import SkippedRecords, app, check_log
 from scanflow.config import BackendSettings, FrontendSettings, SettingsError, check_environment
 from scanflow.frontend import save_tum
 from scanflow.frontend.prior import FrontendStart, PriorMapError
@@ -31,22 +31,6 @@ def _sim_outputs(pipeline: Pipeline, config: SimConfig) -> Iterator[PipelineOutp
         for sample in frame.odometry:
             pipeline.add_odometry(sample)
         yield pipeline.process(frame.scan)
-
-
-class _Skipped:
-    """A log's unreadable records, as its reader reports them: how many, the first few."""
-
-    def __init__(self) -> None:
-        self.count = 0
-        self.first: list[str] = []
-
-    def __call__(self, message: str) -> None:
-        self.count += 1
-        if len(self.first) < SHOWN_SKIPS:
-            self.first.append(message)
-
-
-SHOWN_SKIPS = 5
 
 
 def _log_outputs(
@@ -119,7 +103,7 @@ def run_command(
     if loop_closure:
         backend = backend.model_copy(update={"loop_closure": True})
     pipeline = Pipeline(settings, initial_pose=start.pose, grid=start.grid(), backend=backend)
-    skipped, broken = _Skipped(), ""
+    skipped, broken = SkippedRecords(), ""
     outputs = (_log_outputs(pipeline, log, skipped) if log is not None
                else _sim_outputs(pipeline, sim))
     total = limit or (None if log is not None else math.ceil(duration * sim.rate_hz))
@@ -207,14 +191,11 @@ def run_command(
     _end(skipped, failure, as_json)
 
 
-def _end(skipped: _Skipped, failure: str, as_json: bool) -> None:
+def _end(skipped: SkippedRecords, failure: str, as_json: bool) -> None:
     """Warn of the log's skipped records (unless --json, whose summary counts them); exit 1
     naming the `failure` when there is one (the log broke off, or held no scan)."""
-    if skipped.count and not as_json:
-        typer.echo(f"warning: {skipped.count} unreadable records of the log skipped, the first "
-                   f"{len(skipped.first)}:", err=True)
-        for message in skipped.first:
-            typer.echo(f"  {message}", err=True)
+    if not as_json:
+        skipped.warn()
     if failure:
         typer.echo(f"error: {failure}", err=True)
         raise typer.Exit(code=1)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gzip
 import json
 import math
 import os
@@ -63,3 +64,29 @@ def test_no_estimate_in_json_is_valid_json(tmp_path: Path) -> None:
     out = _strict_json(result.output)
     assert out["status"] == "too_few_pairs"
     assert out["std_m_m_deg"] == [None, None, None] and out["residual_rms_m"] is None
+
+
+def test_a_ros2_bag_is_named_as_no_carmen_log(tmp_path: Path) -> None:
+    """A bag's directory is a log, just not one calibrate reads (it said 'no log at')."""
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+    _register()
+    result = CliRunner().invoke(app, ["calibrate", "--log", str(bag)])
+    assert result.exit_code == 2 and "calibrate reads CARMEN logs" in result.output
+
+
+def test_a_log_cut_short_is_calibrated_on_what_was_read_and_says_so(tmp_path: Path) -> None:
+    """A gzip log cut off mid-stream: the keyframes before the cut are used, and the break is
+    named (on stderr, or counted in --json), not passed over in silence."""
+    ranges = " ".join(["3.0"] * 180)
+    text = "".join(f"FLASER 180 {ranges} 0 0 0 0 0 0 {t} host {t}\n" for t in range(1, 200))
+    log = tmp_path / "cut.log.gz"
+    log.write_bytes(gzip.compress(text.encode())[:-40])
+    _register()
+    result = CliRunner().invoke(app, ["calibrate", "--log", str(log), "--json"])
+    out = json.loads(result.stdout)
+    assert out["skipped_records"] == 1 and out["keyframes"] > 100
+    result = CliRunner().invoke(app, ["calibrate", "--log", str(log)])
+    assert "1 unreadable records of the log skipped" in result.output
+    assert "cannot be read past here" in result.output
