@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import math
 import signal
 import tempfile
 import time
@@ -57,6 +58,8 @@ def up(
     backend = BackendSettings()
     if loop_closure:
         backend = backend.model_copy(update={"loop_closure": True})
+    if not math.isfinite(rate):  # the range check lets inf by; ingest would refuse it
+        raise typer.BadParameter(f"must be finite, got {rate}", param_hint="--rate")
     settings = {
         "SCANFLOW_INGEST_RATE": str(rate),
         "SCANFLOW_MAPSERVER_DATA_DIR": str(data_dir.resolve()),

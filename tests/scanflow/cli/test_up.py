@@ -256,6 +256,7 @@ def test_up_refuses_the_environments_unusable_start_before_starting_anything(
 @pytest.mark.parametrize(
     ("option", "value", "named"),
     [("--limit", "0", "--limit"), ("--rate", "-1", "--rate"), ("--rate", "nan", "--rate"),
+     ("--rate", "inf", "--rate"),
      ("--port", "0", "--port"), ("--zenoh-port", "70000", "--zenoh-port"),
      ("--log", ".", "is a directory")],
 )
