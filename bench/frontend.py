@@ -50,7 +50,7 @@ from scanflow.pipeline import Pipeline
 from scanflow.sim import WORLDS, SimConfig, simulate
 from tqdm import tqdm
 
-from bench.lidar import Lidar, add_lidar_option, sim_lidar_fields
+from bench.lidar import Lidar, add_lidar_option, lidar_report, sim_lidar_fields
 
 OUT_DIR = Path(__file__).resolve().parent / "out"
 RPE_DELTA_M = 1.0
@@ -223,7 +223,7 @@ def fast_sim_config(
     perfect_odometry: bool = False, lidar: Lidar | None = None,
 ) -> SimConfig:
     """The simulator at 1.5 m/s and 180 deg/s; with perfect odometry, exact wheel odometry;
-    `lidar` (beams, fov deg, range m) instead of SimConfig's."""
+    `lidar` (beams, fov deg, range m, and maybe rate and bearing noise) instead of SimConfig's."""
     noise = {"odom_scale_error": 0.0, "odom_yaw_noise": 0.0} if perfect_odometry else {}
     return SimConfig(world=world, duration_s=duration_s, seed=seed, max_speed_mps=1.5,
                      max_yaw_rate_dps=180.0, mount=mount, **noise, **sim_lidar_fields(lidar))
@@ -254,7 +254,7 @@ def run_sim(
     truth = poses_array([SIM_MAP_FROM_WORLD * f.true_pose for f in frames])
     report: dict = {"scans": len(frames), "speed_mps": 1.5, "yaw_rate_dps": 180.0,
                     "world": world, "perfect_odometry": perfect_odometry,
-                    "lidar": [config.beams, config.fov_deg, config.range_max_m],
+                    "lidar": lidar_report(config),
                     "method": settings.method, "recheck_ratio": settings.recheck_ratio,
                     "mount": mount.to_array().tolist()}
     runs = {"deskewed": (True, mount), "raw": (False, mount)}

@@ -1,30 +1,45 @@
-"""The simulated lidar a benchmark runs on, given as `--lidar BEAMS,FOV_DEG,RANGE_M` by every
-bench that simulates (e.g. 181,180,80: an outdoor SICK; the simulator's own is 360,270,30)."""
+"""The simulated lidar a benchmark runs on, given as `--lidar BEAMS,FOV_DEG,RANGE_M[,RATE_HZ[,
+BEARING_NOISE_DEG]]` by every bench that simulates (e.g. 181,180,80: an outdoor SICK;
+1081,270,30,40: a Hokuyo UTM-30LX; 360,360,12,10,0.3: an RPLidar whose driver bins its samples;
+the simulator's own is 360,270,30,10,0)."""
 
 from __future__ import annotations
 
 import argparse
 
-Lidar = tuple[int, float, float]  # beams, field of view (deg), maximum range (m)
+from scanflow.sim import SimConfig
+
+Lidar = dict[str, float]  # SimConfig's lidar fields: beams, fov_deg, range_max_m[, rate_hz[, ...]]
+LIDAR_FIELDS = ("beams", "fov_deg", "range_max_m", "rate_hz", "bearing_noise_deg")
 
 
 def parse_lidar(text: str) -> Lidar:
-    """'BEAMS,FOV_DEG,RANGE_M' -> (beams, fov deg, range m)."""
+    """'BEAMS,FOV_DEG,RANGE_M[,RATE_HZ[,BEARING_NOISE_DEG]]' -> SimConfig's lidar fields."""
     try:
-        beams, fov_deg, range_m = text.split(",")
-        return int(beams), float(fov_deg), float(range_m)
+        values = [float(v) for v in text.split(",")]
+        if not 3 <= len(values) <= len(LIDAR_FIELDS) or values[0] != int(values[0]):
+            raise ValueError(text)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(
-            f"--lidar takes BEAMS,FOV_DEG,RANGE_M (e.g. 181,180,80), got {text!r}") from exc
+            "--lidar takes BEAMS,FOV_DEG,RANGE_M[,RATE_HZ[,BEARING_NOISE_DEG]] (e.g. 181,180,80 "
+            f"or 360,360,12,10,0.3), got {text!r}") from exc
+    fields = dict(zip(LIDAR_FIELDS, values, strict=False))
+    fields["beams"] = int(fields["beams"])
+    return fields
 
 
 def add_lidar_option(parser: argparse.ArgumentParser) -> None:
     """`--lidar`, default None: the simulator's own lidar."""
     parser.add_argument("--lidar", type=parse_lidar, default=None,
-                        help="simulated lidar BEAMS,FOV_DEG,RANGE_M (default: the simulator's "
-                        "360,270,30)")
+                        help="simulated lidar BEAMS,FOV_DEG,RANGE_M[,RATE_HZ[,BEARING_NOISE_DEG]] "
+                        "(default: the simulator's 360,270,30,10,0)")
 
 
 def sim_lidar_fields(lidar: Lidar | None) -> dict[str, float]:
     """`SimConfig` fields for `lidar` (none: its defaults)."""
-    return dict(zip(("beams", "fov_deg", "range_max_m"), lidar, strict=True)) if lidar else {}
+    return dict(lidar) if lidar else {}
+
+
+def lidar_report(config: SimConfig) -> dict[str, float]:
+    """The simulated lidar a report was measured with: every field `--lidar` sets."""
+    return {name: getattr(config, name) for name in LIDAR_FIELDS}

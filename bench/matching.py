@@ -61,7 +61,7 @@ from scanflow.matching import DEFAULT_METHOD, MatchResult, available_methods, ma
 from scanflow.sim import WORLDS, SimConfig, simulate
 from tqdm import tqdm
 
-from bench.lidar import add_lidar_option, sim_lidar_fields
+from bench.lidar import add_lidar_option, lidar_report, sim_lidar_fields
 from bench.peers import load_peers
 
 THRESHOLDS = ((0.05, 0.5), (0.10, 1.0))  # (metres, degrees)
@@ -436,7 +436,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.sim:
         report["sim"] = {"world": args.sim, "duration_s": args.sim_duration_s,
                          "every": args.sim_every, "seed": args.sim_seed,
-                         "lidar": [config.beams, config.fov_deg, config.range_max_m]}
+                         "lidar": lidar_report(config)}
     if args.json:
         print(json.dumps(report, indent=2))
         return

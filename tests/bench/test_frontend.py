@@ -46,7 +46,8 @@ def test_parse_mount_takes_metres_and_degrees_and_names_bad_input() -> None:
 def test_an_outdoor_run_with_a_far_reaching_lidar_is_tracked() -> None:
     """The campus seen by a 181-beam, 180-deg lidar reaching 80 m: buildings 15-70 m away."""
     report = run_sim(default_settings(), 6.0, 0, world="campus", lidar=parse_lidar("181,180,80"))
-    assert report["lidar"] == [181, 180.0, 80.0]
+    assert report["lidar"] == {"beams": 181, "fov_deg": 180.0, "range_max_m": 80.0,
+                              "rate_hz": 10.0, "bearing_noise_deg": 0.0}
     run = report["deskewed"]
     # Every scan tracked, or searched again and recovered: along a row of trees, gn's match
     # is `degenerate` and keeps the prediction's position there (0.30 m off before, 0.35 m

@@ -166,7 +166,8 @@ def test_bench_matching_json_on_simulated_campus_pairs() -> None:
     assert out.returncode == 0, out.stderr
     report = json.loads(out.stdout)
     assert report["data"] == "sim:campus" and report["pairs"] == 23
-    assert report["sim"]["lidar"] == [181, 180.0, 80.0]
+    assert report["sim"]["lidar"] == {"beams": 181, "fov_deg": 180.0, "range_max_m": 80.0,
+                                     "rate_hz": 10.0, "bearing_noise_deg": 0.0}
     plicp = report["results"]["plicp"]
     # Exact truth: the matcher's own error, a few mm on every pair.
     assert plicp["ok_5cm_0.5deg"] == 1.0 and plicp["trans_p95_m"] < 0.02

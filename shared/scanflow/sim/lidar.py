@@ -25,6 +25,9 @@ class LidarModel:
     range_max_m: float = 30.0
     range_noise_m: float = 0.0
     dropout_prob: float = 0.0
+    # Beams cast this far (std) off the angles the scan reports, as drivers that sort a
+    # spinning head's samples into evenly spaced bins report them (an RPLidar's +-0.5 deg).
+    bearing_noise_deg: float = 0.0
 
     def __post_init__(self) -> None:
         checks = (
@@ -34,6 +37,7 @@ class LidarModel:
             ("range_max_m", self.range_max_m > self.range_min_m >= 0.0, "> range_min_m >= 0"),
             ("range_noise_m", self.range_noise_m >= 0.0, ">= 0"),
             ("dropout_prob", 0.0 <= self.dropout_prob < 1.0, "in [0, 1)"),
+            ("bearing_noise_deg", 0.0 <= self.bearing_noise_deg <= 5.0, "in [0, 5]"),
         )
         for field, ok, rule in checks:
             if not ok:
@@ -93,6 +97,9 @@ def measure(
     beam_poses = trajectory.pose_at(stamp_s + offsets_s)
     sensor_poses = beam_poses if mount == IDENTITY else compose_arrays(beam_poses, mount.to_array())
     angles_rad = lidar.angle_min_rad + lidar.angle_increment_rad * np.arange(lidar.beams)
+    if lidar.bearing_noise_deg > 0:  # cast off the reported angles (the scan keeps those)
+        angles_rad = angles_rad + rng.normal(0.0, math.radians(lidar.bearing_noise_deg),
+                                             lidar.beams)
     ranges_m = cast_rays(
         sensor_poses[:, :2], sensor_poses[:, 2] + angles_rad, segments, lidar.range_max_m
     )

@@ -35,6 +35,7 @@ class SimConfig:
     max_yaw_rate_dps: float = 90.0
     range_max_m: float = 30.0
     range_noise_m: float = 0.01
+    bearing_noise_deg: float = 0.0  # beams cast off their reported angles (see LidarModel)
     dropout_prob: float = 0.01
     odom_rate_hz: float = 50.0
     odom_scale_error: float = 0.01
@@ -70,6 +71,7 @@ class SimConfig:
             rate_hz=self.rate_hz,
             range_max_m=self.range_max_m,
             range_noise_m=self.range_noise_m,
+            bearing_noise_deg=self.bearing_noise_deg,
             dropout_prob=self.dropout_prob,
         )
 

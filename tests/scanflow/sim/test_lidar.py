@@ -39,7 +39,8 @@ def _to_square_walls(x: NDArray, y: NDArray, bearing: NDArray) -> NDArray[np.flo
     ("field", "value"),
     [("beams", 179), ("beams", 1441), ("fov_deg", 0.0), ("fov_deg", 361.0), ("rate_hz", 4.9),
      ("rate_hz", 40.1), ("range_max_m", 0.05), ("range_noise_m", -0.01),
-     ("dropout_prob", 1.0), ("dropout_prob", -0.1)],
+     ("dropout_prob", 1.0), ("dropout_prob", -0.1), ("bearing_noise_deg", -0.1),
+     ("bearing_noise_deg", 5.1)],
 )
 def test_lidar_model_refuses_a_bad_field_by_name(field: str, value: float) -> None:
     with pytest.raises(ValueError, match=f"LidarModel.{field} must be"):
@@ -160,3 +161,21 @@ def test_range_noise_has_the_configured_spread_and_the_rng_decides_it() -> None:
     np.testing.assert_array_equal(a, b)
     error = (a - clean).astype(np.float64)
     assert abs(error.mean()) < 0.003 and 0.018 < error.std() < 0.022
+
+
+def test_bearing_noise_casts_each_beam_off_the_angle_the_scan_reports() -> None:
+    """From the room's centre every reported bearing keeps its layout, while each range is the
+    wall's distance along a bearing drawn about it (std as configured); none without noise."""
+    still = ConstantVelocityTrajectory(Pose2D(), 0.0, 0.0)
+    lidar = LidarModel(beams=1440, fov_deg=360.0, bearing_noise_deg=0.3)
+    plain = LidarModel(beams=1440, fov_deg=360.0)
+    scan = measure(lidar, still, ROOM, 0.0, np.random.default_rng(4)).scan
+    assert (scan.angle_min_rad, scan.angle_increment_rad) == (
+        plain.angle_min_rad, plain.angle_increment_rad)
+    reported = plain.angle_min_rad + plain.angle_increment_rad * np.arange(1440)
+    rng = np.random.default_rng(4)
+    drawn = reported + rng.normal(0.0, math.radians(0.3), 1440)
+    np.testing.assert_allclose(scan.ranges_m, _to_square_walls(0.0, 0.0, drawn), rtol=1e-6)
+    assert 0.27 < np.degrees(np.std(drawn - reported)) < 0.33
+    exact = measure(plain, still, ROOM, 0.0, np.random.default_rng(4)).scan.ranges_m
+    np.testing.assert_allclose(exact, _to_square_walls(0.0, 0.0, reported), rtol=1e-6)
