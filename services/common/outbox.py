@@ -20,7 +20,7 @@ _log = logging.getLogger("scanflow.outbox")
 
 
 class Outbox:
-    """Bounded FIFO of (publisher, payload) pairs, sent in order by one daemon thread."""
+    """Bounded FIFO of (publisher, payload, put options), sent in order by one daemon thread."""
 
     def __init__(
         self, maxsize: int, give_up_at: Callable[[], float], name: str = "outbox"
@@ -29,7 +29,7 @@ class Outbox:
         (math.inf while the service runs: it blocks; a stopping service's drain deadline)."""
         if maxsize < 1:
             raise ValueError(f"outbox size must be >= 1, got {maxsize}")
-        self._queue: queue.Queue[tuple[Any, bytes] | None] = queue.Queue(maxsize)
+        self._queue: queue.Queue[tuple[Any, bytes, dict[str, Any]] | None] = queue.Queue(maxsize)
         self._give_up_at = give_up_at
         self.send_s = 0.0  # time the sender spent in puts (blocked by slow subscribers)
         self.failed = 0  # puts Zenoh refused (session closing)
@@ -37,17 +37,19 @@ class Outbox:
         self._thread = threading.Thread(target=self._send, name=name, daemon=True)
         self._thread.start()
 
-    def put(self, publisher: Any, payload: bytes) -> bool:
-        """Queue `payload` for `publisher`, blocking while the outbox is full; False (counted
-        in `refused`) only when there is still no room past `give_up_at()` (a stopping
-        service whose drain ran out of time: what it drained before that still goes out)."""
+    def put(self, publisher: Any, payload: bytes, **options: Any) -> bool:
+        """Queue `payload` for `publisher` (sent as `publisher.put(payload, **options)`),
+        blocking while the outbox is full; False (counted in `refused`) only when there is
+        still no room past `give_up_at()` (a stopping service whose drain ran out of time: what
+        it drained before that still goes out)."""
+        item = (publisher, payload, options)
         while True:
             wait_s = min(_POLL_S, self._give_up_at() - time.monotonic())
             try:
                 if wait_s > 0.0:
-                    self._queue.put((publisher, payload), timeout=wait_s)
+                    self._queue.put(item, timeout=wait_s)
                 else:  # past the deadline: room now or never, at no cost per payload
-                    self._queue.put_nowait((publisher, payload))
+                    self._queue.put_nowait(item)
                 return True
             except queue.Full:
                 if wait_s <= 0.0:
@@ -76,10 +78,10 @@ class Outbox:
             item = self._queue.get()
             if item is None:
                 return
-            publisher, payload = item
+            publisher, payload, options = item
             t0 = time.perf_counter()
             try:
-                publisher.put(payload)
+                publisher.put(payload, **options)
             except Exception:  # a refused put must not end the sender
                 self.failed += 1
                 _log.warning("put failed (%d so far)", self.failed, exc_info=True)

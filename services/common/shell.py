@@ -35,6 +35,7 @@ from scanflow.config import ServiceSettings, ZenohSettings
 from scanflow.wire import ServiceStatsMessage
 
 from services.common.counters import Counters, SeqTracker, worth_logging
+from services.common.dedup import SeenSamples
 from services.common.inbox import Inbox
 from services.common.outbox import Outbox
 from services.common.process import io_threads
@@ -82,6 +83,7 @@ class ServiceShell:
         self._closed = threading.Event()  # set by close(): the query thread ends
         self._feedback_size = queue_size
         self._keep: dict[str, Callable[[Any], bool]] = {}  # per kind: feedback never dropped
+        self._seen = SeenSamples()  # samples the network delivered twice
         self._declared: list[Any] = []
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._stats_sources: list[Callable[[], dict[str, float]]] = []
@@ -126,9 +128,11 @@ class ServiceShell:
 
     def put(self, key: str, payload: bytes) -> None:
         """Publish on `key` through a cached reliable, blocking publisher, by way of the
-        outbox: in order, and blocking the caller only when the outbox is full."""
+        outbox: in order, and blocking the caller only when the outbox is full. The sample
+        carries a timestamp of this session, by which a subscriber knows a copy (`dedup`)."""
         t0 = time.perf_counter()
-        if not self.outbox.put(self._cached_publisher(key), payload):
+        stamp = self.session.new_timestamp()
+        if not self.outbox.put(self._cached_publisher(key), payload, timestamp=stamp):
             self.log.warning("stopping with a full outbox: a message on %s was not sent", key)
         self._put_s += time.perf_counter() - t0
 
@@ -243,6 +247,12 @@ class ServiceShell:
 
         def on_sample(sample: zenoh.Sample) -> None:
             if sample.kind != zenoh.SampleKind.PUT:
+                return
+            if not self._seen.first(f"{kind}:{sample.key_expr}", sample.timestamp):
+                n = self.counters.add(f"duplicates.{kind}")  # a copy the network made
+                if worth_logging(n):
+                    self.log.warning("a %s sample on %s came twice (#%d): the copy is dropped",
+                                     kind, sample.key_expr, n)
                 return
             try:
                 message = decode(sample.payload.to_bytes())

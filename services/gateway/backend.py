@@ -298,7 +298,7 @@ class ZenohBackend:
                         congestion_control=zenoh.CongestionControl.BLOCK,
                         reliability=zenoh.Reliability.RELIABLE,
                     )
-            pub.put(payload)
+            pub.put(payload, timestamp=self.session.new_timestamp())  # copies known by it
         except zenoh.ZError as exc:
             with self._lock:  # the next post declares a fresh publisher
                 stale = self._publishers.pop(key, None)

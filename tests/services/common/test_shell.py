@@ -387,3 +387,45 @@ def test_a_block_that_raises_closes_the_shell_and_passes_the_error_on(caplog) ->
     with ServiceShell("deskew", DeskewSettings(), ZenohSettings(mode="peer", connect=[])) as other:
         other.close(flush_s=0.0)  # closed inside: the exit does not close it again
     assert other._closed.is_set()
+
+
+def test_a_sample_the_network_delivers_twice_is_handled_once_and_counted() -> None:
+    """Two routes can copy a sample: the copy has the sample's timestamp, and to a service it
+    would be a seq that does not advance, a restart that wipes the robot's map. It is dropped
+    (duplicates.<kind>); a sample without a timestamp (a robot's own client) always passes,
+    and the shell's own puts carry one."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_session(ZenohSettings(mode="router", listen=[endpoint], connect=[]))
+    shell = ServiceShell("deskew", DeskewSettings(), ZenohSettings(connect=[endpoint]))
+    client = open_session(ZenohSettings(connect=[endpoint]))
+    got: list[str] = []
+    stamps: list[object] = []
+    shell.subscribe("scanflow-test/in", "scan", bytes.decode, lambda _k, m: got.append(m))
+    watcher = client.declare_subscriber("scanflow-test/out", lambda s: stamps.append(s.timestamp))
+    shell.start(install_signals=False)
+    try:
+        publisher = client.declare_publisher("scanflow-test/in")
+        deadline = time.monotonic() + 30.0
+        while not got:  # until the subscription has reached the router
+            publisher.put(b"probe")
+            assert time.monotonic() < deadline, "the shell's subscription never came up"
+            time.sleep(0.05)
+        stamp = client.new_timestamp()
+        for payload, options in ((b"one", {"timestamp": stamp}), (b"one", {"timestamp": stamp}),
+                                 (b"two", {}), (b"two", {})):
+            publisher.put(payload, **options)
+        while got.count("two") < 2:  # sent last: everything before it has come
+            assert time.monotonic() < deadline, f"the samples did not all come: {got}"
+            time.sleep(0.05)
+        assert [m for m in got if m != "probe"] == ["one", "two", "two"]
+        assert shell.counters.get("duplicates.scan") == 1
+        shell.put("scanflow-test/out", b"x")
+        while not stamps:
+            assert time.monotonic() < deadline, "the shell's put never came"
+            time.sleep(0.05)
+        assert stamps[0] is not None
+    finally:
+        watcher.undeclare()
+        shell.close(flush_s=0.0)
+        client.close()
+        router.close()

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import threading
+import time
 from dataclasses import replace
 
 import numpy as np
@@ -13,6 +15,8 @@ from scanflow.geometry import Pose2D
 from scanflow.maps.export import npz_arrays, npz_bytes
 from scanflow.wire import MapInsertMessage, MapRedrawMessage, MapStateMessage, PoseEstimateMessage
 
+from services.common.launch import free_port
+from services.common.zsession import open_session
 from services.mapserver.keyframes import Keyframes
 from services.mapserver.robot import RobotMap
 from services.mapserver.service import MapServer
@@ -344,3 +348,40 @@ def test_a_bad_prior_map_stops_the_start_with_one_line_naming_it(tmp_path, monke
     monkeypatch.setenv("SCANFLOW_FRONTEND_PRIOR_MAP", str(tmp_path / "none.npz"))
     with pytest.raises(SystemExit, match=r"^mapserver: prior_map: no file at "):
         main()
+
+
+def test_an_insert_the_network_delivers_twice_does_not_restart_the_robot(tmp_path, insert) -> None:
+    """Two routes can copy a sample. The copy of insert 1 is a seq that does not advance, a
+    replay to the map server, which restarted the robot and wiped the map it held; the copy
+    carries the original's timestamp and is dropped."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_session(ZenohSettings(mode="router", listen=[endpoint], connect=[]))
+    server = MapServer(MapServerSettings(data_dir=str(tmp_path)), ZenohSettings(connect=[endpoint]))
+    client = open_session(ZenohSettings(connect=[endpoint]))
+    server.shell.start(install_signals=False)
+    worker = threading.Thread(target=server.shell.run, args=(server.handle, server.idle))
+    worker.start()
+    try:
+        publisher = client.declare_publisher(keys.map_key("r", "insert"))
+        deadline = time.monotonic() + 30.0
+        while "r" not in server.robots:  # until the subscription has reached the router
+            publisher.put(insert(0).encode(), timestamp=client.new_timestamp())
+            assert time.monotonic() < deadline, "the map server never took insert 0"
+            time.sleep(0.05)
+        stamp = client.new_timestamp()
+        for _ in range(2):
+            publisher.put(replace(insert(1, Pose2D(0.5, 0.0, 0.0)), previous_seq=0).encode(),
+                          timestamp=stamp)
+        publisher.put(replace(insert(2, Pose2D(1.0, 0.0, 0.0)), previous_seq=1).encode(),
+                      timestamp=client.new_timestamp())
+        while server.robots["r"].last_insert_seq != 2:
+            assert time.monotonic() < deadline, "insert 2 never came"
+            time.sleep(0.05)
+        assert server.robots["r"].map.revision >= 3  # 0, 1, 2: nothing wiped it
+        assert server.shell.counters.get("duplicates.insert") == 1
+    finally:
+        server.shell.stop()
+        worker.join(10.0)
+        server.shell.close(flush_s=0.0)
+        client.close()
+        router.close()
