@@ -4,18 +4,10 @@ and what a restarted matcher resumes from (with loop closure, the kept keyframes
 from __future__ import annotations
 
 import math
-import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
-from scanflow.maps.export import (
-    map_server_zip,
-    npz_arrays,
-    npz_bytes,
-    save_map_server,
-    save_png,
-)
+from scanflow.maps.export import MAP_FILE_FORMATS, map_file_bytes, npz_arrays, npz_bytes
 from scanflow.maps.grid import CellBox
 from scanflow.wire import (
     MAX_POSITION_M,
@@ -37,22 +29,13 @@ def meta(robot: RobotMap) -> MapMetaMessage:
 
 def image(robot: RobotMap, fmt: str) -> MapImageMessage:
     """The map exported by the library's writers: png, pgm or yaml (map_server), zip (that
-    yaml and pgm together), npz (native, built in memory: a resume asks for it under the map
-    server's lock)."""
+    yaml and pgm together), npz (native), all built in memory (a resume asks for the npz under
+    the map server's lock)."""
     grid = robot.map.grid
     if fmt == "npz":
         data = npz_bytes(npz_arrays(grid))
-    elif fmt == "zip":
-        data = map_server_zip(grid, robot.robot_id)
-    elif fmt in ("png", "pgm", "yaml"):
-        with tempfile.TemporaryDirectory(prefix="scanflow-map-") as tmp:
-            base = Path(tmp) / robot.robot_id
-            if fmt == "png":
-                path = save_png(grid, base.with_suffix(".png"))
-            else:
-                save_map_server(grid, base.with_suffix(".yaml"))
-                path = base.with_suffix(f".{fmt}")
-            data = path.read_bytes()
+    elif fmt in MAP_FILE_FORMATS:
+        data = map_file_bytes(grid, fmt, robot.robot_id)
     else:
         raise ValueError(f"format must be png, pgm, yaml, zip or npz, got {fmt!r}")
     return MapImageMessage(robot.robot_id, robot.map.revision, fmt, data)  # type: ignore[arg-type]

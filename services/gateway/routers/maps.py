@@ -8,14 +8,12 @@ exporters here.
 
 from __future__ import annotations
 
-import tempfile
-from pathlib import Path
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, HTTPException, Query
 from fastapi.responses import Response
 from scanflow import keys
-from scanflow.maps.export import map_server_zip, save_map_server, save_png
+from scanflow.maps.export import map_file_bytes
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
 from scanflow.wire import MapImageMessage, MapMetaMessage, MapRegionMessage
 from starlette.concurrency import run_in_threadpool
@@ -92,11 +90,4 @@ def export_region(region: MapRegionMessage, fmt: str) -> bytes:
     spec = region.window_spec
     params = OccupancyParams(resolution_m=spec.resolution_m)
     grid = OccupancyGrid.from_int8(region.occupancy, spec.origin_x_m, spec.origin_y_m, params)
-    if fmt == "zip":
-        return map_server_zip(grid)
-    with tempfile.TemporaryDirectory(prefix="scanflow-region-") as tmp:
-        base = Path(tmp) / "map"
-        if fmt == "png":
-            return save_png(grid, base.with_suffix(".png")).read_bytes()
-        save_map_server(grid, base.with_suffix(".yaml"))
-        return base.with_suffix(f".{fmt}").read_bytes()
+    return map_file_bytes(grid, fmt, "map")

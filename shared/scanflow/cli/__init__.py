@@ -4,8 +4,12 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
+
+if TYPE_CHECKING:
+    from scanflow.io.detect import LogFormat
 
 app = typer.Typer(
     name="scanflow",
@@ -50,13 +54,14 @@ class SkippedRecords:
                 typer.echo(f"  {message}", err=True)
 
 
-def check_log(log: Path) -> None:
-    """Refuse a --log that is no log (missing, unreadable, a directory that is no ROS 2 bag)
-    as a usage error naming it, before anything runs."""
+def check_log(log: Path) -> LogFormat:
+    """The format of a --log (see `detect_format`); one that is no log (missing, unreadable, a
+    directory that is no ROS 2 bag) is refused as a usage error naming it, before anything
+    runs."""
     from scanflow.io.detect import detect_format
 
     try:
-        detect_format(log)
+        return detect_format(log)
     except (OSError, ValueError) as exc:
         raise typer.BadParameter(str(exc), param_hint="--log") from exc
 

@@ -14,7 +14,7 @@ from scanflow.calibration import estimate_mount, paired_motions
 from scanflow.cli import SkippedRecords, app, check_log, finite_or_none
 from scanflow.geometry import IDENTITY
 from scanflow.io.carmen import load_keyframes
-from scanflow.io.detect import carmen_error_handler, detect_format
+from scanflow.io.detect import carmen_error_handler
 
 
 @app.command("calibrate")
@@ -26,8 +26,7 @@ def calibrate_command(
     """Fit T_base_laser to the log's odometry and scan matching (2D hand-eye calibration)."""
     if not log.exists():
         raise typer.BadParameter(f"no log at {log}", param_hint="--log")
-    check_log(log)
-    if detect_format(log) != "carmen":
+    if check_log(log) != "carmen":
         raise typer.BadParameter("calibrate reads CARMEN logs (keyframes: scans without "
                                  "motion distortion)", param_hint="--log")
     skipped = SkippedRecords()

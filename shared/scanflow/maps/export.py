@@ -69,11 +69,16 @@ def trinary_image(
     return np.ascontiguousarray(image[::-1])
 
 
-def save_png(grid: OccupancyGrid, path: Path | str) -> Path:
+def png_bytes(grid: OccupancyGrid) -> bytes:
     """A PNG for people: free white, occupied black, unknown grey, y up."""
     buffer = io.BytesIO()
     Image.fromarray(trinary_image(grid), mode="L").save(buffer, format="PNG")
-    return _write_atomic(Path(path), buffer.getvalue())
+    return buffer.getvalue()
+
+
+def save_png(grid: OccupancyGrid, path: Path | str) -> Path:
+    """Write `png_bytes` of the map to `path`."""
+    return _write_atomic(Path(path), png_bytes(grid))
 
 
 def pgm_bytes(image: NDArray[np.uint8]) -> bytes:
@@ -130,6 +135,22 @@ def map_server_zip(grid: OccupancyGrid, name: str = "map") -> bytes:
             entry.external_attr = 0o644 << 16  # rw-r--r-- when unzipped
             archive.writestr(entry, data)
     return buffer.getvalue()
+
+
+MAP_FILE_FORMATS = ("png", "pgm", "yaml", "zip")
+
+
+def map_file_bytes(grid: OccupancyGrid, fmt: str, name: str) -> bytes:
+    """One map file, in memory: png, or map_server's pgm or yaml (naming `<name>.pgm`), or the
+    two in one zip; ValueError for any other format."""
+    if fmt == "png":
+        return png_bytes(grid)
+    if fmt == "zip":
+        return map_server_zip(grid, name)
+    if fmt in ("yaml", "pgm"):
+        text, pgm = map_server_files(grid, name)
+        return text if fmt == "yaml" else pgm
+    raise ValueError(f"format must be one of {MAP_FILE_FORMATS}, got {fmt!r}")
 
 
 def _parse_flat_yaml(text: str, source: Path) -> dict[str, str]:
