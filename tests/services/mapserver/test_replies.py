@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import io
 import zipfile
+from dataclasses import replace
 
 import pytest
+from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
 
 from services.mapserver import replies
+from services.mapserver.robot import RobotMap
 
 
 def test_a_region_apart_from_the_map_has_no_cells_and_bad_bounds_are_named(new_robot, insert):
@@ -32,3 +35,10 @@ def test_the_zip_export_is_the_yaml_and_pgm_exports_of_one_revision(new_robot, i
     assert archive.read("r.pgm") == replies.image(robot, "pgm").data
     with pytest.raises(ValueError, match="png, pgm, yaml, zip or npz"):
         replies.image(robot, "tiff")
+
+
+def test_the_yaml_names_the_pgm_of_a_robot_id_with_a_dot(insert) -> None:
+    """`<id>.pgm` whole: written through a file path, 'r.1' lost its '.1' as a suffix."""
+    robot = RobotMap("r.1", lambda: OccupancyGrid(OccupancyParams()))
+    robot.insert(replace(insert(0), robot_id="r.1"))
+    assert b"image: r.1.pgm\n" in replies.image(robot, "yaml").data
