@@ -13,8 +13,7 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, HTTPException, Query
 from fastapi.responses import Response
 from scanflow import keys
-from scanflow.maps.export import map_file_bytes
-from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
+from scanflow.maps.export import RosGrid, map_file_bytes
 from scanflow.wire import MapImageMessage, MapMetaMessage, MapRegionMessage
 from starlette.concurrency import run_in_threadpool
 
@@ -86,8 +85,6 @@ async def map_file(
 
 
 def export_region(region: MapRegionMessage, fmt: str) -> bytes:
-    """The region written by the library's PNG or map_server exporter."""
-    spec = region.window_spec
-    params = OccupancyParams(resolution_m=spec.resolution_m)
-    grid = OccupancyGrid.from_int8(region.occupancy, spec.origin_x_m, spec.origin_y_m, params)
-    return map_file_bytes(grid, fmt, "map")
+    """The region written by the library's PNG or map_server exporter from the percentages the
+    map server sent, which its whole-map export draws from too: each cell comes out alike."""
+    return map_file_bytes(RosGrid(region.occupancy, region.window_spec), fmt, "map")

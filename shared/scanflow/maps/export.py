@@ -5,7 +5,10 @@ sees half a map.
 map_server conventions: image row 0 is the top (largest y) row; `origin` is the world pose of
 the lower-left pixel; with `negate: 0` a pixel's occupancy is (255 - value) / 255, trinary mode
 calls it occupied above `occupied_thresh`, free below `free_thresh`, unknown otherwise. We write
-the values map_saver writes: 0 occupied, 254 free, 205 unknown.
+what nav2's map_saver writes from the map's ROS occupancy (`RosGrid`: -1 unknown, 0..100 percent,
+as the map server sends a region): 254 free at or below rint(100 free_thresh), else 0 occupied at
+or above rint(100 occupied_thresh), else 205 unknown. One rule on those percentages, so a whole
+map and a region of it draw each cell alike.
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ import json
 import os
 import zipfile
 from collections.abc import Mapping
-from dataclasses import asdict, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import IO
 
@@ -23,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 from PIL import Image
 
-from scanflow.maps.grid import CellBox
+from scanflow.maps.grid import CellBox, GridSpec
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
 
 OCCUPIED_PIXEL = 0
@@ -51,25 +54,42 @@ def _write_atomic(path: Path, data: bytes) -> Path:
     return path
 
 
+@dataclass(frozen=True, slots=True)
+class RosGrid:
+    """A map as ROS carries it (nav_msgs/OccupancyGrid): `data` -1 unknown, 0..100 percent
+    occupied, rows growing with y, placed by `spec`. What every map file is drawn from."""
+
+    data: NDArray[np.int8]
+    spec: GridSpec
+
+    @staticmethod
+    def of(grid: OccupancyGrid | RosGrid) -> RosGrid:
+        """The ROS occupancy of a grid (`to_int8` over its extent), or `grid` itself."""
+        return grid if isinstance(grid, RosGrid) else RosGrid(grid.to_int8(), grid.spec)
+
+
 def trinary_image(
-    grid: OccupancyGrid,
+    grid: OccupancyGrid | RosGrid,
     occupied_thresh: float = OCCUPIED_THRESH,
     free_thresh: float = FREE_THRESH,
 ) -> NDArray[np.uint8]:
-    """Grey image of the map, top row = largest y: 0 occupied, 254 free, 205 unknown."""
-    if grid.is_empty:
-        raise ValueError("grid is empty: nothing to draw")
+    """Grey image of the map, top row = largest y: 0 occupied, 254 free, 205 unknown, by
+    nav2 map_saver's trinary rule on the ROS percentages (module docstring)."""
     if not 0.0 < free_thresh < occupied_thresh < 1.0:
         raise ValueError(
             f"need 0 < free_thresh < occupied_thresh < 1, got {free_thresh}, {occupied_thresh}"
         )
-    image = np.full(grid.spec.shape, UNKNOWN_PIXEL, dtype=np.uint8)
-    image[grid.free_mask(free_thresh)] = FREE_PIXEL
-    image[grid.occupied_mask(occupied_thresh)] = OCCUPIED_PIXEL
+    data = RosGrid.of(grid).data
+    if data.size == 0:
+        raise ValueError("grid is empty: nothing to draw")
+    known = (data >= 0) & (data <= 100)
+    image = np.full(data.shape, UNKNOWN_PIXEL, dtype=np.uint8)
+    image[known & (data >= round(100.0 * occupied_thresh))] = OCCUPIED_PIXEL
+    image[known & (data <= round(100.0 * free_thresh))] = FREE_PIXEL  # map_saver tests it first
     return np.ascontiguousarray(image[::-1])
 
 
-def png_bytes(grid: OccupancyGrid) -> bytes:
+def png_bytes(grid: OccupancyGrid | RosGrid) -> bytes:
     """A PNG for people: free white, occupied black, unknown grey, y up."""
     buffer = io.BytesIO()
     Image.fromarray(trinary_image(grid), mode="L").save(buffer, format="PNG")
@@ -89,15 +109,16 @@ def pgm_bytes(image: NDArray[np.uint8]) -> bytes:
 
 
 def map_server_files(
-    grid: OccupancyGrid,
+    grid: OccupancyGrid | RosGrid,
     name: str,
     occupied_thresh: float = OCCUPIED_THRESH,
     free_thresh: float = FREE_THRESH,
 ) -> tuple[bytes, bytes]:
     """The map_server pair of one map, in memory: `<name>.yaml` (naming `<name>.pgm` as its
     image) and that trinary PGM."""
-    spec = grid.spec
-    pgm = pgm_bytes(trinary_image(grid, occupied_thresh, free_thresh))
+    ros = RosGrid.of(grid)
+    spec = ros.spec
+    pgm = pgm_bytes(trinary_image(ros, occupied_thresh, free_thresh))
     text = (
         f"image: {name}.pgm\n"
         "mode: trinary\n"
@@ -123,7 +144,7 @@ def save_map_server(
     return _write_atomic(yaml_path, text)
 
 
-def map_server_zip(grid: OccupancyGrid, name: str = "map") -> bytes:
+def map_server_zip(grid: OccupancyGrid | RosGrid, name: str = "map") -> bytes:
     """`<name>.yaml` and `<name>.pgm` in one zip: a pair that cannot come from two revisions of
     a growing map, as two downloads can. Stamped 1980-01-01, so one map gives the same bytes."""
     text, pgm = map_server_files(grid, name)
@@ -140,9 +161,10 @@ def map_server_zip(grid: OccupancyGrid, name: str = "map") -> bytes:
 MAP_FILE_FORMATS = ("png", "pgm", "yaml", "zip")
 
 
-def map_file_bytes(grid: OccupancyGrid, fmt: str, name: str) -> bytes:
+def map_file_bytes(grid: OccupancyGrid | RosGrid, fmt: str, name: str) -> bytes:
     """One map file, in memory: png, or map_server's pgm or yaml (naming `<name>.pgm`), or the
-    two in one zip; ValueError for any other format."""
+    two in one zip; ValueError for any other format. A grid and its `RosGrid.of` (a region as
+    the map server sends it) give the same bytes."""
     if fmt == "png":
         return png_bytes(grid)
     if fmt == "zip":

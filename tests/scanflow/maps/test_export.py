@@ -9,14 +9,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
 from PIL import Image
 from scanflow.geometry import Pose2D
 from scanflow.maps.export import (
     FREE_PIXEL,
+    MAP_FILE_FORMATS,
     OCCUPIED_PIXEL,
     UNKNOWN_PIXEL,
+    RosGrid,
     grid_from_npz_bytes,
     load_map,
+    map_file_bytes,
     map_server_zip,
     npz_arrays,
     npz_bytes,
@@ -25,6 +31,7 @@ from scanflow.maps.export import (
     save_npz,
     trinary_image,
 )
+from scanflow.maps.grid import CellBox
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
 
@@ -42,11 +49,46 @@ def l_shaped_room_scans(grid: OccupancyGrid, scans: int = 6) -> None:
 
 
 def classes(grid: OccupancyGrid) -> np.ndarray:
-    """0 free, 1 occupied, 2 unknown per cell, with map_server's default thresholds."""
-    out = np.full(grid.spec.shape, 2)
-    out[grid.free_mask(0.196)] = 0
-    out[grid.occupied_mask(0.65)] = 1
+    """0 free, 1 occupied, 2 unknown per cell, as nav2's map_saver draws the grid's ROS
+    occupancy with the default thresholds: free <= rint(19.6) %, else occupied >= 65 %."""
+    data = grid.to_int8()
+    return np.where(data < 0, 2, np.where(data <= 20, 0, np.where(data >= 65, 1, 2)))
+
+
+def map_saver_pixels(data: np.ndarray, occupied_thresh: float = 0.65,
+                     free_thresh: float = 0.196) -> np.ndarray:
+    """nav2 map_saver's trinary image of ROS occupancy (nav2_map_server map_io.cpp), cell by
+    cell, top row first: unknown outside 0..100, free at or below rint(100 free_thresh), else
+    occupied at or above rint(100 occupied_thresh), else unknown."""
+    free, occupied = round(100.0 * free_thresh), round(100.0 * occupied_thresh)  # std::rint
+    out = np.empty(data.shape, np.uint8)
+    for (row, col), value in np.ndenumerate(data[::-1]):
+        if value < 0 or value > 100:
+            out[row, col] = UNKNOWN_PIXEL
+        elif value <= free:
+            out[row, col] = FREE_PIXEL
+        elif value >= occupied:
+            out[row, col] = OCCUPIED_PIXEL
+        else:
+            out[row, col] = UNKNOWN_PIXEL
     return out
+
+
+def grid_of(probability: np.ndarray) -> OccupancyGrid:
+    """A grid whose cells hold these occupancy probabilities (NaN: never observed)."""
+    p = np.asarray(probability, dtype=np.float64)
+    seen = np.isfinite(p)
+    q = np.where(seen, p, 0.5)
+    return OccupancyGrid.from_arrays(
+        np.log(q / (1.0 - q)), seen, CellBox(0, 0, *p.shape), 0.01, -0.02, revision=7
+    )
+
+
+# Cells just either side of the thresholds: 65 % and 20 % are map_saver's occupied and free.
+AT_THE_THRESHOLDS = np.array([
+    [0.653, 0.647, 0.643, 0.9, np.nan],
+    [0.196, 0.2, 0.203, 0.207, 0.19],
+])
 
 
 def parse_pgm(data: bytes) -> tuple[int, int, int, np.ndarray]:
@@ -275,7 +317,53 @@ def test_png_for_people(tmp_path: Path, grid: OccupancyGrid):
     assert pixels.shape == grid.spec.shape
     np.testing.assert_array_equal(pixels, trinary_image(grid))
     assert set(np.unique(pixels)) == {OCCUPIED_PIXEL, FREE_PIXEL, UNKNOWN_PIXEL}
-    np.testing.assert_array_equal(pixels[::-1] == OCCUPIED_PIXEL, grid.occupied_mask(0.65))
+    np.testing.assert_array_equal(pixels[::-1] == OCCUPIED_PIXEL, grid.to_int8() >= 65)
+
+
+def test_cells_at_the_thresholds_are_drawn_as_map_saver_draws_their_percentages():
+    """0.647 is 65 %: occupied, as map_saver draws it from the map's ROS occupancy (and as a
+    region of it, sent as those percentages, is drawn); compared on the probability it was
+    unknown. Likewise 0.2 and 0.203 are 20 %: free."""
+    grid = grid_of(AT_THE_THRESHOLDS)
+    np.testing.assert_array_equal(grid.to_int8(), [[65, 65, 64, 90, -1], [20, 20, 20, 21, 19]])
+    image = trinary_image(grid)
+    np.testing.assert_array_equal(image, map_saver_pixels(grid.to_int8()))
+    o, f, u = OCCUPIED_PIXEL, FREE_PIXEL, UNKNOWN_PIXEL
+    np.testing.assert_array_equal(image[::-1], [[o, o, u, o, u], [f, f, f, u, f]])
+
+
+def test_a_grid_and_its_ros_occupancy_give_the_same_files():
+    grid = grid_of(AT_THE_THRESHOLDS)
+    ros = RosGrid.of(grid)
+    assert ros.spec == grid.spec and RosGrid.of(ros) is ros
+    for fmt in MAP_FILE_FORMATS:
+        assert map_file_bytes(ros, fmt, "m") == map_file_bytes(grid, fmt, "m"), fmt
+    with pytest.raises(ValueError, match="empty"):
+        trinary_image(RosGrid.of(OccupancyGrid()))
+
+
+probabilities = hnp.arrays(
+    np.float64, st.tuples(st.integers(1, 6), st.integers(1, 6)),
+    elements=st.one_of(st.floats(0.12, 0.97), st.just(np.nan)),
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(p=probabilities, window=st.tuples(*[st.integers(0, 5)] * 4),
+       thresholds=st.sampled_from([(0.65, 0.196), (0.65, 0.25), (0.55, 0.305), (0.9, 0.1)]))
+def test_a_window_of_the_ros_occupancy_draws_as_the_whole_map_does(p, window, thresholds):
+    """Any grid, whole or any window of its percentages: map_saver's pixels, cell for cell."""
+    grid = grid_of(p)
+    data = grid.to_int8()
+    image = trinary_image(grid, *thresholds)
+    np.testing.assert_array_equal(image, map_saver_pixels(data, *thresholds))
+    rows, cols = data.shape
+    r0, c0 = min(window[0], rows - 1), min(window[1], cols - 1)
+    r1, c1 = r0 + 1 + window[2] % (rows - r0), c0 + 1 + window[3] % (cols - c0)
+    spec = CellBox(r0, c0, r1, c1).spec(grid.spec.origin_x_m, grid.spec.origin_y_m,
+                                        grid.resolution_m)
+    part = trinary_image(RosGrid(data[r0:r1, c0:c1], spec), *thresholds)
+    np.testing.assert_array_equal(part[::-1], image[::-1][r0:r1, c0:c1])
 
 
 def test_writes_are_atomic_and_leave_no_temporaries(tmp_path: Path, grid: OccupancyGrid):

@@ -6,10 +6,18 @@ import io
 import zipfile
 
 import numpy as np
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
 from PIL import Image
 from scanflow import keys
-from scanflow.maps.grid import GridSpec
+from scanflow.maps.grid import CellBox, GridSpec
+from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.wire import MapImageMessage, MapMetaMessage, MapRegionMessage
+
+from services.gateway.routers.maps import export_region
+from services.mapserver import replies
+from services.mapserver.robot import RobotMap
 
 from ..conftest import off_the_loop
 
@@ -77,3 +85,46 @@ def test_a_regions_export_runs_off_the_event_loop(client, peer, monkeypatch):
         r = client.get(f"/api/v1/robots/r1/map.{fmt}?x0=-1&y0=-2&x1=2&y1=0")  # a region
         assert r.status_code == 200, r.text
     assert calls == [True, True]
+
+
+def pixels(data: bytes) -> np.ndarray:
+    return np.asarray(Image.open(io.BytesIO(data)))
+
+
+# 0.653 and 0.647 are 65 %, 0.2 and 0.204 are 20 %: map_saver's occupied and free thresholds.
+AT_THE_THRESHOLDS = np.array([[0.653, 0.647, 0.643, np.nan], [0.196, 0.2, 0.204, 0.207],
+                              [0.9, 0.15, 0.5, 0.66]])
+
+
+@settings(max_examples=40, deadline=None)
+@example(p=AT_THE_THRESHOLDS, corner=(1, 1))
+@given(p=hnp.arrays(np.float64, st.tuples(st.integers(1, 5), st.integers(1, 5)),
+                    elements=st.one_of(st.floats(0.12, 0.97), st.just(np.nan))),
+       corner=st.tuples(st.integers(0, 4), st.integers(0, 4)))
+def test_a_region_draws_each_cell_as_the_whole_map_does(p: np.ndarray, corner: tuple[int, int]):
+    """The map server's whole-map export (from its grid) and the gateway's export of a region
+    (from the percentages the map server's region reply carries) of one revision: the same
+    pixel for every cell. 0.647 was occupied in the first and unknown in the second, 0.2 free
+    and unknown."""
+    seen = np.isfinite(p)
+    q = np.where(seen, p, 0.5)
+    grid = OccupancyGrid.from_arrays(np.log(q / (1.0 - q)), seen, CellBox(3, -2, 3 + p.shape[0],
+                                     -2 + p.shape[1]), 0.01, -0.02, revision=5)
+    robot = RobotMap("r1", lambda: grid)
+    whole = replies.region(robot, None)
+    for fmt in ("png", "pgm"):
+        assert export_region(whole, fmt) == replies.image(robot, fmt).data, fmt
+    yaml = replies.image(robot, "yaml").data.replace(b"image: r1.pgm", b"image: map.pgm")
+    assert export_region(whole, "yaml") == yaml
+    # A window of it: cells [r0, rows) x [c0, cols), bounded by those cells' centres.
+    r0, c0 = min(corner[0], p.shape[0] - 1), min(corner[1], p.shape[1] - 1)
+    spec = grid.spec
+    x0, y0 = spec.origin_x_m + (c0 + 0.5) * spec.resolution_m, spec.origin_y_m + (r0 + 0.5) * (
+        spec.resolution_m)
+    x1, y1 = spec.origin_x_m + spec.width_m - 0.01, spec.origin_y_m + spec.height_m - 0.01
+    window = replies.region(robot, (x0, y0, x1, y1))
+    assert (window.row0, window.col0) == (r0, c0)
+    for fmt in ("png", "pgm"):
+        part, full = (pixels(d) for d in (export_region(window, fmt),
+                                          replies.image(robot, fmt).data))
+        np.testing.assert_array_equal(part[::-1], full[::-1][r0:, c0:])
