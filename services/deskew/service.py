@@ -35,6 +35,11 @@ _MIN_POLL_S = 0.002
 MAX_PENDING_ODOMETRY = 4096  # samples held ahead of the scans
 
 
+def _stamp_s(message: ScanMessage | OdometryMessage) -> float:
+    """A scan's or odometry sample's stamp (s)."""
+    return message.scan.stamp_s if isinstance(message, ScanMessage) else message.odom.stamp_s
+
+
 @dataclass
 class _Robot:
     """One robot's deskew stage, its scans waiting for odometry and the odometry waiting for
@@ -112,6 +117,12 @@ class DeskewService:
         if not self.shell.admits(robot_id, self.robots):
             return
         stream = f"{robot_id}/{kind}"
+        if self._is_copy(stream, message):
+            n = self.shell.counters.add(f"duplicates.{kind}")
+            if worth_logging(n):
+                self.shell.log.warning("%s: seq %d came again with the same stamp (#%d): the "
+                                       "copy is dropped", stream, message.seq, n)
+            return
         robot = self.robots.setdefault(robot_id, _Robot())
         restarted = self._starts_run(kind, message, robot.stage.odometry.max_age_s)
         self.shell.seqs.observe(stream, message.seq)
@@ -131,6 +142,16 @@ class DeskewService:
             robot.pending.append((time.monotonic() + self.settings.odom_wait_s, message.scan))
         self.idle()
 
+    def _is_copy(self, stream: str, message: ScanMessage | OdometryMessage) -> bool:
+        """Whether `message` is its stream's last one again (same seq, same stamp): a client
+        that sent it twice, without the Zenoh timestamp that shows the network's copies. Passed
+        on, it would go out again under a seq that does not advance, a restart to the matcher
+        and the map server, which would wipe the robot's map."""
+        return (
+            self.shell.seqs.last_seq(stream) == message.seq
+            and self._last_stamps.get(stream) == _stamp_s(message)
+        )
+
     def _starts_run(
         self, kind: str, message: ScanMessage | OdometryMessage, window_s: float
     ) -> bool:
@@ -141,7 +162,7 @@ class DeskewService:
         (a driver restarted, a message sent twice) continues the run: its odometry still covers
         the scans (a new run would wait for the other stream to restart, maybe for ever)."""
         stream = f"{message.robot_id}/{kind}"
-        stamp_s = message.scan.stamp_s if isinstance(message, ScanMessage) else message.odom.stamp_s
+        stamp_s = _stamp_s(message)
         last_s = self._last_stamps.get(stream, -math.inf)
         self._last_stamps[stream] = stamp_s
         if stamp_s >= last_s:

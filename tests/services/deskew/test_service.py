@@ -204,48 +204,63 @@ def test_stats_gathered_while_robots_are_admitted_do_not_fail() -> None:
     assert failures == []
 
 
-def in_process(odom_wait_s: float) -> tuple[DeskewService, list[DeskewedScanMessage]]:
-    """A deskew service on its own peer session whose puts are decoded into the list."""
+def deskew_in_process(
+    events, odom_wait_s: float
+) -> tuple[list[DeskewedScanMessage], dict[str, int]]:
+    """Each scan and odometry sample handed to a deskew service (on its own peer session) as
+    its inbox would: the scans it put, decoded, and its counters."""
     service = DeskewService(
         DeskewSettings(odom_wait_s=odom_wait_s), ZenohSettings(mode="peer", connect=[])
     )
     out: list[DeskewedScanMessage] = []
     service.shell.put = lambda key, payload: out.append(DeskewedScanMessage.decode(payload))
-    return service, out
-
-
-def handle_all(service: DeskewService, events) -> None:
-    """Hand each scan and odometry sample to the service's worker as the inbox would."""
-    for event in events:
-        if isinstance(event, LaserScan):
-            service.handle("scan", ScanMessage(event))
-        else:
-            service.handle("odom", OdometryMessage(event))
+    try:
+        for event in events:
+            if isinstance(event, LaserScan):
+                service.handle("scan", ScanMessage(event))
+            else:
+                service.handle("odom", OdometryMessage(event))
+    finally:
+        service.shell.close(flush_s=0.0)
+    return out, service.shell.counters.snapshot()
 
 
 def test_a_seq_that_starts_again_on_the_same_clock_keeps_the_odometry() -> None:
-    """A lidar driver restarted (its seq from 0, its stamps going on, odometry going on), or a
-    scan sent twice: the same run. It began a new run that waited for odometry to restart
-    too, so every later scan went out without odometry (an audit saw them all 'none')."""
+    """A lidar driver restarted (its seq from 0, its stamps going on, odometry going on): the
+    same run. It began a new run that waited for odometry to restart too, so every later scan
+    went out without odometry (an audit saw them all 'none')."""
     events = list(source_events(None, "robot", 2.0, 4, None))
     half = len(events) // 2
     restarted = [
         dataclasses.replace(e, seq=e.seq - 10) if isinstance(e, LaserScan) and i >= half else e
         for i, e in enumerate(events)
     ]
-    twice = [*events[:half], *[e for e in events[:half] if isinstance(e, LaserScan)][-1:],
-             *events[half:]]
-    for feed in (restarted, twice):
-        service, out = in_process(odom_wait_s=10.0)
-        try:
-            handle_all(service, feed)
-        finally:
-            service.shell.close(flush_s=0.0)
-        expected = reference_points(feed)
-        assert len(out) == len(expected)
-        assert {m.source_used for m in out} == {"odometry"}
-        for message, points in zip(out, expected, strict=True):
-            np.testing.assert_array_equal(message.points, points, strict=True)
+    out, _ = deskew_in_process(restarted, odom_wait_s=10.0)
+    expected = reference_points(restarted)
+    assert len(out) == len(expected)
+    assert {m.source_used for m in out} == {"odometry"}
+    for message, points in zip(out, expected, strict=True):
+        np.testing.assert_array_equal(message.points, points, strict=True)
+
+
+def test_a_scan_or_sample_sent_twice_is_dropped_as_a_copy() -> None:
+    """A client that puts a scan (or odometry sample) twice, without the Zenoh timestamp that
+    shows the network's copies: the copy went out deskewed under the same seq, which the
+    matcher and the map server take for a restart and wipe the robot's map. Now it is
+    dropped and counted; the run and its odometry go on."""
+    events = list(source_events(None, "robot", 2.0, 4, None))
+    half = len(events) // 2
+    scan = [e for e in events[:half] if isinstance(e, LaserScan)][-1]
+    sample = next(e for e in events[half:] if isinstance(e, Odometry))
+    at = events.index(sample) + 1
+    twice = [*events[:half], scan, *events[half:at], sample, *events[at:]]
+    out, counters = deskew_in_process(twice, odom_wait_s=10.0)
+    expected = reference_deskew(events)
+    assert [m.seq for m in out] == sorted(expected)  # each seq once: no restart downstream
+    assert {m.source_used for m in out} == {"odometry"}
+    for message in out:
+        np.testing.assert_array_equal(message.points, expected[message.seq], strict=True)
+    assert counters["duplicates.scan"] == counters["duplicates.odom"] == 1
 
 
 def test_a_clock_reset_starts_a_new_run_named_in_the_stats() -> None:
@@ -256,17 +271,12 @@ def test_a_clock_reset_starts_a_new_run_named_in_the_stats() -> None:
     half = len(events) // 2
     reset = [dataclasses.replace(e, stamp_s=e.stamp_s - 60.0) if i >= half else e
              for i, e in enumerate(events)]
-    service, out = in_process(odom_wait_s=10.0)
-    try:
-        handle_all(service, reset)
-    finally:
-        service.shell.close(flush_s=0.0)
+    out, counters = deskew_in_process(reset, odom_wait_s=10.0)
     expected = {**reference_deskew(reset[:half]), **reference_deskew(reset[half:])}
     assert [m.seq for m in out] == sorted(expected)
     assert {m.source_used for m in out} == {"odometry"}
     for message in out:
         np.testing.assert_array_equal(message.points, expected[message.seq], strict=True)
-    counters = service.shell.counters.snapshot()
     assert counters["clock_reset.scan"] == counters["clock_reset.odom"] == 1
 
 
@@ -275,12 +285,8 @@ def test_odometry_on_a_clock_seconds_off_the_scans_is_named(caplog) -> None:
     seen only as deskewed.none, the reason never said. Now counted and logged with it."""
     events = [e if isinstance(e, LaserScan) else dataclasses.replace(e, stamp_s=e.stamp_s - 3.0)
               for e in source_events(None, "robot", 1.0, 4, None)]
-    service, out = in_process(odom_wait_s=0.0)
-    try:
-        handle_all(service, events)
-    finally:
-        service.shell.close(flush_s=0.0)
+    out, counters = deskew_in_process(events, odom_wait_s=0.0)
     assert {m.source_used for m in out} == {"none"}
-    assert service.shell.counters.get("odometry_missed") == len(out) == 10
+    assert counters["odometry_missed"] == len(out) == 10
     assert "scan 0 deskewed by none, not odometry (#1): no pose source covers the sweep: " \
            "odometry: sweep ends at 0.075000 s, 2.9950 s after the newest odometry" in caplog.text
