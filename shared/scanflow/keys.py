@@ -19,6 +19,8 @@ Layout (``<prefix>`` defaults to ``scanflow``; ``<robot>`` is a robot id):
 | <prefix>/<robot>/map/resume           | queryable  | ResumeMessage (map server)     |
 | <prefix>/<robot>/map/resend           | queryable  | MapInsertMessage... (matcher)  |
 | <prefix>/<robot>/trajectory           | queryable  | TrajectoryMessage              |
+| <prefix>/<robot>/retire/<service>     | queryable  | RetireMessage -> RetiredMessage|
+|                                       |            | (one per instance) (***)       |
 | <prefix>/match                        | queryable  | MatchRequest (scan-to-scan)    |
 | <prefix>/health/<service>/<instance>  | liveliness | (token, no payload)            |
 | <prefix>/stats/<service>/<instance>   | queryable  | ServiceStatsMessage            |
@@ -31,6 +33,10 @@ relies on the order of two keys (see the README's services section).
 the map server inserts the same points at the same pose, so its map equals the front end's.
 Each names the insert before it; a map server that missed some asks the matcher for them again
 on `map/resend?after=A;through=B` (services.common.resend).
+
+(***) every service that keeps robot state (deskew, matcher, mapserver) drops all of the
+robot's and answers with what it dropped; the gateway asks them one service after the other,
+in the order the data flows (services.common.retire).
 
 Ids are single chunks (see `check_id`); a prefix may span several chunks ("site1/scanflow").
 Robot ids "health" and "stats" are reserved: their keys would collide with the service keys.
@@ -121,6 +127,12 @@ def map_key(robot: str = "*", what: str = "meta", prefix: str = DEFAULT_PREFIX) 
 def trajectory(robot: str = "*", prefix: str = DEFAULT_PREFIX) -> str:
     """`<prefix>/<robot>/trajectory`: the trajectory queryable (TrajectoryMessage)."""
     return _key(robot, "trajectory", prefix)
+
+
+def retire(robot: str = "*", service: str = "*", prefix: str = DEFAULT_PREFIX) -> str:
+    """`<prefix>/<robot>/retire/<service>`: the queryable on which `service` drops the robot
+    (RetireMessage -> RetiredMessage); service "*" reaches every service at once."""
+    return _key(robot, f"retire/{_chunk(service, 'service')}", prefix)
 
 
 def health(service: str = "*", instance: str = "*", prefix: str = DEFAULT_PREFIX) -> str:

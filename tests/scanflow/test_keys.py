@@ -20,6 +20,7 @@ PER_ROBOT = [
     keys.robot_match,
     keys.trajectory,
     *[lambda r, p, w=w: keys.map_key(r, w, p) for w in ("meta", "image", "region", "changed")],
+    lambda r, p: keys.retire(r, "matcher", p),
 ]
 
 
@@ -28,6 +29,8 @@ def test_default_layout() -> None:
     assert keys.deskewed_scan() == "scanflow/*/scan/deskewed"
     assert keys.map_key("r1", "region") == "scanflow/r1/map/region"
     assert keys.scan_match() == "scanflow/match"
+    assert keys.retire("r1", "mapserver") == "scanflow/r1/retire/mapserver"
+    assert keys.retire() == "scanflow/*/retire/*"
     assert keys.health() == "scanflow/health/*/*"
     assert keys.stats("matcher", "0", prefix="site/sf") == "site/sf/stats/matcher/0"
 

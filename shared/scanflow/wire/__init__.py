@@ -19,7 +19,8 @@ Changing any message's fields bumps SCHEMA_VERSION (2: `DeskewedScanMessage.no_r
 6: `MapInsertMessage.keyframe`, false for an insert the back end culled as a keyframe;
 7: `MapStateMessage`, a matcher's whole map for a map server that missed more inserts than
 the matcher keeps; 8: `PoseEstimateMessage.odom_pose` and `ResumeMessage.odom_pose`, so a
-restarted matcher predicts the robot's next pose from the odometry since the last one):
+restarted matcher predicts the robot's next pose from the odometry since the last one;
+9: `RetireMessage` and `RetiredMessage`, a robot retired from every service):
 readers refuse other versions with a VersionError, so services of two versions fail loudly
 instead of dropping or missing a field.
 """
@@ -58,6 +59,7 @@ from scanflow.wire.maps import (
     MapStateMessage,
     ResumeMessage,
 )
+from scanflow.wire.robots import RetiredMessage, RetireMessage
 from scanflow.wire.scans import DeskewedScanMessage, OdometryMessage, ScanMessage
 from scanflow.wire.stats import ServiceStatsMessage
 
@@ -89,6 +91,8 @@ __all__ = [
     "PayloadTooLarge",
     "PoseEstimateMessage",
     "ResumeMessage",
+    "RetireMessage",
+    "RetiredMessage",
     "ScanMessage",
     "SchemaError",
     "ServiceStatsMessage",

@@ -300,6 +300,11 @@ STRATEGIES: dict[str, st.SearchStrategy[wire.Message]] = {
     "map_state": map_states(),
     "service_stats": service_stats,
     "initial_pose": st.builds(wire.InitialPoseMessage, ids, poses),
+    "retire": st.builds(wire.RetireMessage, ids),
+    "retired": st.builds(
+        wire.RetiredMessage, ids, ids, ids, st.booleans(),
+        st.dictionaries(texts, counts, max_size=8),
+    ),
 }
 
 

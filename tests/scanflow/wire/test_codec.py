@@ -39,7 +39,7 @@ def test_decoded_arrays_are_read_only() -> None:
 def test_every_payload_carries_type_and_version() -> None:
     data = wire.MapImageMessage("r", 1, "png", b"x").encode()
     assert msgpack.unpackb(data)["type"] == "map_image"
-    assert msgpack.unpackb(data)["v"] == wire.SCHEMA_VERSION == 8
+    assert msgpack.unpackb(data)["v"] == wire.SCHEMA_VERSION == 9
 
 
 # ---------------------------------------------------------------- clear errors
@@ -50,8 +50,8 @@ def test_wrong_version_is_a_version_error(
 ) -> None:
     # 1: before no_return_points, 2: before the sensor mount, 3: before map redraws,
     # 4: before the resume message, 5: before the inserts' keyframe flag, 6: before the map
-    # state message, 7: before the estimates' odometry pose
-    for version in (1, 2, 3, 4, 5, 6, 7, 9):
+    # state message, 7: before the estimates' odometry pose, 8: before retiring a robot
+    for version in (1, 2, 3, 4, 5, 6, 7, 8, 10):
         with pytest.raises(wire.VersionError, match=rf"\.v: schema version {version}"):
             wire.decode_any(payload(scan_message, v=version))
 
@@ -257,6 +257,8 @@ def _examples() -> list[wire.Message]:
         wire.MapStateMessage("r", 7, 5, b"PK\x03\x04", np.arange(2.0), np.ones((2, 3)), kept),
         wire.ServiceStatsMessage("deskew", "a", 1.0, {"in": 3}, {"lag_s": 0.5}),
         wire.InitialPoseMessage("r", Pose2D(1.5, -2.0, 0.3)),
+        wire.RetireMessage("r"),
+        wire.RetiredMessage("r", "mapserver", "0", True, {"map_revision": 4, "keyframes": 2}),
     ]
 
 
@@ -303,7 +305,7 @@ def test_bit_flips_only_raise_decode_error() -> None:
             _decode_or_decode_error(flipped.tobytes())
 
 
-FREE_FORM_MAPS = {"options", "counters", "gauges"}  # their keys are data, not schema
+FREE_FORM_MAPS = {"options", "counters", "gauges", "dropped"}  # their keys are data, not schema
 
 
 def _paths(obj: Any, prefix: tuple[Any, ...] = ()) -> list[tuple[Any, ...]]:
