@@ -93,6 +93,15 @@ class SeqTracker:
             state = self._streams.get(stream)
             return -1 if state is None else state.last_seq
 
+    def forget_robot(self, robot_id: str) -> bool:
+        """Drop every stream of the robot (named `<robot>/<kind>`); whether it had any."""
+        head = f"{robot_id}/"
+        with self._lock:
+            gone = [name for name in self._streams if name.startswith(head)]
+            for name in gone:
+                del self._streams[name]
+            return bool(gone)
+
     def snapshot(self) -> dict[str, dict[str, int]]:
         """last_seq, received, missed and restarts of every stream, by stream name."""
         with self._lock:

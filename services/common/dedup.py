@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict, deque
+from collections.abc import Callable
 from typing import Any
 
 PER_KEY = 64  # copies arrive within moments: the last few timestamps of each key suffice
@@ -47,3 +48,12 @@ class SeenSamples:
             if len(order) > self._per_key:
                 seen.discard(order.popleft())
             return True
+
+    def forget(self, which: Callable[[str], bool]) -> int:
+        """Drop the timestamps of every key `which(key)` is true of (a retired robot's); how
+        many keys went."""
+        with self._lock:
+            gone = [key for key in self._seen if which(key)]
+            for key in gone:
+                del self._seen[key]
+            return len(gone)

@@ -41,3 +41,6 @@ class RobotLimit:
         self._refused(robot_id, first)
         return False
 
+    def forget(self, robot_id: str) -> None:
+        """The robot was retired: a refusal of it later is reported (logged) again."""
+        self._reported.discard(robot_id)

@@ -8,6 +8,9 @@ has handled what the inbox held (`drain`), then `close()` sends what is queued, 
 undeclares and closes the session.
 
 A full inbox blocks the Zenoh callback and with it the session's whole link (backpressure).
+A robot is retired (`serve_retire`) on the worker, between two inbox items, and the answer
+leaves through the outbox behind what the worker published before (services.common.retire).
+
 Hints a service takes back from a service it feeds (deskew: the matcher's poses) must not wait
 behind that: `subscribe_feedback` takes them on a second session whose callback never blocks,
 else two services that publish to each other could each wait for the other forever. The same
@@ -32,18 +35,20 @@ from typing import Any
 import zenoh
 from scanflow import keys
 from scanflow.config import ServiceSettings, ZenohSettings
-from scanflow.wire import ServiceStatsMessage
+from scanflow.wire import RetiredMessage, ServiceStatsMessage
 
 from services.common.counters import Counters, SeqTracker, worth_logging
 from services.common.dedup import SeenSamples
 from services.common.inbox import Inbox
 from services.common.outbox import Outbox
 from services.common.process import io_threads
+from services.common.retire import Dropped, QueryReply, retire_request
 from services.common.robots import Known, RobotLimit
 from services.common.zsession import open_session
 
 QueryHandler = Callable[[zenoh.Query], None]
 _WAKE = "_wake"  # an inbox item that only wakes the worker to take feedback
+_RETIRE = "_retire"  # an inbox item (robot id, query): drop the robot, then answer
 # A stop's drain ends once nothing has come for this long: what upstream flushed has arrived.
 DRAIN_QUIET_S = 0.25
 
@@ -87,6 +92,7 @@ class ServiceShell:
         self._declared: list[Any] = []
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._stats_sources: list[Callable[[], dict[str, float]]] = []
+        self._retire: Callable[[str], Dropped] | None = None  # the service's drop (serve_retire)
         self._queries: queue.Queue[tuple[QueryHandler, zenoh.Query]] = queue.Queue(queue_size)
         self._query_thread = threading.Thread(target=self._serve_queries, daemon=True)
         self._started_s = time.monotonic()
@@ -268,11 +274,11 @@ class ServiceShell:
 
         return on_sample
 
-    def serve(self, key: str, handler: QueryHandler, side: bool = False) -> None:
+    def serve(self, key: str, handler: QueryHandler, side: bool = False) -> zenoh.Queryable:
         """Answer queries on `key` with `handler(query)` on the query thread (not Zenoh's).
         `side`: for quick queries other services make mid-stream (`get`): on the side session,
         answered at once on its Zenoh thread, never queued behind a slow query (a whole-map
-        search takes seconds)."""
+        search takes seconds). Returns the queryable (`undeclare` ends it)."""
 
         if not keys.addresses_services(key, self.prefix):  # a per-robot queryable
             handler = robots_only(handler, self.prefix)
@@ -286,9 +292,71 @@ class ServiceShell:
 
         if side:
             answer = functools.partial(self._answer, handler)
-            self._declared.append(self._side_session().declare_queryable(key, answer))
+            queryable = self._side_session().declare_queryable(key, answer)
         else:
-            self._declared.append(self.session.declare_queryable(key, on_query))
+            queryable = self.session.declare_queryable(key, on_query)
+        self._declared.append(queryable)
+        return queryable
+
+    def undeclare(self, entity: Any) -> None:
+        """Undeclare a queryable (subscriber, ...) declared through the shell before it closes
+        (a retired robot's)."""
+        self._declared.remove(entity)
+        entity.undeclare()
+
+    def serve_retire(self, drop: Callable[[str], Dropped]) -> None:
+        """Answer `<prefix>/<robot>/retire/<service>` (keys.retire): `drop(robot_id)` runs on
+        the worker, after every inbox item that came before the query, and must let go of all
+        the service keeps of the robot; the shell then forgets the robot's seqs, the samples it
+        saw of it (dedup) and its refusals, and answers with a RetiredMessage through the
+        outbox. A query that does not decode, or whose key is not its robot's, gets an error
+        reply naming why."""
+        self._retire = drop
+        key = keys.retire("*", self.service, self.prefix)
+        self._declared.append(self.session.declare_queryable(key, self._on_retire))
+
+    def _on_retire(self, query: zenoh.Query) -> None:
+        """On a Zenoh thread: into the inbox, in order with the samples (blocking when full, as
+        they do); the worker answers it (`_answer_retire`)."""
+        if keys.addresses_services(str(query.key_expr), self.prefix):  # a stats scrape
+            query.drop()
+            return
+        try:
+            robot_id = retire_request(query, self.service, self.prefix)
+        except Exception as exc:  # a bad request is answered, never raised on Zenoh's thread
+            self._count_malformed("retire", str(query.key_expr), exc)
+            QueryReply(query, "").refuse(f"{type(exc).__name__}: {exc}")
+            return
+        if not self.inbox.put(_RETIRE, (robot_id, query)):
+            QueryReply(query, "").refuse(f"{self.service}/{self.instance} is busy: stopping")
+
+    def _answer_retire(self, _kind: str, item: tuple[str, zenoh.Query]) -> None:
+        """On the worker: drop the robot (the service's part, then the shell's), answer through
+        the outbox. A drop that fails is an error reply naming the service, logged and counted
+        (`retire.failed`); the service goes on."""
+        robot_id, query = item
+        reply = QueryReply(query, keys.retire(robot_id, self.service, self.prefix))
+        try:
+            if self._retire is None:
+                raise RuntimeError("this service keeps no robot state to retire")
+            dropped = self._retire(robot_id)
+            had_streams = self.seqs.forget_robot(robot_id)
+            head = f"{self.prefix}/{robot_id}/"
+            self._seen.forget(lambda seen: seen.partition(":")[2].startswith(head))
+            self._robots.forget(robot_id)
+            answer = RetiredMessage(robot_id, self.service, self.instance,
+                                    dropped.known or had_streams, dropped.counts)
+        except Exception as exc:
+            self.counters.add("retire.failed")
+            self.log.exception("robot %s: retiring it failed", robot_id)
+            reply.refuse(f"{type(exc).__name__}: {self.service}/{self.instance}: {exc}")
+            return
+        self.counters.add("retire.answered")
+        if answer.known:
+            self.counters.add("robots_retired")
+            self.log.info("robot %s retired: dropped %s", robot_id, answer.dropped)
+        if not self.outbox.put(reply, answer.encode()):
+            reply.refuse(f"{self.service}/{self.instance} is busy: stopping")
 
     def add_stats(self, source: Callable[[], dict[str, float]]) -> None:
         """Merge the gauges `source()` returns into the stats this service reports."""
@@ -368,6 +436,9 @@ class ServiceShell:
                              self.inbox_drain_s)
 
     def _count_dropped_at_stop(self, items: list[tuple[str, Any]]) -> None:
+        for kind, item in items:
+            if kind == _RETIRE:  # its asker hears why at once, rather than time out
+                QueryReply(item[1], "").refuse(f"{self.service}/{self.instance} is busy: stopping")
         left = sum(1 for kind, _ in items if kind != _WAKE)
         if left:
             self.counters.add("inbox.dropped_at_stop", left)
@@ -385,6 +456,8 @@ class ServiceShell:
                 self.log.exception("idle work failed (%d so far)", n)
 
     def _handle(self, handle: Callable[[str, Any], None], kind: str, message: Any) -> None:
+        if kind == _RETIRE:
+            handle = self._answer_retire
         t0, put0, get0 = time.perf_counter(), self._put_s, self._get_s
         try:
             handle(kind, message)

@@ -51,3 +51,13 @@ def test_seq_tracker_resume_counts_the_gap_after_a_restart():
     tracker.resume("r/pose", 9)
     assert tracker.is_restart("r/pose", 3)
     assert tracker.observe("r/pose", 15) == 5
+
+
+def test_a_retired_robots_streams_are_forgotten_and_the_others_kept():
+    tracker = SeqTracker()
+    for stream in ("r/scan", "r/odom", "r2/scan", "rr/scan"):
+        tracker.observe(stream, 4)
+    assert tracker.forget_robot("r")
+    assert sorted(tracker.snapshot()) == ["r2/scan", "rr/scan"]
+    assert tracker.last_seq("r/scan") == -1
+    assert not tracker.forget_robot("r")  # nothing left of it

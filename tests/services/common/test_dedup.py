@@ -29,3 +29,12 @@ def test_only_the_last_samples_of_a_key_and_the_last_keys_are_remembered() -> No
 def test_bounds_must_be_positive() -> None:
     with pytest.raises(ValueError, match="per_key and max_keys"):
         SeenSamples(per_key=0)
+
+
+def test_a_retired_robots_keys_are_forgotten_and_the_others_kept() -> None:
+    seen = SeenSamples()
+    for key in ("scan:sf/r/scan/raw", "odom:sf/r/odom", "scan:sf/r2/scan/raw"):
+        seen.first(key, 1)
+    assert seen.forget(lambda key: key.partition(":")[2].startswith("sf/r/")) == 2
+    assert seen.first("scan:sf/r/scan/raw", 1)  # new again: a copy of it is not known
+    assert not seen.first("scan:sf/r2/scan/raw", 1)

@@ -10,8 +10,10 @@ from types import SimpleNamespace
 
 from scanflow import keys
 from scanflow.config import DeskewSettings, MatcherSettings, ZenohSettings
+from scanflow.wire import RetiredMessage, RetireMessage
 
 from services.common.launch import free_port
+from services.common.retire import Dropped
 from services.common.shell import ServiceShell, robots_only
 from services.common.zsession import open_session
 
@@ -429,3 +431,129 @@ def test_a_sample_the_network_delivers_twice_is_handled_once_and_counted() -> No
         shell.close(flush_s=0.0)
         client.close()
         router.close()
+
+
+class RetireBus:
+    """A router, a deskew shell serving retire queries, a worker thread running it and a client
+    that asks; the worker holds each inbox item until `gate` opens."""
+
+    def __init__(self, drop) -> None:
+        endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.router = open_session(ZenohSettings(mode="router", listen=[endpoint], connect=[]))
+        self.shell = ServiceShell("deskew", DeskewSettings(), ZenohSettings(connect=[endpoint]))
+        self.client = open_session(ZenohSettings(connect=[endpoint]))
+        self.gate = threading.Event()
+        self.handled: list[object] = []
+        self.shell.serve_retire(drop)
+        self.shell.start(install_signals=False)
+        self.worker = threading.Thread(target=self.shell.run, args=(self.handle,),
+                                       kwargs={"poll_s": 0.01})
+
+    def handle(self, _kind: str, message: object) -> None:
+        assert self.gate.wait(30.0), "the test never opened the gate"
+        self.handled.append(message)
+        self.shell.put("scanflow-test/out", b"out")
+
+    def ask(self, key: str, payload: bytes | None) -> list:
+        """The replies to a retire query (ok: RetiredMessage, error: its text), once the
+        shell's queryable has reached the router."""
+        querier = self.client.declare_querier(key)
+        deadline = time.monotonic() + 30.0
+        while not querier.matching_status.matching:
+            assert time.monotonic() < deadline, f"nothing serves {key}"
+            time.sleep(0.05)
+        querier.undeclare()
+        return [
+            RetiredMessage.decode(r.ok.payload.to_bytes()) if r.ok is not None
+            else r.err.payload.to_string()
+            for r in self.client.get(key, payload=payload, timeout=30.0)
+        ]
+
+    def close(self) -> None:
+        self.gate.set()
+        self.shell.stop()
+        if self.worker.is_alive():
+            self.worker.join()
+        self.shell.close(flush_s=0.0)
+        self.client.close()
+        self.router.close()
+
+
+def test_a_robot_is_retired_on_the_worker_behind_what_came_before_and_answered_behind_its_puts():
+    """The drop runs on the worker, after the inbox items that came before the query (they
+    cannot start the robot again afterwards); the answer is queued in the outbox behind what
+    the worker published before it; the shell forgets the robot's seqs and seen samples."""
+    dropped_on: list[str] = []
+
+    def drop(robot_id: str) -> Dropped:
+        dropped_on.append(threading.current_thread().name)
+        return Dropped(False, {"scans_pending": 2})
+
+    bus = RetireBus(drop)
+    shell = bus.shell
+    queued: list[str] = []
+    send = shell.outbox.put
+
+    def spy(publisher, payload, **options):
+        queued.append(type(publisher).__name__)
+        return send(publisher, payload, **options)
+
+    shell.outbox.put = spy
+    for stream in ("r/scan", "r2/scan"):
+        shell.seqs.observe(stream, 3)
+    for key in ("scan:scanflow/r/scan/raw", "scan:scanflow/r2/scan/raw"):
+        shell._seen.first(key, 1)
+    shell.inbox.put("scan", "before")
+    bus.worker.start()
+    answers: list = []
+    try:
+        asking = threading.Thread(target=lambda: answers.extend(
+            bus.ask(keys.retire("r", "deskew"), RetireMessage("r").encode())))
+        asking.start()
+        deadline = time.monotonic() + 30.0
+        while shell.inbox.depth() == 0:  # the retire waits behind the held item
+            assert time.monotonic() < deadline, "the retire query never reached the inbox"
+            time.sleep(0.02)
+        assert not dropped_on
+        bus.gate.set()
+        asking.join()
+    finally:
+        bus.close()
+    assert bus.handled == ["before"] and dropped_on == [bus.worker.name]
+    assert queued == ["Publisher", "QueryReply"]
+    (answer,) = answers
+    assert (answer.robot_id, answer.service, answer.instance) == ("r", "deskew", "0")
+    assert answer.known and answer.dropped == {"scans_pending": 2}  # it had seqs here
+    assert sorted(shell.seqs.snapshot()) == ["r2/scan"]
+    assert shell._seen.first("scan:scanflow/r/scan/raw", 1)  # forgotten: new again
+    assert not shell._seen.first("scan:scanflow/r2/scan/raw", 1)
+    assert shell.counters.get("robots_retired") == 1
+
+
+def test_a_bad_retire_query_or_a_failing_drop_is_an_error_reply_and_the_worker_goes_on():
+    """Each names why (the service too, for a drop that failed); a metrics scrape on stats/*/*
+    that reaches the retire queryable is left to the stats queryable."""
+    def drop(robot_id: str) -> Dropped:
+        if robot_id == "broken":
+            raise OSError("disk gone")
+        return Dropped(False)
+
+    bus = RetireBus(drop)
+    bus.gate.set()
+    bus.worker.start()
+    try:
+        (wrong,) = bus.ask(keys.retire("r", "deskew"), RetireMessage("other").encode())
+        (junk,) = bus.ask(keys.retire("r", "deskew"), b"junk")
+        (failed,) = bus.ask(keys.retire("broken", "deskew"), RetireMessage("broken").encode())
+        (unknown,) = bus.ask(keys.retire("r", "deskew"), RetireMessage("r").encode())
+        scrape = bus.client.get(keys.stats("*", "*"), timeout=10.0)  # reaches */retire/* too
+        assert [r.ok is not None for r in scrape] == [True]  # the stats; no error from retire
+    finally:
+        bus.close()
+    assert wrong.startswith("ValueError: retiring 'other' from deskew must be asked on")
+    assert junk.startswith("DecodeError: ")
+    assert failed == "OSError: deskew/0: disk gone"
+    assert not unknown.known and unknown.dropped == {}
+    counters = bus.shell.counters
+    assert counters.get("malformed.retire") == 2 and counters.get("retire.failed") == 1
+    assert counters.get("retire.answered") == 1 and counters.get("robots_retired") == 0
