@@ -9,6 +9,8 @@ earlier estimate, as in the in-process pipeline; a zero-length sweep (keyframe l
 to correct and does not wait. A pose that carries a map frame `correction` (loop closure
 redrew the map) moves the prior's frame with it. Poses come in on the shell's feedback lane:
 the matcher blocks on publishing them, so they must not queue behind scans that wait on it.
+A robot retired (`<prefix>/<robot>/retire/deskew`) loses its scans still waiting for odometry
+and the odometry held: they are dropped, not deskewed.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from scanflow.wire import DeskewedScanMessage, OdometryMessage, PoseEstimateMess
 
 from services.common.counters import worth_logging
 from services.common.process import init_process, require_settings
+from services.common.retire import Dropped
 from services.common.shell import ServiceShell
 
 _MIN_POLL_S = 0.002
@@ -96,6 +99,7 @@ class DeskewService:
             keep=lambda pose: pose.correction is not None,
         )
         self.shell.add_stats(lambda: {"robots": len(self.robots), "pending": self._pending()})
+        self.shell.serve_retire(self.retire)
 
     def handle(
         self, kind: str, message: ScanMessage | OdometryMessage | PoseEstimateMessage
@@ -263,6 +267,20 @@ class DeskewService:
             mount=result.mount,
         )
         self.shell.put(keys.deskewed_scan(robot_id, self.shell.prefix), message.encode())
+
+    def retire(self, robot_id: str) -> Dropped:
+        """Let go of the robot (on the worker, between two messages): its run, the old run's
+        tail, the scans waiting for odometry (dropped, not deskewed), the odometry held, where
+        its streams' clocks were. Its next message starts it afresh."""
+        clocks = [self._last_stamps.pop(f"{robot_id}/{kind}", None) for kind in ("scan", "odom")]
+        robot = self.robots.pop(robot_id, None)
+        if robot is None:
+            return Dropped(any(c is not None for c in clocks))
+        runs = [robot] if robot.previous is None else [robot, robot.previous]
+        return Dropped(True, {
+            "scans_pending": sum(len(r.pending) for r in runs),
+            "odometry_samples": sum(len(r.odometry) + len(r.stage.odometry) for r in runs),
+        })
 
     def _pending(self) -> int:
         return sum(

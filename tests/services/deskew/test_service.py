@@ -290,3 +290,42 @@ def test_odometry_on_a_clock_seconds_off_the_scans_is_named(caplog) -> None:
     assert counters["odometry_missed"] == len(out) == 10
     assert "scan 0 deskewed by none, not odometry (#1): no pose source covers the sweep: " \
            "odometry: sweep ends at 0.075000 s, 2.9950 s after the newest odometry" in caplog.text
+
+
+def test_a_retired_robot_is_dropped_whole_its_place_freed_and_it_comes_back_afresh() -> None:
+    """SCANFLOW_DESKEW_MAX_ROBOTS=1: a second robot is refused until the first is retired; the
+    retire drops its scans waiting for odometry (not deskewed), its odometry and its clocks,
+    and a message of it after the retire starts it as a new robot."""
+    events = list(source_events(None, "a", 1.0, 4, None))
+    scans = [e for e in events if isinstance(e, LaserScan)]
+    service = DeskewService(DeskewSettings(odom_wait_s=60.0, max_robots=1),
+                            ZenohSettings(mode="peer", connect=[]))
+    out: list[DeskewedScanMessage] = []
+    service.shell.put = lambda key, payload: out.append(DeskewedScanMessage.decode(payload))
+    try:
+        # No odometry reaches into the last scan's sweep: it waits for some.
+        handle_all(service, [e for e in events if e.stamp_s < scans[-1].stamp_s or e is scans[-1]])
+        other = dataclasses.replace(scans[0], robot_id="b")
+        service.handle("scan", ScanMessage(other))
+        assert "b" not in service.robots  # refused: one robot at most
+        held = service.robots["a"]
+        pending, odometry = len(held.pending), len(held.odometry) + len(held.stage.odometry)
+        assert pending >= 1 and odometry >= 1
+        sent = len(out)
+        dropped = service.retire("a")
+        assert dropped.known and dropped.counts == {
+            "scans_pending": pending, "odometry_samples": odometry}
+        assert "a" not in service.robots and not service._last_stamps
+        service.idle()
+        assert len(out) == sent  # its held scans were dropped, not deskewed
+        service.handle("scan", ScanMessage(other))  # the place is free
+        assert list(service.robots) == ["b"]
+        assert not service.retire("nobody").known
+        service.handle("scan", ScanMessage(scans[3]))  # refused again: b holds the place
+        assert "a" not in service.robots
+        service.retire("b")
+        service.handle("scan", ScanMessage(scans[3]))  # a new robot, mid-stream seq and all
+        fresh = service.robots["a"]
+        assert fresh is not held and fresh.previous is None and len(fresh.pending) == 1
+    finally:
+        service.shell.close(flush_s=0.0)
