@@ -54,6 +54,11 @@ class RecentInserts:
             self._kept.append((seq, FIRST if previous_seq is None else previous_seq, payload))
             self.last_seq = seq
 
+    def kept(self) -> int:
+        """How many inserts are kept."""
+        with self._lock:
+            return len(self._kept)
+
     def between(self, after: int, through: int) -> list[bytes]:
         """The inserts after seq `after` through seq `through`, in order; LookupError naming
         what is kept when they are not all here."""

@@ -26,6 +26,12 @@ point of the stream), and the scan's pose estimate carries the frame's `correcti
 deskewer's motion prior and the gateway's pose cache follow. A robot resumed from the map
 server mid-stream gets its back end back from the keyframes in that answer (the closures
 found before are in their poses); without them it is tracked without loop closure.
+
+A robot retired (`<prefix>/<robot>/retire/matcher`, every shard answers) loses its front end
+and map, back end, recent inserts, waiting operator's pose and its `<prefix>/<robot>/match`
+queryable, on the worker between two scans and under the lock match requests take; a scan of
+it that comes later starts it afresh (seq past 0: the map server, which retired it too, has no
+map to resume it from).
 """
 
 from __future__ import annotations
@@ -61,6 +67,7 @@ from scanflow.wire import (
 from services.common.keyframes import scan_nodes
 from services.common.process import init_process, require_settings
 from services.common.resend import resend_range
+from services.common.retire import Dropped
 from services.common.robots import RobotLimitError
 from services.common.shell import TIMED_OUT, ServiceShell
 from services.matcher.recent import (
@@ -99,6 +106,7 @@ class MatcherService:
         self.initial_poses: dict[str, Pose2D] = {}  # operators' poses for robots not seen yet
         self.recent: dict[str, RecentInserts] = {}  # per robot: its run's last inserts
         self.awaiting: dict[str, float] = {}  # robots met mid-stream waiting for the map server
+        self.match_queryables: dict[str, zenoh.Queryable] = {}  # per robot: `<robot>/match`
         self.lock = threading.Lock()  # the worker updates maps that match requests read
         prefix = self.shell.prefix
         self.shell.subscribe(
@@ -108,6 +116,7 @@ class MatcherService:
         self.shell.serve(keys.initial_pose("*", prefix), self._on_initial_pose)
         self.shell.serve(keys.map_key("*", "resend", prefix), self._on_resend, side=True)
         self.shell.add_stats(lambda: {"robots": len(self.frontends)})
+        self.shell.serve_retire(self.retire)
 
     def owns(self, robot_id: str) -> bool:
         """Whether this instance tracks `robot_id`: in its `robots` list, else by CRC-32 shard."""
@@ -223,7 +232,9 @@ class MatcherService:
             if self.backend.loop_closure:
                 mapper = self._resumed_back_end(robot_id, new, resumed)
         if frontend is None:
-            self.shell.serve(keys.robot_match(robot_id, self.shell.prefix), self._on_match)
+            self.match_queryables[robot_id] = self.shell.serve(
+                keys.robot_match(robot_id, self.shell.prefix), self._on_match
+            )
         with self.lock:
             self.frontends[robot_id] = new
             self.awaiting.pop(robot_id, None)
@@ -346,10 +357,13 @@ class MatcherService:
                 culled = 0 if mapper is None else culled_between(mapper, after, through)
             except LookupError as exc:
                 raise LookupError(f"{not_recent}; {exc}") from None
+            frontend = self.frontends.get(robot_id)
+            if frontend is None:  # retired meanwhile
+                raise LookupError(f"robot {robot_id}: this matcher tracks it no more")
             if mapper is not None and not culled:
                 inserts, _ = keyframe_inserts(mapper, robot_id, after, through)
             else:
-                state = map_state(robot_id, self.frontends[robot_id], recent, mapper)
+                state = map_state(robot_id, frontend, recent, mapper)
         if mapper is not None and not culled:
             self._resent(robot_id, after, through, len(inserts))
             return [insert.encode() for insert in inserts]
@@ -397,6 +411,30 @@ class MatcherService:
                 if mapper is not None:  # its graph links across the pose only weakly
                     mapper.relocated()
         self.shell.counters.add("initial_poses")
+
+    def retire(self, robot_id: str) -> Dropped:
+        """Let go of the robot (on the worker, between two scans; under the lock that match
+        requests, resends and operators' poses take): its front end and map, back end, recent
+        inserts, a waiting operator's pose, its wait for the map server, and its match
+        queryable. What it held is counted (`map_revision`, `keyframes`, `inserts_kept`)."""
+        with self.lock:
+            frontend = self.frontends.pop(robot_id, None)
+            mapper = self.mappers.pop(robot_id, None)
+            recent = self.recent.pop(robot_id, None)
+            told = self.initial_poses.pop(robot_id, None)
+            waited = self.awaiting.pop(robot_id, None)
+        queryable = self.match_queryables.pop(robot_id, None)
+        if queryable is not None:
+            self.shell.undeclare(queryable)
+        counts = {}
+        if frontend is not None:
+            counts["map_revision"] = frontend.map.revision
+        if mapper is not None:
+            counts["keyframes"] = len(mapper.keyframe_seqs)
+        if recent is not None:
+            counts["inserts_kept"] = recent.kept()
+        held = (frontend, told, waited, queryable)
+        return Dropped(any(x is not None for x in held), counts)
 
     # -- match requests -------------------------------------------------------------------
     def _map_of(self, robot_id: str) -> MatchingMap | None:

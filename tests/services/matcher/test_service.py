@@ -169,8 +169,8 @@ def test_a_robot_resumes_from_the_map_servers_one_answer_or_says_why_not(
         service.shell.close(flush_s=0.0)
 
 
-def feed(service: MatcherService, duration_s: float) -> None:
-    """The simulator's scans of robot "r", deskewed as the deskew service does, handled."""
+def feed(service: MatcherService, duration_s: float, robot: str = "r") -> None:
+    """The simulator's scans of `robot`, deskewed as the deskew service does, handled."""
     stage = DeskewStage()
     for frame in simulate(SimConfig(duration_s=duration_s, seed=2)):
         for sample in frame.odometry:
@@ -179,7 +179,7 @@ def feed(service: MatcherService, duration_s: float) -> None:
         stamp = result.reference_stamp_s
         beams = len(frame.scan.ranges_m)
         service.handle("scan", DeskewedScanMessage(
-            "r", frame.scan.seq, stamp, result.points, result.source_used, False, beams,
+            robot, frame.scan.seq, stamp, result.points, result.source_used, False, beams,
             beams - len(result.points), result.no_return_points, stage.odometry_pose_at(stamp),
         ))
 
@@ -431,3 +431,42 @@ def test_scans_waiting_in_the_matchers_inbox_at_sigterm_still_get_their_poses(la
     bus.wait_until(lambda: len(poses) == len(frames), 10.0, "every pose on the bus")
     assert sorted(p.seq for p in poses) == [f.scan.seq for f in frames]
     assert "messages left in the inbox" in launcher.log_text("matcher")
+
+
+def test_a_retired_robot_is_dropped_whole_and_frees_its_place_and_its_match_key() -> None:
+    """SCANFLOW_MATCHER_MAX_ROBOTS=1: the retire drops the robot's front end and map, back
+    end, recent inserts and match queryable; another robot then takes the place, and the first
+    one's scans start it afresh (a new map, one match queryable)."""
+    service = MatcherService(
+        MatcherSettings(max_robots=1), FrontendSettings(), ZenohSettings(mode="peer", connect=[]),
+        LOOP_CLOSURE,
+    )
+    service.shell.put = lambda key, payload: None
+    try:
+        feed(service, 1.0)
+        with pytest.raises(RobotLimitError, match="robot 'b' refused"):
+            service.place("b", Pose2D())
+        old = service.frontends["r"]
+        expected = {
+            "map_revision": old.map.revision,
+            "keyframes": len(service.mappers["r"].keyframe_seqs),
+            "inserts_kept": service.recent["r"].kept(),
+        }
+        assert expected["map_revision"] > 0 and expected["inserts_kept"] > 0
+        declared = len(service.shell._declared)
+        dropped = service.retire("r")
+        assert dropped.known and dropped.counts == expected
+        for held in (service.frontends, service.mappers, service.recent, service.initial_poses,
+                     service.awaiting, service.match_queryables):
+            assert "r" not in held
+        assert len(service.shell._declared) == declared - 1  # its match queryable is gone
+        points = np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+        answer = service.respond(MatchRequest("gn", points, MapRef("r")))
+        assert answer.error == "no map for robot 'r' on this matcher"
+        service.place("b", Pose2D(1.0, 0.0, 0.0))  # the place is free
+        assert not service.retire("nobody").known
+        assert service.retire("b").known  # a pose waiting for the first scan is state too
+        feed(service, 1.0)
+        assert service.frontends["r"] is not old and list(service.match_queryables) == ["r"]
+    finally:
+        service.shell.close(flush_s=0.0)
