@@ -5,7 +5,8 @@ data directory (a restart resumes from there). With loop closure on (SCANFLOW_BA
 matchers) it keeps every keyframe's scan (each insert not flagged as culled) and repeats the
 matcher's map redraws. An insert or a redraw that shows inserts missing before it (a link that
 dropped, a restart from a snapshot) gets them from the matcher again first, so the map stays
-the matcher's.
+the matcher's. A robot retired (`<prefix>/<robot>/retire/mapserver`) loses its map, path and
+keyframes, and its snapshot files are deleted, so that a restart does not bring it back.
 """
 
 from __future__ import annotations
@@ -35,10 +36,11 @@ from scanflow.wire import (
 
 from services.common.process import init_process, require_settings
 from services.common.resend import FIRST, resend_selector
+from services.common.retire import Dropped
 from services.common.shell import ServiceShell
 from services.mapserver import replies
 from services.mapserver.robot import RobotMap
-from services.mapserver.snapshot import load_snapshots, save_snapshot
+from services.mapserver.snapshot import load_snapshots, remove_snapshot, save_snapshot
 
 Builder = Callable[[RobotMap, zenoh.Parameters], Message]
 Update = MapInsertMessage | MapRedrawMessage | PoseEstimateMessage
@@ -96,6 +98,7 @@ class MapServer:
             lambda r: keys.map_key(r, "resume", prefix), lambda r, _p: replies.resume(r)
         )
         self.shell.add_stats(self._gauges)
+        self.shell.serve_retire(self.retire)
 
     # -- bus ------------------------------------------------------------------------------
     def handle(self, kind: str, message: Update) -> None:
@@ -261,6 +264,23 @@ class MapServer:
                     continue
                 robot.saved = robot.state
                 self.shell.counters.add("snapshots")
+
+    def retire(self, robot_id: str) -> Dropped:
+        """Let go of the robot (on the worker, between two messages, where snapshots are
+        written too; under the lock the map queries take): its map, path and keyframes, then
+        its snapshot files (OSError when one cannot be deleted: asked again, the retire deletes
+        what is left). What went is counted (`map_revision`, `poses`, `keyframes`,
+        `snapshot_files`)."""
+        with self.lock:
+            robot = self.robots.pop(robot_id, None)
+        counts = {}
+        if robot is not None:
+            counts["map_revision"] = robot.map.revision
+            counts["poses"] = len(robot.trajectory.stamps_s)
+            if robot.keyframes is not None:
+                counts["keyframes"] = len(robot.keyframes)
+        counts["snapshot_files"] = remove_snapshot(self.data_dir, robot_id)
+        return Dropped(robot is not None or counts["snapshot_files"] > 0, counts)
 
     # -- queries --------------------------------------------------------------------------
     def _serve(self, key_of: Callable[[str], str], build: Builder) -> None:

@@ -90,6 +90,24 @@ def save_snapshot(data_dir: Path, snap: Snapshot, per_file: int = PER_FILE) -> N
             path.unlink(missing_ok=True)
 
 
+def remove_snapshot(data_dir: Path, robot_id: str) -> int:
+    """Delete the robot's snapshot, then its keyframes' files (a retired robot: a restart must
+    not bring it back); how many files went. A snapshot set aside as unreadable stays: no
+    start loads it. OSError naming the file that could not be deleted."""
+    removed = 0
+    path = snapshot_path(data_dir, robot_id)
+    if path.exists():  # first: without it no start loads the robot, whatever is left below
+        path.unlink()
+        removed += 1
+    folder = _chunk_dir(data_dir, robot_id)
+    if folder.is_dir():
+        for chunk in sorted(folder.iterdir()):
+            chunk.unlink(missing_ok=True)
+            removed += 1
+        folder.rmdir()
+    return removed
+
+
 def _chunk_dir(data_dir: Path, robot_id: str) -> Path:
     return data_dir / f"{robot_id}.keyframes"
 

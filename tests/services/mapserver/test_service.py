@@ -385,3 +385,40 @@ def test_an_insert_the_network_delivers_twice_does_not_restart_the_robot(tmp_pat
         server.shell.close(flush_s=0.0)
         client.close()
         router.close()
+
+
+def test_a_retired_robots_map_path_and_snapshot_files_go_and_its_place_is_free(
+    tmp_path, insert, pose
+) -> None:
+    """SCANFLOW_MAPSERVER_MAX_ROBOTS=1: a second robot is refused until the first is retired;
+    the retire drops its map, path and keyframes and deletes its snapshot files, so a restart
+    on the same data directory does not bring it back."""
+    settings = MapServerSettings(data_dir=str(tmp_path), max_robots=1, keyframes_per_file=1)
+    loop_closure = BackendSettings.model_construct(loop_closure=True)
+    server = MapServer(settings, ZenohSettings(mode="peer", connect=[]), None, loop_closure)
+    try:
+        for seq in range(3):
+            at = Pose2D(0.1 * seq, 0.0, 0.0)
+            previous = None if seq == 0 else seq - 1
+            server.handle("insert", replace(insert(seq, at), robot_id="a", previous_seq=previous))
+            server.handle("pose", replace(pose(seq, at), robot_id="a"))
+        server.handle("insert", replace(insert(0), robot_id="b"))
+        assert list(server.robots) == ["a"]  # b refused
+        server.snapshot()
+        assert (tmp_path / "a.snapshot.npz").is_file() and (tmp_path / "a.keyframes").is_dir()
+        revision = server.robots["a"].map.revision
+        dropped = server.retire("a")
+        assert dropped.known and dropped.counts == {
+            "map_revision": revision, "poses": 3, "keyframes": 3, "snapshot_files": 4}
+        assert server.robots == {} and list(tmp_path.iterdir()) == []
+        server.handle("insert", replace(insert(0), robot_id="b"))
+        assert list(server.robots) == ["b"]  # the place is free
+        assert server.retire("nobody").counts == {"snapshot_files": 0}
+        assert not server.retire("nobody").known
+    finally:
+        server.shell.close(flush_s=0.0)
+    again = MapServer(settings, ZenohSettings(mode="peer", connect=[]), None, loop_closure)
+    try:
+        assert "a" not in again.robots
+    finally:
+        again.shell.close(flush_s=0.0)

@@ -12,7 +12,7 @@ from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
 from scanflow.wire import MapInsertMessage
 
 from services.mapserver.robot import RobotMap
-from services.mapserver.snapshot import load_snapshots, save_snapshot
+from services.mapserver.snapshot import load_snapshots, remove_snapshot, save_snapshot
 
 
 def test_snapshot_round_trip(tmp_path, new_robot, insert, pose):
@@ -281,3 +281,23 @@ def test_a_skipped_snapshot_is_set_aside_not_overwritten_by_the_fresh_run(
     assert len(kept) == 1 and kept[0].name in skipped[0], skipped  # named in the log
     (snap,), skipped = load_snapshots(tmp_path)  # the set-aside file is not read again
     assert snap.robot_id == "r" and skipped == []
+
+
+def test_a_retired_robots_snapshot_and_keyframe_files_go_and_no_start_loads_it(
+    tmp_path, kept_robot
+):
+    """Another robot's files stay, and so does a snapshot set aside as unreadable (no start
+    loads it; it may be all of a map a newer version can read)."""
+    robot = kept_robot(range(5))
+    save_snapshot(tmp_path, robot.snapshot(), 2)  # the snapshot and two files of keyframes
+    other = RobotMap("r2", robot.new_grid, keep_keyframes=True)
+    other.insert(MapInsertMessage("r2", 0, 0.0, Pose2D(), np.ones((2, 2)), np.zeros((0, 2))))
+    other.last_seq = 0
+    save_snapshot(tmp_path, other.snapshot(), 1)
+    (tmp_path / "r.snapshot.npz.unreadable").write_bytes(b"a newer version's")
+    assert remove_snapshot(tmp_path, "r") == 3
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "r.snapshot.npz.unreadable", "r2.keyframes", "r2.snapshot.npz"]
+    assert [s.robot_id for s in load_snapshots(tmp_path)[0]] == ["r2"]
+    assert remove_snapshot(tmp_path, "r") == 0  # nothing left: no error
+    assert remove_snapshot(tmp_path / "none", "r") == 0
