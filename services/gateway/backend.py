@@ -22,11 +22,14 @@ from scanflow.wire import (
     MapChangedMessage,
     OdometryMessage,
     PoseEstimateMessage,
+    RetiredMessage,
+    RetireMessage,
     ScanMessage,
     ServiceStatsMessage,
 )
 
 from services.common.counters import worth_logging
+from services.common.retire import RETIRING
 from services.common.robots import RobotLimit
 from services.common.zsession import open_session
 from services.gateway.events import EventHub
@@ -262,6 +265,82 @@ class ZenohBackend:
         stats = self.service_stats(self.settings.query_timeout_s)  # all services, or the wait
         lasts = [s.gauges[n] for s in stats for n in names if n in s.gauges]
         return int(max(lasts, default=-1))
+
+    def retire(self, robot_id: str) -> tuple[list[RetiredMessage], dict[str, int] | None]:
+        """Retire the robot from every service that keeps robot state, one service after the
+        other in the order the data flows (services.common.retire.RETIRING), then from the
+        gateway itself: the answers of every instance asked, and what the gateway's own track
+        held (None: it had none). Blocking; each service within `query_timeout_s`.
+
+        BackendError 503 when no instance of one of those services is alive (nothing is asked:
+        a map server that is not running would bring the robot back from its snapshot when
+        it starts), or when one answers it is busy (stopping); 504 naming each instance that
+        is alive (its liveliness token) and did not answer in time; an error reply otherwise
+        with its status (error_status). The services asked before the one that failed have
+        dropped the robot: the message names them, and asking again finishes the retire."""
+        if self._closed:
+            raise BackendError(503, "the gateway's Zenoh session is closed")
+        alive = self.alive_services()
+        absent = [name for name in RETIRING if not any(s == name for s, _ in alive)]
+        if absent:
+            raise BackendError(
+                503, f"no {' or '.join(absent)} is running: robot {robot_id!r} was retired from "
+                f"no service (every one of {', '.join(RETIRING)} must answer; a map server "
+                "started later would bring the robot back from its snapshot)"
+            )
+        answers: list[RetiredMessage] = []
+        for service in RETIRING:
+            instances = {i for s, i in alive if s == service}
+            answers += self._retire_from(robot_id, service, instances, answers)
+        with self._ingest_lock:  # not between the numbering and the put of a post
+            gateway = self.tracks.forget(robot_id)
+            with self._lock:
+                stale = [self._publishers.pop(k, None) for k in (
+                    keys.raw_scan(robot_id, self.prefix), keys.odom(robot_id, self.prefix))]
+        for publisher in stale:
+            if publisher is not None:
+                try:
+                    publisher.undeclare()
+                except zenoh.ZError:  # the session closing
+                    log.debug("undeclaring a retired robot's publisher failed", exc_info=True)
+        log.info("robot %s retired from %s", robot_id,
+                 ", ".join(f"{a.service}/{a.instance}" for a in answers))
+        return answers, gateway
+
+    def _retire_from(
+        self, robot_id: str, service: str, instances: set[str], before: list[RetiredMessage]
+    ) -> list[RetiredMessage]:
+        """Every answer of `service`'s instances to the retire (all replies kept: one per
+        instance, every matcher shard's); BackendError when one of `instances` (alive) did not
+        answer in time or an instance answered with an error."""
+        timeout_s = self.settings.query_timeout_s
+        answers, errors = [], []
+        for reply in self.session.get(
+            keys.retire(robot_id, service, self.prefix), payload=RetireMessage(robot_id).encode(),
+            target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
+            timeout=timeout_s,
+        ):
+            if reply.ok is not None:
+                answers.append(RetiredMessage.decode(reply.ok.payload.to_bytes()))
+            elif (text := reply.err.payload.to_string()) != "Timeout":
+                errors.append(text)
+        done = ", ".join(f"{a.service}/{a.instance}" for a in before + answers) or "none"
+        again = f" (retired from: {done}; ask again to finish the retire)"
+        if errors:
+            status = max(error_status(e) for e in errors)
+            raise BackendError(status, f"{service}: {'; '.join(sorted(set(errors)))}{again}")
+        silent = sorted(instances - {a.instance for a in answers if a.service == service})
+        if silent:
+            names = ", ".join(f"{service}/{i}" for i in silent)
+            raise BackendError(
+                504, f"{names} is alive but did not answer the retire of robot {robot_id!r} "
+                f"within {timeout_s} s{again}"
+            )
+        return answers
+
+    async def aretire(self, robot_id: str) -> tuple[list[RetiredMessage], dict[str, int] | None]:
+        """`retire` in a worker thread, so the event loop never waits on the bus."""
+        return await anyio.to_thread.run_sync(lambda: self.retire(robot_id))
 
     async def aquery(
         self, selector: str, payload: bytes | None = None, timeout_s: float | None = None

@@ -380,6 +380,35 @@ class RobotsOut(BaseModel):
     services: list[ServiceOut] = Field(description="services whose liveliness token is present")
 
 
+class DroppedOut(BaseModel):
+    """What one holder of robot state let go of when the robot was retired."""
+
+    known: bool = Field(description="it held state of the robot (false: nothing to drop)")
+    dropped: dict[str, int] = Field(
+        description="what went, by name: map_revision, keyframes, poses, snapshot_files "
+        "(map server), map_revision, keyframes, inserts_kept (matcher), scans_pending, "
+        "odometry_samples (deskew), poses_cached, scans_seen (gateway)"
+    )
+
+
+class RetiredServiceOut(DroppedOut):
+    """One service instance's confirmation: it holds nothing of the robot now."""
+
+    service: str
+    instance: str
+
+
+class RetiredOut(BaseModel):
+    """A robot retired: every service that keeps robot state confirmed it dropped it."""
+
+    robot_id: str
+    services: list[RetiredServiceOut] = Field(
+        description="every instance that confirmed, in the order asked (the data's): deskew, "
+        "each matcher shard, the map server"
+    )
+    gateway: DroppedOut = Field(description="the gateway's own pose cache and seqs of it")
+
+
 class ZenohOut(BaseModel):
     open: bool
     mode: str

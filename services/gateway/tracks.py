@@ -183,6 +183,17 @@ class TrackStore:
         with self._lock:
             return robot_id in self._tracks
 
+    def forget(self, robot_id: str) -> dict[str, int] | None:
+        """Drop the robot's track (it was retired): what it held, None when it had none. A
+        refusal of it later is reported again; its next message starts a new track."""
+        with self._lock:
+            track = self._tracks.pop(robot_id, None)
+            if self._limit is not None:
+                self._limit.forget(robot_id)
+        if track is None:
+            return None
+        return {"poses_cached": len(track.estimates), "scans_seen": track.scans_seen}
+
     def robots(self) -> list[RobotSummary]:
         """What is known of every robot, sorted by id (copied under the lock)."""
         with self._lock:

@@ -16,9 +16,10 @@ import numpy as np
 import pytest
 import zenoh
 from fastapi.testclient import TestClient
+from scanflow import keys
 from scanflow.config import GatewaySettings, ZenohSettings
 from scanflow.geometry import Pose2D
-from scanflow.wire import PoseEstimateMessage
+from scanflow.wire import PoseEstimateMessage, RetiredMessage, RetireMessage
 
 from services.common.launch import free_port
 from services.common.zsession import open_session
@@ -132,6 +133,32 @@ def estimate(robot: str, seq: int, stamp_s: float, x: float, y: float, theta: fl
     return PoseEstimateMessage(robot, seq, stamp_s, Pose2D(x, y, theta), cov, status, "gn", 5, 0.9)
 
 
+def serve_retire(
+    peer: Peer, backend: ZenohBackend, services: dict[str, list[str]], asked: list | None = None,
+    dropped: dict[str, int] | None = None, silent: str | None = None,
+) -> None:
+    """Liveliness tokens and retire queryables of the services' instances (`services`: name ->
+    instances): each answers RetiredMessage naming itself (`silent`, "name/instance": never
+    answers); `asked` records (service/instance, the request)."""
+    for service, instances in services.items():
+        for instance in instances:
+            peer.token(keys.health(service, instance))
+            name = f"{service}/{instance}"
+
+            def answer(query, service=service, instance=instance, name=name):
+                request = RetireMessage.decode(query.payload.to_bytes())
+                if asked is not None:
+                    asked.append((name, request))
+                if name == silent:
+                    return None
+                return RetiredMessage(request.robot_id, service, instance, True,
+                                      dropped or {}).encode()
+
+            peer.answer(keys.retire("*", service), answer)
+    total = sum(len(i) for i in services.values())
+    eventually(lambda: len(backend.alive_services()) >= total, "the services' tokens")
+
+
 @pytest.fixture
 def zenoh_port() -> int:
     return free_port()
@@ -174,7 +201,6 @@ def auth() -> dict[str, str]:
 @pytest.fixture
 def publish_poses(peer: Peer, backend: ZenohBackend) -> Callable[..., None]:
     """publish_poses(robot, [(stamp_s, x, y, theta), ...]): put them, wait until cached."""
-    from scanflow import keys
 
     def publish(robot: str, poses: list[tuple[float, float, float, float]], seq0: int = 0) -> None:
         for i, (t, x, y, th) in enumerate(poses):

@@ -16,7 +16,7 @@ from scanflow.scan import LaserScan, Odometry
 from scanflow.wire import OdometryMessage, ScanMessage, ServiceStatsMessage
 
 from .conftest import INGEST_SCAN as SCAN
-from .conftest import estimate, eventually
+from .conftest import estimate, eventually, serve_retire
 
 
 def test_concurrent_posts_reach_the_bus_in_the_order_of_their_seqs(peer, backend):
@@ -140,3 +140,26 @@ def test_poses_of_more_robots_than_max_robots_are_dropped_and_counted(client, pe
     assert client.get("/api/v1/robots/three/pose").status_code == 404
     publish_poses("one", [(2.0, 0.1, 0.0, 0.0)], seq0=1)  # the known ones go on
     assert [r["robot_id"] for r in client.get("/api/v1/robots").json()["robots"]] == ["one", "two"]
+
+
+@pytest.mark.parametrize("settings", [GatewaySettings(api_key="k", max_robots=1)])
+def test_a_retired_robot_frees_the_gateways_place_and_its_posts_start_afresh(
+    client, peer, backend
+):
+    """SCANFLOW_GATEWAY_MAX_ROBOTS=1: a second robot's post is refused until the first is
+    retired; the retire drops the first's track and publishers, and its next post is numbered
+    from 0, a new robot's run (the services, which retired it too, report no seq of it)."""
+    serve_retire(peer, backend, {"deskew": ["0"], "matcher": ["0"], "mapserver": ["0"]})
+    auth = {"X-API-Key": "k"}
+    post = lambda robot, body: client.post(  # noqa: E731
+        f"/api/v1/robots/{robot}/scans", json=body, headers=auth)
+    assert post("one", SCAN).json()["seq"] == 0
+    assert post("one", SCAN).json()["seq"] == 1
+    assert post("two", SCAN).status_code == 503
+    assert keys.raw_scan("one", backend.prefix) in backend._publishers
+    r = client.delete("/api/v1/robots/one", headers=auth)
+    assert r.status_code == 200 and r.json()["gateway"]["dropped"]["scans_seen"] == 2
+    assert keys.raw_scan("one", backend.prefix) not in backend._publishers
+    assert post("two", SCAN).json()["seq"] == 0
+    assert client.delete("/api/v1/robots/two", headers=auth).status_code == 200
+    assert post("one", SCAN).json()["seq"] == 0

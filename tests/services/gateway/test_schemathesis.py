@@ -20,13 +20,14 @@ from scanflow.wire import (
     MapMetaMessage,
     MapRegionMessage,
     MatchResponse,
+    RetiredMessage,
     ServiceStatsMessage,
     TrajectoryMessage,
 )
 
 from services.gateway.app import create_app
 
-from .conftest import API_KEY
+from .conftest import API_KEY, eventually
 
 schemathesis = pytest.importorskip("schemathesis", reason="schemathesis is not installed")
 # Cross-field rules (range_max_m > range_min_m, beam arrays of equal length) are not expressible
@@ -58,11 +59,16 @@ def _answer_everything(peer) -> None:
         _robot(q), np.array([0.0, 1.0]), np.zeros((2, 3))).encode())
     peer.answer(keys.stats("*", "*"), lambda q: ServiceStatsMessage("deskew", "0", 0.0).encode())
     peer.answer(keys.initial_pose("*"), lambda q: q.payload.to_bytes())  # the tracker's echo
+    for service in ("deskew", "matcher", "mapserver"):  # DELETE /robots/{robot}: every one
+        peer.token(keys.health(service, "0"))
+    peer.answer(keys.retire("*", "*"), lambda q: RetiredMessage(
+        _robot(q), str(q.key_expr).split("/")[-1], "0", True).encode())
 
 
 def test_api_conforms(peer, backend, settings):
     """Every operation, a bounded number of generated cases each (schemathesis' own checks)."""
     _answer_everything(peer)
+    eventually(lambda: len(backend.alive_services()) == 3, "the services' tokens")
     app = create_app(settings, backend)
     schema = schemathesis.openapi.from_asgi("/openapi.json", app).exclude(path_regex="stream")
     operations = [result.ok() for result in schema.get_all_operations()]

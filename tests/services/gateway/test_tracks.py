@@ -80,3 +80,18 @@ def test_replayed_stream_restarts_the_cache(client, publish_poses):
     robots = client.get("/api/v1/robots").json()["robots"]
     (r1,) = [r for r in robots if r["robot_id"] == "r1"]
     assert r1["restarts"] == 1 and r1["poses_cached"] == 1 and r1["last_pose"]["x_m"] == 9.0
+
+
+def test_a_retired_robots_track_goes_and_frees_its_place():
+    refused: list[tuple[str, bool]] = []
+    store = TrackStore(10, RobotLimit(1, lambda robot, first: refused.append((robot, first))))
+    store.saw_scan("a", 4)
+    store.saw_odometry("a", 9)
+    assert store.next_seq("b", "scan", None) is None
+    assert store.forget("a") == {"poses_cached": 0, "scans_seen": 1}
+    assert store.forget("a") is None and not store.known("a")
+    assert store.next_seq("b", "scan", None) == 0  # the place is free
+    store.forget("b")
+    assert store.next_seq("a", "scan", None) == 0  # a new run of its own: numbered from 0
+    assert store.next_seq("b", "scan", None) is None
+    assert refused == [("b", True), ("b", True)]  # reported again after the retire
