@@ -215,14 +215,19 @@ def deskew_in_process(
     out: list[DeskewedScanMessage] = []
     service.shell.put = lambda key, payload: out.append(DeskewedScanMessage.decode(payload))
     try:
-        for event in events:
-            if isinstance(event, LaserScan):
-                service.handle("scan", ScanMessage(event))
-            else:
-                service.handle("odom", OdometryMessage(event))
+        handle_all(service, events)
     finally:
         service.shell.close(flush_s=0.0)
     return out, service.shell.counters.snapshot()
+
+
+def handle_all(service: DeskewService, events) -> None:
+    """Hand each scan and odometry sample to the service's worker as the inbox would."""
+    for event in events:
+        if isinstance(event, LaserScan):
+            service.handle("scan", ScanMessage(event))
+        else:
+            service.handle("odom", OdometryMessage(event))
 
 
 def test_a_seq_that_starts_again_on_the_same_clock_keeps_the_odometry() -> None:
