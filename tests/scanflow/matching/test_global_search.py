@@ -98,6 +98,39 @@ def test_with_a_strict_enough_bar_the_same_room_is_not_ambiguous():
     assert found.status is MatchStatus.OK  # one candidate: no rival to compare with
 
 
+def pillar(x: float, y: float, half_m: float = 0.2) -> list[tuple[float, float, float, float]]:
+    """The four walls of a square pillar centred on (x, y)."""
+    c = [(x - half_m, y - half_m), (x + half_m, y - half_m), (x + half_m, y + half_m),
+         (x - half_m, y + half_m)]
+    return [(*c[i], *c[(i + 1) % 4]) for i in range(4)]
+
+
+def test_a_rival_that_did_not_refine_but_scores_as_high_in_the_search_is_ambiguous():
+    """Two pillars 8 m apart, a short-range lidar (Hokuyo URG-04LX: 682 beams over 240 deg,
+    5.6 m) between them: the scan is two small corners, and a half turn about the pillars'
+    midpoint nearly swaps them. The true pose is the search's best optimum but refines
+    ill_conditioned; the half turn refines OK, so it was returned OK, 180 deg off, with no
+    rival (the simulator's campus, BENCHMARKS.md "Short-range lidars outdoors")."""
+    pillars = np.array(pillar(-4.0, 0.0) + pillar(4.0, 0.0), dtype=np.float64)
+    angles = np.linspace(-math.radians(120.0), math.radians(120.0), 682)
+    world = MatchingMap(OccupancyGrid(OccupancyParams(resolution_m=0.05)))
+    start, truth = Pose2D(1.0, 2.75, -math.pi / 2), Pose2D(1.0, 0.8, -math.pi / 2)
+    insert_scan(world, static_scan(pillars, start, angles, 5.6), MAP_FROM_WORLD * start)
+    found = localise_globally(static_scan(pillars, truth, angles, 5.6), world)
+    assert found.status is MatchStatus.AMBIGUOUS and not found.ok, found.message
+    assert "did not refine" in found.message
+    # The winner is the half turn; the true pose is the search's best, named with its status.
+    error = found.pose.relative_to(MAP_FROM_WORLD * truth)
+    assert abs(abs(error.theta) - math.pi) < math.radians(5.0)
+    assert found.extra["candidates"] == [found.pose]
+    coarse, statuses = found.extra["coarse_candidates"], found.extra["coarse_statuses"]
+    scores = found.extra["coarse_scores"]
+    assert len(coarse) == len(statuses) == len(scores) and scores == sorted(scores, reverse=True)
+    near = coarse[0].relative_to(MAP_FROM_WORLD * truth)
+    assert near.translation_norm() < 0.2 and abs(near.theta) < math.radians(3.0)
+    assert statuses[0] is MatchStatus.ILL_CONDITIONED
+
+
 def test_bad_input_gets_a_status_or_a_named_error(rooms_map):
     empty = MatchingMap(OccupancyGrid(OccupancyParams()))
     scan = cast(get_world("rooms").segments, Pose2D(2.5, 2.0, 0.0))
