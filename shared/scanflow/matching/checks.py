@@ -13,11 +13,20 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from scanflow.geometry import Pose2D, angle_diff, normalize_angle
 from scanflow.matching.api import MatchStatus
-from scanflow.matching.correspondence import GridIndex, target_lines, thin_dense_target
+from scanflow.matching.correspondence import (
+    GridIndex,
+    TargetLines,
+    grid_k_nearest,
+    grid_nearest_all,
+    target_lines,
+    thin_dense_target,
+)
+from scanflow.matching.surface import surface_gap_m
 
 # Ratio of smallest to largest scaled eigenvalue below which a direction counts as unconstrained.
 DEGENERATE_RATIO = 2e-3
@@ -130,6 +139,160 @@ def guess_position_along(
 
 # Neighbours of each matched point its normal is fitted to (see `surface_conditioning`).
 NORMAL_NEIGHBOURS = 16
+# Patches up to this far across (m) (see `surface_conditioning`).
+NORMAL_RADIUS_M = 0.5
+# A two-point line counts only when its partner's own patch, holding another point, runs
+# within this angle of it (see `confirmed_patches`).
+PARTNER_AGREEMENT_RAD = math.radians(30.0)
+
+
+def angular_step_rad(points: NDArray[np.float64]) -> float:
+    """The scan's angular increment: the median gap between the points' distinct bearings seen
+    from the origin (0.0 for fewer than two)."""
+    bearings = np.sort(np.arctan2(points[:, 1], points[:, 0]))
+    gaps = np.diff(bearings)
+    gaps = gaps[gaps > 1e-9]
+    return float(np.median(gaps)) if len(gaps) else 0.0
+
+
+def unconfirmed_patches(
+    grid: GridIndex, lines: TargetLines
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """Two masks over the `ok` lines: two-point lines whose partner's own patch holds another
+    point yet runs more than PARTNER_AGREEMENT_RAD off them, and isolated pairs (two-point
+    lines with no third point within either one's reach, `surface_gap_m`).
+
+    Why: a two-point line runs between two beams. Where a lidar reports its bearings binned
+    (RPLidar drivers: each sample in its 1-deg bin), two beams cast at nearly the same spot of
+    a wall seen at a grazing angle come out one step apart across it, r x 1 deg (18 cm at
+    10 m): a line facing the sensor, whose normal lies along the wall. One such pair outweighs
+    a corridor's whole weak direction (its share there is ~1, against DEGENERATE_RATIO x the
+    largest eigenvalue, ~0.6 for 360 beams); the simulated corridor's scans (360 beams, 0.3 deg
+    bearing noise) held one to three. Next to a third point, its partner's wider patch gives
+    it away. An isolated pair cannot be told from a small surface facing the sensor (aces has
+    such pairs 20 m off through an opening: leaving them out flagged 7 more of its 439 next-scan
+    plicp pairs, all within 5 cm), so only a map, where there is one, judges it."""
+    reach = np.maximum(NORMAL_RADIUS_M, surface_gap_m(np.hypot(grid.points[:, 0],
+                                                                grid.points[:, 1])))
+    return _unconfirmed(grid.arrays, lines.normals, lines.neighbours, lines.ok, reach,
+                        math.cos(PARTNER_AGREEMENT_RAD))
+
+
+@njit(cache=True)
+def _unconfirmed(grid, normals, neighbours, ok, reach, agreement):  # type: ignore[no-untyped-def]
+    n = len(normals)
+    sizes = np.zeros(n, dtype=np.int64)
+    for i in range(n):
+        while sizes[i] < neighbours.shape[1] and neighbours[i, sizes[i]] >= 0:
+            sizes[i] += 1
+    disagrees = np.zeros(n, dtype=np.bool_)
+    isolated = np.zeros(n, dtype=np.bool_)
+    best_d2 = np.empty(3)
+    best_j = np.empty(3, dtype=np.int64)
+    points = grid[0]
+    for i in range(n):
+        if not ok[i] or sizes[i] != 2:
+            continue
+        j = neighbours[i, 1]
+        if ok[j] and sizes[j] > 2:
+            shared = abs(normals[i, 0] * normals[j, 0] + normals[i, 1] * normals[j, 1])
+            disagrees[i] = shared < agreement
+        alone = True
+        for m in (i, j):
+            if grid_k_nearest(grid, points[m, 0], points[m, 1], reach[m], best_d2, best_j) > 2:
+                alone = False
+        isolated[i] = alone
+    return disagrees, isolated
+
+
+def map_agrees(
+    surfaces: object, points: NDArray[np.float64], normals: NDArray[np.float64]
+) -> NDArray[np.bool_]:
+    """Whether the map's surface at each of `points` (map frame) runs as `normals` say, within
+    PARTNER_AGREEMENT_RAD: the line fitted through the map's mean hit points around the nearest
+    one (`MatchingMap.hit_means_near`), as a scan's patch is fitted; False where the map holds
+    no line-like patch within NORMAL_RADIUS_M."""
+    agrees = np.zeros(len(points), dtype=np.bool_)
+    means = surfaces.hit_means_near(points, NORMAL_RADIUS_M) if len(points) else points
+    if len(means) < 2:
+        return agrees
+    grid = GridIndex.build(means)
+    lines = target_lines(grid, k=NORMAL_NEIGHBOURS, radius_m=NORMAL_RADIUS_M,
+                         fit_radius_m=NORMAL_RADIUS_M)
+    nearest = grid_nearest_all(grid.arrays, points, np.full(len(points), NORMAL_RADIUS_M))
+    found = nearest >= 0
+    at = nearest[found]
+    shared = np.abs(np.sum(lines.normals[at] * normals[found], axis=1))
+    agrees[found] = lines.ok[at] & (shared >= math.cos(PARTNER_AGREEMENT_RAD))
+    return agrees
+
+
+@njit(cache=True)
+def _tilt_std(points, normals, centres, neighbours, ok, bearing_std_rad):  # type: ignore[no-untyped-def]
+    std = np.zeros(len(points))
+    for i in range(len(points)):
+        if not ok[i]:
+            continue
+        nx, ny = normals[i, 0], normals[i, 1]
+        extent = 0.0
+        spread = 0.0
+        for j in neighbours[i]:
+            if j < 0:
+                break
+            px, py = points[j, 0], points[j, 1]
+            along = (px - centres[i, 0]) * ny - (py - centres[i, 1]) * nx
+            r = max(math.hypot(px, py), 1e-9)
+            facing = (px * nx + py * ny) / r  # cos(beam, normal)
+            variance = (r * bearing_std_rad) ** 2 * (1.0 - facing * facing)
+            extent += along * along
+            spread += along * along * variance
+        std[i] = math.sqrt(spread) / extent if extent > 0.0 else math.inf
+    return std
+
+
+def normal_tilt_std(
+    points: NDArray[np.float64], lines: TargetLines, bearing_std_rad: float
+) -> NDArray[np.float64]:
+    """Standard deviation (rad) of each patch's fitted normal from its points' bearing noise:
+    r x `bearing_std_rad` across each beam, projected across the line (a wall seen at a grazing
+    angle takes all of it, one facing the sensor none), propagated through the total-least-
+    squares fit (var = sum s_j^2 sigma_j^2 / (sum s_j^2)^2, s_j a point's offset along the
+    line); inf for a patch with no extent, 0 where not `ok`. Range noise is left out: the
+    patches' 0.5 m already average it (`surface_conditioning`), and with it (1 cm) the floor
+    flagged a good next-scan pair of intel (1 of 909), whose near wall's 16-point patches
+    lean within it."""
+    return _tilt_std(points, lines.normals, lines.centres, lines.neighbours, lines.ok,
+                     bearing_std_rad)
+
+
+def information_above_noise(
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64],
+    tilt_std: NDArray[np.float64],
+    direction: NDArray[np.float64],
+    length_m: float,
+) -> float:
+    """The points' information along `direction` (a unit vector in the metric of
+    `analyse_hessian`, theta scaled by `length_m`), each point's share |J . d| shrunk by what
+    a tilt of its normal by one `tilt_std` moves it (soft threshold): what is left is held by
+    normals whose lean towards `direction` is above their noise."""
+    return _information_above_noise(points, normals, tilt_std, direction, 1.0 / length_m)
+
+
+@njit(cache=True)
+def _information_above_noise(points, normals, tilt_std, direction, inv_length):  # type: ignore[no-untyped-def]
+    total = 0.0
+    for i in range(len(points)):
+        nx, ny = normals[i, 0], normals[i, 1]
+        px, py = points[i, 0], points[i, 1]
+        share = abs(nx * direction[0] + ny * direction[1]
+                    + (px * ny - py * nx) * inv_length * direction[2])
+        lean = abs(ny * direction[0] - nx * direction[1]
+                   + (-px * nx - py * ny) * inv_length * direction[2])
+        left = share - tilt_std[i] * lean
+        if left > 0.0:
+            total += left * left
+    return total
 
 
 def surface_conditioning(
@@ -137,6 +300,7 @@ def surface_conditioning(
     matched: NDArray[np.bool_],
     pose: Pose2D,
     length_m: float | None = None,
+    surfaces: object | None = None,
 ) -> tuple[MatchStatus, tuple[float, float, float] | None, str]:
     """OK, DEGENERATE (with the weak direction) or ILL_CONDITIONED for a pose matched from the
     source points `matched` (csm's optimum, an ICP's pairs), from the geometry of those points.
@@ -154,23 +318,54 @@ def surface_conditioning(
     no margin; a quadratic fit of the scores had negative curvature on most real scans (the
     peak is not quadratic over +-3 cells). Measured on the next-scan pairs of intel, aces and
     freiburg-079: csm had 6 of 6138 flagged, all intel corridor scans, 5 of them where its
-    optimum had slid 0.3-0.95 m along the corridor."""
+    optimum had slid 0.3-0.95 m along the corridor.
+
+    Two guards against a lidar that reports its bearings binned (an RPLidar: each beam up to
+    half a step off the angle the scan gives), where the corridor's ratio rose from 2e-4 to
+    2e-3..6e-3 and gn slid 5-15 m along the simulated corridor (BENCHMARKS.md, "Front end"):
+    - two-point lines that their neighbours, or the map where there is one (`surfaces`, a
+      MatchingMap target: `map_agrees`), contradict do not count (`unconfirmed_patches`);
+    - the weakest direction counts as constrained only by the information left once each
+      normal's bearing noise is taken off (`information_above_noise`, `normal_tilt_std`): a
+      bearing known to within the scan's angular step (std step / sqrt(12)). The scan cannot
+      tell whether its bearings are binned, so this floor holds for every lidar; it only ever
+      turns OK into DEGENERATE, along the direction the Hessian found weakest.
+    Either alone left the front end sliding 2-6 m along that corridor; together 0.1-0.9 m over
+    five seeds, while the real logs' next-scan pairs and tracking stayed as they were (one
+    aces pair flagged more; BENCHMARKS.md, "Front end", 2026-11-28)."""
     # A dense scan (3,000+ beams) is averaged per bearing bin first: its 16 nearest points lie
     # a few mm apart, where the range noise fails the flatness test (`thin_dense_target`).
     points = thin_dense_target(source[matched])
     hessian = np.zeros((3, 3))
+    c, s = math.cos(pose.theta), math.sin(pose.theta)
+    turn = np.array([[c, s], [-s, c]])  # row vectors times R^T: into the target frame
+    lines, ok = None, np.zeros(len(points), dtype=np.bool_)
     if len(points) >= 2:
-        lines = target_lines(GridIndex.build(points), k=NORMAL_NEIGHBOURS, radius_m=0.5,
-                             fit_radius_m=0.5, seen_from_origin=True)
-        c, s = math.cos(pose.theta), math.sin(pose.theta)
-        turn = np.array([[c, s], [-s, c]])  # row vectors times R^T: into the target frame
-        hessian = line_hessian(points[lines.ok] @ turn, lines.normals[lines.ok] @ turn)
+        grid = GridIndex.build(points)
+        lines = target_lines(grid, k=NORMAL_NEIGHBOURS, radius_m=NORMAL_RADIUS_M,
+                             fit_radius_m=NORMAL_RADIUS_M, seen_from_origin=True)
+        disagrees, isolated = unconfirmed_patches(grid, lines)
+        ok = lines.ok & ~disagrees
+        if surfaces is not None and np.any(isolated):
+            ok[isolated] = map_agrees(surfaces, points[isolated] @ turn + [pose.x, pose.y],
+                                      lines.normals[isolated] @ turn)
+        hessian = line_hessian(points[ok] @ turn, lines.normals[ok] @ turn)
     # Rotation scaled by the spread of the points that carry the information (a glitch point
     # far off the target would otherwise make every rotation look unconstrained): the caller's
     # `length_m` when it judges in that metric too, so a weak direction keeps one metric.
-    cond = analyse_hessian(hessian, length_m or characteristic_length_m(points))
+    length_m = length_m or characteristic_length_m(points)
+    cond = analyse_hessian(hessian, length_m)
     top = float(cond.eigenvalues[-1])
     weak = int(np.count_nonzero(cond.eigenvalues <= DEGENERATE_RATIO * top)) if top > 0 else 3
+    ratio, above = cond.ratio, ""
+    if weak == 0 and lines is not None:
+        tilt = normal_tilt_std(points, lines, angular_step_rad(source) / math.sqrt(12.0))
+        direction = np.asarray(cond.weak_direction) * np.array([1.0, 1.0, length_m])
+        ratio = information_above_noise(
+            points[ok] @ turn, lines.normals[ok] @ turn, tilt[ok],
+            direction / np.linalg.norm(direction), length_m,
+        ) / top
+        weak, above = int(not ratio > DEGENERATE_RATIO), " above the normals' noise"
     if weak >= 2:
         return (
             MatchStatus.ILL_CONDITIONED, None,
@@ -181,7 +376,7 @@ def surface_conditioning(
         return (
             MatchStatus.DEGENERATE, cond.weak_direction,
             f"unconstrained along {np.round(cond.weak_direction, 3).tolist()} (eigenvalue "
-            f"ratio {cond.ratio:.1e}, e.g. a corridor): the surfaces under the matched points "
+            f"ratio {ratio:.1e}{above}, e.g. a corridor): the surfaces under the matched points "
             "do not fix the pose along it",
         )
     return MatchStatus.OK, None, ""

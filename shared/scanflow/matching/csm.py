@@ -134,7 +134,8 @@ def correlative_match(
     poses = [Pose2D(guess.x + c[1] * res, guess.y + c[2] * res, float(cand.angles_rad[c[0]]))
              for c in found]
     matched = stack.lookup(0, cand.rows[k] + iy, cand.cols[k] + ix) > 0
-    status, weak, message = surface_conditioning(source, matched, poses[0])
+    surfaces = target if hasattr(target, "hit_means_near") else None
+    status, weak, message = surface_conditioning(source, matched, poses[0], surfaces=surfaces)
     pose = poses[0]
     result = MatchResult(
         pose=pose,

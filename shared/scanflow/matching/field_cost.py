@@ -360,7 +360,8 @@ def run_coarse_to_fine(
             total,
         )
     scan = not hasattr(target, "likelihood_pyramid")
-    return assess_field_match(method, pyramid[-1], source, pose, total, guess, scan)
+    surfaces = target if hasattr(target, "hit_means_near") else None
+    return assess_field_match(method, pyramid[-1], source, pose, total, guess, scan, surfaces)
 
 
 def assess_field_match(
@@ -371,6 +372,7 @@ def assess_field_match(
     iterations: int,
     guess: Pose2D,
     scan_target: bool = False,
+    surfaces: object | None = None,
 ) -> MatchResult:
     """Covariance sigma^2 H^-1 and the conditioning checks at the final pose on the finest field;
     a DEGENERATE pose keeps the guess's value along its weak direction (against a map, from the
@@ -384,7 +386,8 @@ def assess_field_match(
     front end's map, gn slid 7 m along that corridor over a run; there only a corridor's axis
     takes the guess's position, the heading stays the match's (`guess_position_along`): the
     front end's predictions can be degrees off in heading, which `guess_along` turned into
-    position error (BENCHMARKS.md, "Front end").
+    position error (BENCHMARKS.md, "Front end"). `surfaces`: the map target, whose surfaces
+    judge the source's isolated two-point lines (`surface_conditioning`).
     """
     # Rotation scaled by the spread of the points on the field: far ones off it carry nothing.
     matched = field.sample(moved_points(source, pose))[0] >= MATCHED_VALUE
@@ -398,7 +401,7 @@ def assess_field_match(
         message = f"one direction unconstrained (eigenvalue ratio {cond.ratio:.2e})"
         kept = guess_along(weak, at, guess, length_m)
     else:
-        status, weak, message = surface_conditioning(source, matched, at, length_m)
+        status, weak, message = surface_conditioning(source, matched, at, length_m, surfaces)
         if weak is not None:
             keep = guess_along if scan_target else guess_position_along
             kept = keep(weak, at, guess, length_m)

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
+from numpy.typing import NDArray
 from scanflow.frontend import default_settings, insert_scan, occupancy_params
 from scanflow.geometry import Pose2D, normalize_angle
 from scanflow.maps.matching_map import MatchingMap
@@ -18,9 +19,12 @@ from scanflow.matching.checks import (
     guess_along,
     guess_position_along,
     line_hessian,
+    surface_conditioning,
     weak_length_m,
     without_weak_direction,
 )
+from scanflow.sim import get_world
+from scanflow.sim.raycast import cast_rays
 
 finite = st.floats(-1.0, 1.0, allow_nan=False)
 # Fine steps are within the agreement window (0.1 m, 1 deg) by far: no heading wraps around.
@@ -217,6 +221,76 @@ def test_against_a_map_a_corridor_keeps_the_guess_s_position_along_it(
             assert abs(axis @ [r.pose.x - guess.x, r.pose.y - guess.y]) < 1e-9
             assert abs(math.degrees(err.theta)) < 0.5
     assert len(wrong) <= 0.03 * len(corridor_maps), f"ok but off by {wrong} m"
+
+
+# An RPLidar: 360 beams 1 deg apart, 12 m, its driver reporting each beam in its 1-deg bin.
+RPLIDAR_STEP_RAD = math.radians(1.0)
+RPLIDAR_ANGLES = np.arange(360) * RPLIDAR_STEP_RAD - math.pi
+
+
+def rplidar_scan(pose: Pose2D, cast_rad: NDArray[np.float64],
+                 rng: np.random.Generator) -> NDArray[np.float64]:
+    """The corridor seen from `pose` by beams cast at `cast_rad` but reported at
+    RPLIDAR_ANGLES (1 cm range noise): the points the scan gives."""
+    ranges = cast_rays(np.tile([pose.x, pose.y], (len(cast_rad), 1)), cast_rad + pose.theta,
+                       get_world("corridor").segments, 12.0)
+    ranges = ranges + rng.normal(0.0, 0.01, ranges.shape)
+    ok = np.isfinite(ranges)
+    return np.column_stack((ranges[ok] * np.cos(RPLIDAR_ANGLES[ok]),
+                            ranges[ok] * np.sin(RPLIDAR_ANGLES[ok])))
+
+
+def test_with_bearings_binned_a_corridor_against_its_map_stays_at_the_guess() -> None:
+    """The front end's case with an RPLidar (BENCHMARKS.md, "Front end"): each beam cast up to
+    half a step off the angle the scan reports, the robot driving along the corridor, each scan
+    matched against the map of the ones before from 0.3 m along it. Two beams cast at nearly
+    the same spot of a far wall came out one step apart across it: a two-point line whose
+    normal lies along the corridor, which (with normals tilted by the noise) faked a
+    constraint: gn said `ok` on 26 of the 50 scans 0.1-0.9 m along (25-29 with seeds 0, 1, 3);
+    now on none."""
+    rng = np.random.default_rng(0)
+    world = MatchingMap(OccupancyGrid(occupancy_params(default_settings())))
+    wrong, degenerate = [], 0
+    for k in range(60):
+        truth = Pose2D(13.0 + 0.15 * k, 1.0 + rng.uniform(-0.2, 0.2), rng.uniform(-0.05, 0.05))
+        cast = RPLIDAR_ANGLES + rng.uniform(-0.5, 0.5, len(RPLIDAR_ANGLES)) * RPLIDAR_STEP_RAD
+        scan = rplidar_scan(truth, cast, rng)
+        if k >= 10:  # neither end wall within 12 m
+            guess = truth * Pose2D(0.3, 0.0, 0.0)
+            r = match(scan, world, guess, method="gn")
+            if r.ok and r.pose.relative_to(truth).translation_norm() > 0.1:
+                wrong.append(round(r.pose.relative_to(truth).translation_norm(), 2))
+            if r.status is MatchStatus.DEGENERATE:
+                degenerate += 1
+                axis = np.array(r.weak_direction[:2]) / math.hypot(*r.weak_direction[:2])
+                assert abs(axis[0]) > 0.9
+                assert abs(axis @ [r.pose.x - guess.x, r.pose.y - guess.y]) < 1e-9
+        insert_scan(world, scan, truth)
+    assert not wrong, f"ok but off by {wrong} m"
+    assert degenerate >= 45
+
+
+def test_two_beams_cast_at_one_spot_count_only_where_the_map_agrees() -> None:
+    """A corridor scan with exact bearings is degenerate along it. Cast two neighbouring beams
+    at one spot of the far wall, 8.6 m off, and they come out 15 cm apart across it: alone, a
+    pair facing the sensor, which fixes the pose along the corridor (a small surface facing the
+    sensor would, and the scan cannot tell the two apart). Against the corridor's map the pair
+    runs across the wall there and counts for nothing."""
+    rng = np.random.default_rng(1)
+    truth = Pose2D(20.0, 1.0, 0.0)
+    exact = rplidar_scan(truth, RPLIDAR_ANGLES, rng)
+    matched = np.ones(len(exact), dtype=bool)
+    assert surface_conditioning(exact, matched, Pose2D())[0] is MatchStatus.DEGENERATE
+    cast = RPLIDAR_ANGLES.copy()
+    k = int(np.argmin(np.abs(RPLIDAR_ANGLES - math.atan2(1.0, 8.6))))
+    cast[k + 1] = cast[k] + 0.02 * RPLIDAR_STEP_RAD  # both at the wall ~8.6 m ahead
+    binned = rplidar_scan(truth, cast, rng)
+    assert surface_conditioning(binned, matched, Pose2D())[0] is MatchStatus.OK
+    world = MatchingMap(OccupancyGrid(occupancy_params(default_settings())))
+    for x in np.arange(16.0, 24.0, 0.5):
+        insert_scan(world, rplidar_scan(Pose2D(x, 1.0, 0.0), RPLIDAR_ANGLES, rng), Pose2D(x, 1.0))
+    status, weak, _ = surface_conditioning(binned, matched, truth, surfaces=world)
+    assert status is MatchStatus.DEGENERATE and abs(weak[0]) > 0.9
 
 
 def test_rotation_is_scaled_by_the_spread_of_the_points_that_were_matched() -> None:
