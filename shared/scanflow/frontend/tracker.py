@@ -15,7 +15,8 @@ Per scan:
 2. match the points against the map from the prediction with `settings.method`; if the checks of
    `acceptance` fail and a fallback is set, a correlative search (`settings.fallback_method`)
    over +-fallback_linear_m / +-fallback_angular_deg seeds the method again (and its own
-   optimum is used, at grid resolution, if that refinement fails the checks too). A match that
+   optimum is used, at grid resolution, if that refinement fails the checks too; a degenerate
+   search's optimum at the prediction's position along the corridor, `corridor_start`). A match that
    passes but scores below `recheck_ratio` x the median of the recent ones is searched the same
    way, and the searched match replaces it when it scores `recheck_margin` higher (`recheck`);
 3. accepted: the pose is the match, the map gets the scan when the motion filter allows it;
@@ -51,6 +52,7 @@ from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.occupancy import InsertResult, OccupancyGrid, OccupancyParams
 from scanflow.matching import MatchResult, MatchStatus, match
 from scanflow.matching.api import MatchInputError, as_points, failed
+from scanflow.matching.checks import guess_position_along, weak_length_m
 from scanflow.matching.csm import found_a_pose
 from scanflow.matching.global_search import localise_globally
 
@@ -149,6 +151,20 @@ def insert_scan(
     return matching_map.update(
         pose.transform_points(points[in_range]), (origin.x, origin.y), no_return_endpoints=misses
     )
+
+
+def corridor_start(coarse: MatchResult, guess: Pose2D, points: NDArray[np.float64]) -> MatchResult:
+    """A search's DEGENERATE optimum moved to the guess's position along its corridor's axis
+    (`guess_position_along`), heading kept; any other result as it is.
+
+    Along a corridor the search's best peak lies anywhere in its window, and the refinement,
+    DEGENERATE too, keeps its start's position there: on the simulated corridor with an RPLidar
+    a search 0.84 m along it was refined and accepted, and the robot jumped by that much."""
+    if coarse.status is not MatchStatus.DEGENERATE or coarse.weak_direction is None:
+        return coarse
+    along = guess_position_along(coarse.weak_direction, coarse.pose, guess,
+                                 weak_length_m(coarse.extra, points))
+    return coarse if along is None else replace(coarse, pose=along)
 
 
 def default_settings() -> FrontendSettings:
@@ -360,6 +376,7 @@ class Frontend:
         )
         if not found_a_pose(coarse):  # a corridor's search still gives gn its start
             return coarse, FrontendStatus.REJECTED, f"fallback: {coarse.message}"
+        coarse = corridor_start(coarse, guess, points)
         refined = match(points, self.map, coarse.pose, method=s.method)
         if not rejection_reason(refined, guess, self._limits):
             return refined, FrontendStatus.RECOVERED, f"recovered by {s.fallback_method}"

@@ -24,9 +24,11 @@ from scanflow.geometry import Pose2D
 from scanflow.maps.grid import CellBox
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
-from scanflow.matching import MatchResult
+from scanflow.matching import MatchResult, MatchStatus
 from scanflow.matching import api as matching_api
 from scanflow.matching.field_cost import assess_field_match, field_pyramid
+from scanflow.sim import get_world
+from scanflow.sim.raycast import static_scan
 
 START = Pose2D(2.5, 2.0, 0.0)
 # The map frame is turned against the world so walls do not lie on grid cell boundaries.
@@ -288,6 +290,33 @@ def test_relocalise_finds_the_pose_from_a_far_guess_and_leaves_the_state_alone(
     position_m, heading_rad = error(found.pose, truth[-1])
     assert position_m < 0.03 and heading_rad < math.radians(1.0)
     assert frontend.pose == pose and len(frontend.trajectory) == trajectory
+
+
+def test_a_search_in_a_corridor_keeps_the_guess_s_position_along_it() -> None:
+    """Along a corridor the search's best peak lies anywhere in its +-1 m window (0.2-1.0 m
+    from the guess here), and its refinement, degenerate too, kept that: the robot jumped. A
+    degenerate search now starts from the guess's position along the corridor's axis, its
+    position across and its heading kept (`corridor_start`)."""
+    rng = np.random.default_rng(0)
+    angles = np.radians(np.arange(-135.0, 135.0, 0.75))
+
+    def scan(pose: Pose2D) -> NDArray[np.float64]:
+        return static_scan(get_world("corridor").segments, pose, angles, 12.0, 0.01, rng)
+
+    settings = FrontendSettings.model_construct()
+    world = MatchingMap(OccupancyGrid(occupancy_params(settings)))
+    for x in np.arange(15.0, 25.0, 0.25):
+        insert_scan(world, scan(Pose2D(x, 1.0, 0.0)), Pose2D(x, 1.0, 0.0))
+    frontend = Frontend(settings, initial_pose=Pose2D(20.0, 1.0, 0.0), grid=world.grid)
+    for k in range(8):
+        truth = Pose2D(18.0 + 0.5 * k, 1.0 + rng.uniform(-0.3, 0.3), rng.uniform(-0.1, 0.1))
+        guess = truth * Pose2D(0.3, 0.05, 0.02)
+        found, status, note = frontend.relocalise(scan(truth), guess)
+        assert status is FrontendStatus.RECOVERED, note
+        assert found.status is MatchStatus.DEGENERATE
+        assert abs(found.pose.x - guess.x) < 1e-3
+        assert abs(found.pose.y - truth.y) < 0.05
+        assert abs(found.pose.theta - truth.theta) < math.radians(1.0)
 
 
 def test_relocalise_on_an_empty_map_says_why_and_needs_a_fallback(scan_at: Scanner) -> None:
