@@ -24,7 +24,7 @@ from scanflow.wire import MapImageMessage, MapMetaMessage, TrajectoryMessage
 from services.common.launch import free_port, wait_for_port
 from services.gateway.app import create_app
 
-from .conftest import estimate
+from .conftest import estimate, eventually
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
@@ -103,6 +103,10 @@ def test_page_loads_the_path_again_when_loop_closure_redraws_the_map(served, pee
                 "() => { const v = views.get('r2'); return v && v.path.length >= 4; }",
                 timeout=15_000,
             )
+            # That path came from the trajectory query; the redraw comes on the event stream,
+            # which a loaded machine may not have opened yet (the redraw then went unseen).
+            eventually(lambda: backend.events.clients >= 1, "the page's event stream",
+                       timeout_s=15.0)
             redrawn = replace(estimate("r2", 4, 4.0, 4.0, 5.0), correction=Pose2D(0.0, 5.0, 0.0))
             peer.put(keys.pose("r2"), redrawn.encode())  # before the map server has redrawn
             page.wait_for_timeout(600)  # the page asks meanwhile, and must wait for the path
