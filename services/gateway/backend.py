@@ -281,7 +281,8 @@ class ZenohBackend:
         if self._closed:
             raise BackendError(503, "the gateway's Zenoh session is closed")
         alive = self.alive_services()
-        absent = [name for name in RETIRING if not any(s == name for s, _ in alive)]
+        running = {service for service, _ in alive}
+        absent = [name for name in RETIRING if name not in running]
         if absent:
             raise BackendError(
                 503, f"no {' or '.join(absent)} is running: robot {robot_id!r} was retired from "

@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 from numba import njit
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from scanflow.geometry import Pose2D, angle_diff, normalize_angle
 from scanflow.matching.api import MatchStatus
@@ -137,6 +138,16 @@ def guess_position_along(
     return Pose2D(pose.x + shift * axis[0], pose.y + shift * axis[1], pose.theta)
 
 
+class MapSurfaces(Protocol):
+    """What `surface_conditioning` asks of a map target (a MatchingMap): its cells' mean hit
+    points near some points, to fit the map's own surface lines through."""
+
+    def hit_means_near(self, points_world: ArrayLike, radius_m: float) -> NDArray[np.float64]:
+        """(K, 2) mean hit points of the occupied cells within `radius_m` of the points (some
+        farther ones too)."""
+        ...
+
+
 # Neighbours of each matched point its normal is fitted to (see `surface_conditioning`).
 NORMAL_NEIGHBOURS = 16
 # Patches up to this far across (m) (see `surface_conditioning`).
@@ -174,17 +185,14 @@ def unconfirmed_patches(
     plicp pairs, all within 5 cm), so only a map, where there is one, judges it."""
     reach = np.maximum(NORMAL_RADIUS_M, surface_gap_m(np.hypot(grid.points[:, 0],
                                                                 grid.points[:, 1])))
-    return _unconfirmed(grid.arrays, lines.normals, lines.neighbours, lines.ok, reach,
+    sizes = np.count_nonzero(lines.neighbours >= 0, axis=1)  # -1 padded: each patch's points
+    return _unconfirmed(grid.arrays, lines.normals, lines.neighbours, sizes, lines.ok, reach,
                         math.cos(PARTNER_AGREEMENT_RAD))
 
 
 @njit(cache=True)
-def _unconfirmed(grid, normals, neighbours, ok, reach, agreement):  # type: ignore[no-untyped-def]
+def _unconfirmed(grid, normals, neighbours, sizes, ok, reach, agreement):  # type: ignore[no-untyped-def]
     n = len(normals)
-    sizes = np.zeros(n, dtype=np.int64)
-    for i in range(n):
-        while sizes[i] < neighbours.shape[1] and neighbours[i, sizes[i]] >= 0:
-            sizes[i] += 1
     disagrees = np.zeros(n, dtype=np.bool_)
     isolated = np.zeros(n, dtype=np.bool_)
     best_d2 = np.empty(3)
@@ -206,7 +214,7 @@ def _unconfirmed(grid, normals, neighbours, ok, reach, agreement):  # type: igno
 
 
 def map_agrees(
-    surfaces: object, points: NDArray[np.float64], normals: NDArray[np.float64]
+    surfaces: MapSurfaces, points: NDArray[np.float64], normals: NDArray[np.float64]
 ) -> NDArray[np.bool_]:
     """Whether the map's surface at each of `points` (map frame) runs as `normals` say, within
     PARTNER_AGREEMENT_RAD: the line fitted through the map's mean hit points around the nearest
@@ -300,7 +308,7 @@ def surface_conditioning(
     matched: NDArray[np.bool_],
     pose: Pose2D,
     length_m: float | None = None,
-    surfaces: object | None = None,
+    surfaces: MapSurfaces | None = None,
 ) -> tuple[MatchStatus, tuple[float, float, float] | None, str]:
     """OK, DEGENERATE (with the weak direction) or ILL_CONDITIONED for a pose matched from the
     source points `matched` (csm's optimum, an ICP's pairs), from the geometry of those points.

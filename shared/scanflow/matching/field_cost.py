@@ -22,6 +22,7 @@ from scanflow.maps.grid import GridSpec
 from scanflow.matching.api import MatchResult, MatchStatus, failed
 from scanflow.matching.checks import (
     DEGENERATE_RATIO,
+    MapSurfaces,
     analyse_hessian,
     characteristic_length_m,
     guess_along,
@@ -372,7 +373,7 @@ def assess_field_match(
     iterations: int,
     guess: Pose2D,
     scan_target: bool = False,
-    surfaces: object | None = None,
+    surfaces: MapSurfaces | None = None,
 ) -> MatchResult:
     """Covariance sigma^2 H^-1 and the conditioning checks at the final pose on the finest field;
     a DEGENERATE pose keeps the guess's value along its weak direction (against a map, from the
