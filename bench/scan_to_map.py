@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scanflow.geometry import Pose2D
 from scanflow.io.carmen import load_keyframes
+from scanflow.maps.grid import CellBox
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.matching import MatchResult, match
@@ -149,7 +150,7 @@ def ndt_on_map(log: Path, scans: int | None) -> dict[str, object]:
 
 def centres_only(grid: OccupancyGrid) -> OccupancyGrid:
     """The same log-odds grid without hit sums: its fields fall back to cell centres."""
-    box = grid.extent
+    box = grid.extent or CellBox(0, 0, 0, 0)  # an empty grid has no extent
     return OccupancyGrid.from_arrays(
         grid.log_odds, grid.observed, box, grid.anchor_x_m, grid.anchor_y_m, grid.params
     )

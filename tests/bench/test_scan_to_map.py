@@ -3,9 +3,12 @@
 import json
 import math
 
+import numpy as np
 import pytest
+from scanflow.maps.occupancy import OccupancyGrid
 
 from bench.data import corrected_log
+from bench.scan_to_map import centres_only
 
 from .conftest import run_bench
 
@@ -34,3 +37,17 @@ def test_bench_scan_to_map_reports_every_method_both_map_fields_and_ndt_on_a_map
     assert kept["ms_median"] > 0 and rebuilt["ms_median"] > 0
     assert kept["success_10cm_1deg"] == rebuilt["success_10cm_1deg"]
     assert on_map["max_pose_difference"] < 1e-6
+
+
+def test_centres_only_keeps_the_log_odds_and_drops_the_hits() -> None:
+    grid = OccupancyGrid()
+    grid.insert_scan(np.array([[1.0, 0.0], [0.0, 1.0]]), np.zeros(2))
+    plain = centres_only(grid)
+    assert plain.extent == grid.extent and np.array_equal(plain.log_odds, grid.log_odds)
+    assert grid.hit_sums.any() and not plain.hit_sums.any()
+
+
+def test_centres_only_of_an_empty_grid_is_an_empty_grid() -> None:
+    """An empty map has no extent (None): its copy is as empty, not an AttributeError."""
+    plain = centres_only(OccupancyGrid())
+    assert plain.is_empty and plain.extent is None
