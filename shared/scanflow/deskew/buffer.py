@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from scanflow.deskew import kernels
-from scanflow.deskew.source import DeskewError, PoseArrays, finite_times
+from scanflow.deskew.source import DeskewError, PoseArrays, SourceName, finite_times
 from scanflow.geometry import Pose2D, normalize_angles
 from scanflow.scan import Odometry
 
@@ -30,7 +30,7 @@ class OdometryBuffer:
     bridge two samples further apart than `max_gap_s`.
     """
 
-    name = "odometry"
+    name: SourceName = "odometry"
 
     def __init__(
         self,

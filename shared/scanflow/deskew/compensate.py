@@ -27,14 +27,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanflow.deskew import kernels
-from scanflow.deskew.source import DeskewError, PoseSource, choose_source
+from scanflow.deskew.source import DeskewError, PoseSource, SourceName, choose_source
 from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.scan import LaserScan
 
 Reference = Literal["start", "middle", "end"]
 REFERENCES: tuple[str, ...] = get_args(Reference)
 DEFAULT_REFERENCE: Reference = "start"
-SourceUsed = Literal["odometry", "constant_velocity", "none"]
+SourceUsed = SourceName | Literal["none"]
 NO_RETURN_RANGE_M = 1000.0
 """Range of a no-return endpoint when the scan's range_max_m is +inf: far beyond any clear
 distance (the map clips no-return beams to its own `no_return_clear_m`), yet small enough that
@@ -172,7 +172,11 @@ def _time_offsets(scan: LaserScan) -> NDArray[np.float64]:
 @lru_cache(maxsize=64)
 def _uniform_offsets(beam_count: int, scan_duration_s: float) -> NDArray[np.float64]:
     """Beam i fires at i * duration / count, as `LaserScan.time_offsets_s` assumes."""
-    offsets = np.arange(beam_count) * (scan_duration_s / beam_count) if beam_count else np.zeros(0)
+    offsets = (
+        np.arange(beam_count, dtype=np.float64) * (scan_duration_s / beam_count)
+        if beam_count
+        else np.zeros(0)
+    )
     offsets.flags.writeable = False
     return offsets
 

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Protocol
+from typing import Literal, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 PoseArrays = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]
+# The pose sources there are, by the name a deskew result reports (`DeskewResult.source_used`).
+SourceName = Literal["odometry", "constant_velocity"]
 
 
 class DeskewError(ValueError):
@@ -27,7 +29,7 @@ def finite_times(times_s: ArrayLike) -> NDArray[np.float64]:
 class PoseSource(Protocol):
     """Robot poses at arbitrary times, or a reason why some times cannot be covered."""
 
-    name: str
+    name: SourceName
 
     def coverage_gap(self, start_s: float, end_s: float) -> str | None:
         """None when poses over [start_s, end_s] are available, else why not (for the result)."""
@@ -49,7 +51,7 @@ def choose_source(
     if sources is None:
         return None, "no pose source given"
     candidates = sources if isinstance(sources, list | tuple) else (sources,)
-    reasons = []
+    reasons: list[str] = []
     for source in candidates:
         gap = source.coverage_gap(start_s, end_s)
         if gap is None:

@@ -11,7 +11,7 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scanflow.deskew.source import DeskewError, PoseArrays, finite_times
+from scanflow.deskew.source import DeskewError, PoseArrays, SourceName, finite_times
 from scanflow.geometry import Pose2D, compose_arrays, se2_exp, se2_log
 
 
@@ -27,7 +27,7 @@ class ConstantVelocityModel:
     resets, saying so.
     """
 
-    name = "constant_velocity"
+    name: SourceName = "constant_velocity"
 
     def __init__(
         self,
@@ -107,21 +107,29 @@ class ConstantVelocityModel:
         t = finite_times(times_s)
         if t.size == 0:
             return t, t.copy(), t.copy()
-        self._require(float(t.min()), float(t.max()))
-        last_s, last_pose = self._last  # type: ignore[misc]
-        poses = compose_arrays(last_pose.to_array(), self._motion(t - last_s))
+        (last_s, last_pose), twist = self._require(float(t.min()), float(t.max()))
+        poses = compose_arrays(last_pose.to_array(), _motion(twist, t - last_s))
         return poses[:, 0], poses[:, 1], poses[:, 2]
 
     def relative_poses(self, times_s: NDArray[np.float64], reference_s: float) -> PoseArrays:
         """Poses at `times_s` in the frame of the pose at `reference_s`: exp((t - ref) * twist)."""
-        self._require(min(float(times_s[0]), reference_s), max(float(times_s[-1]), reference_s))
-        rel = self._motion(times_s - reference_s)
+        _, twist = self._require(
+            min(float(times_s[0]), reference_s), max(float(times_s[-1]), reference_s)
+        )
+        rel = _motion(twist, times_s - reference_s)
         return rel[:, 0], rel[:, 1], rel[:, 2]
 
-    def _motion(self, dt_s: NDArray[np.float64]) -> NDArray[np.float64]:
-        return se2_exp(dt_s[:, None] * self._twist[None, :])  # type: ignore[index]
-
-    def _require(self, start_s: float, end_s: float) -> None:
+    def _require(
+        self, start_s: float, end_s: float
+    ) -> tuple[tuple[float, Pose2D], NDArray[np.float64]]:
+        """The last (stamp, pose) and the twist, when the model covers [start_s, end_s];
+        else DeskewError saying why (`coverage_gap`, which needs both to be known)."""
         gap = self.coverage_gap(start_s, end_s)
-        if gap is not None:
+        if gap is not None or self._last is None or self._twist is None:
             raise DeskewError(f"constant-velocity model cannot cover [{start_s}, {end_s}] s: {gap}")
+        return self._last, self._twist
+
+
+def _motion(twist: NDArray[np.float64], dt_s: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The body-frame motions exp(dt * twist) over the time steps `dt_s`."""
+    return se2_exp(dt_s[:, None] * twist[None, :])
