@@ -284,7 +284,8 @@ def in_frame(frame: Pose2D, result: MatchResult) -> MatchResult:
     jacobian = frame.frame_jacobian()
     weak = result.weak_direction
     if weak is not None:
-        weak = tuple(float(v) for v in jacobian @ np.asarray(weak))
+        rotated = jacobian @ np.asarray(weak)
+        weak = (float(rotated[0]), float(rotated[1]), float(rotated[2]))
     return replace(
         result,
         pose=frame * result.pose,

@@ -148,6 +148,12 @@ class MapSurfaces(Protocol):
         ...
 
 
+def map_surfaces(target: object) -> MapSurfaces | None:
+    """`target` when it is a map whose surfaces can be asked (`hit_means_near`), else None (a
+    point target)."""
+    return target if hasattr(target, "hit_means_near") else None
+
+
 # Neighbours of each matched point its normal is fitted to (see `surface_conditioning`).
 NORMAL_NEIGHBOURS = 16
 # Patches up to this far across (m) (see `surface_conditioning`).

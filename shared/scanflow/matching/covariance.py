@@ -110,7 +110,7 @@ def line_fit_covariance(
 
 
 @njit(cache=True)
-def _censi_terms(moved, weights, normals, centres, neighbours, spread_m2, target):
+def _censi_terms(moved, weights, normals, centres, neighbours, spread_m2, target):  # type: ignore[no-untyped-def]
     """One pass over the residuals: Hessian J^T W J, noise gain sum_z g_z g_z^T, and each
     residual's noise scale s_i = 1 + |dr_i/d(target points)|^2 (see `line_fit_covariance`).
 

@@ -16,8 +16,8 @@ from numpy.typing import NDArray
 
 from scanflow.geometry import Pose2D
 from scanflow.maps.maxpool import SCORE_SCALE, MaxPoolStack
-from scanflow.matching.api import MatchResult, MatchStatus, failed, match, register_method
-from scanflow.matching.checks import surface_conditioning
+from scanflow.matching.api import MatchResult, MatchStatus, Target, failed, match, register_method
+from scanflow.matching.checks import map_surfaces, surface_conditioning
 from scanflow.matching.csm_search import (
     MAX_TOP_CANDIDATES,
     build_candidates,
@@ -75,7 +75,7 @@ def found_a_pose(result: MatchResult) -> bool:
 def correlative_match(
     method: str,
     source: NDArray[np.float64],
-    target: object,
+    target: Target,
     guess: Pose2D,
     exhaustive: bool,
     linear_m: float,
@@ -97,16 +97,16 @@ def correlative_match(
     bad = check_inputs(method, source, target, guess)
     if bad is not None:
         return bad
-    if not hasattr(target, "likelihood_field") and len(target) < MIN_POINTS:
-        return failed(
-            method, MatchStatus.TOO_FEW_POINTS, guess,
-            f"target has {len(target)} points, need >= {MIN_POINTS}",
-        )
-    field = (
-        target.likelihood_field(0)
-        if hasattr(target, "likelihood_field")
-        else points_field(np.asarray(target), resolution_m, sigma_m or resolution_m)
-    )
+    if hasattr(target, "likelihood_field"):
+        field = target.likelihood_field(0)
+    else:
+        points = np.asarray(target)
+        if len(points) < MIN_POINTS:
+            return failed(
+                method, MatchStatus.TOO_FEW_POINTS, guess,
+                f"target has {len(points)} points, need >= {MIN_POINTS}",
+            )
+        field = points_field(points, resolution_m, sigma_m or resolution_m)
     res = field.spec.resolution_m
     step_rad = angular_resolution_rad or default_angular_step_rad(
         source, res, reach_m(field.spec, guess, linear_m)
@@ -134,8 +134,9 @@ def correlative_match(
     poses = [Pose2D(guess.x + c[1] * res, guess.y + c[2] * res, float(cand.angles_rad[c[0]]))
              for c in found]
     matched = stack.lookup(0, cand.rows[k] + iy, cand.cols[k] + ix) > 0
-    surfaces = target if hasattr(target, "hit_means_near") else None
-    status, weak, message = surface_conditioning(source, matched, poses[0], surfaces=surfaces)
+    status, weak, message = surface_conditioning(
+        source, matched, poses[0], surfaces=map_surfaces(target)
+    )
     pose = poses[0]
     result = MatchResult(
         pose=pose,
@@ -172,7 +173,7 @@ def correlative_match(
 @register_method("csm")
 def match_csm(
     source: NDArray[np.float64],
-    target: object,
+    target: Target,
     guess: Pose2D,
     *,
     linear_m: float = 1.0,
@@ -215,7 +216,7 @@ def match_csm(
 
 @register_method("csm_exhaustive", forwards_to=[match_csm])
 def match_csm_exhaustive(
-    source: NDArray[np.float64], target: object, guess: Pose2D, **options: object
+    source: NDArray[np.float64], target: Target, guess: Pose2D, **options: object
 ) -> MatchResult:
     """The reference search: every candidate of the window scored."""
     return match_csm(source, target, guess, **{**options, "exhaustive": True})

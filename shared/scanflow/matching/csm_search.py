@@ -73,7 +73,8 @@ def build_candidates(
     """Rotate the source by every angle of the window at once and find each point's cell."""
     res = stack.spec.resolution_m
     half_cells, half_steps = window_steps(res, linear_m, angular_rad, angular_step_rad)
-    angles = guess.theta + np.arange(-half_steps, half_steps + 1) * angular_step_rad
+    steps = np.arange(-half_steps, half_steps + 1, dtype=np.float64)
+    angles = guess.theta + steps * angular_step_rad
     rows = np.empty((len(angles), len(source)), dtype=np.int64)
     cols = np.empty_like(rows)
     # A block of angles at a time: the float temporaries stay small (same values as all at once).

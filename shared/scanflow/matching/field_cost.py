@@ -27,6 +27,7 @@ from scanflow.matching.checks import (
     characteristic_length_m,
     guess_along,
     guess_position_along,
+    map_surfaces,
     surface_conditioning,
 )
 from scanflow.matching.covariance import least_squares_covariance
@@ -78,8 +79,8 @@ def out_of_iterations(pose: NDArray[np.float64], max_iterations: int, finest: bo
     return LevelOutcome(pose, max_iterations, None)
 
 
-LevelSolver = Callable[
-    [LikelihoodField, NDArray[np.float64], NDArray[np.float64], int], LevelOutcome
+LevelSolver = Callable[  # (field, source points, pose, whether the level is the finest)
+    [LikelihoodField, NDArray[np.float64], NDArray[np.float64], bool], LevelOutcome
 ]
 
 
@@ -361,8 +362,9 @@ def run_coarse_to_fine(
             total,
         )
     scan = not hasattr(target, "likelihood_pyramid")
-    surfaces = target if hasattr(target, "hit_means_near") else None
-    return assess_field_match(method, pyramid[-1], source, pose, total, guess, scan, surfaces)
+    return assess_field_match(
+        method, pyramid[-1], source, pose, total, guess, scan, map_surfaces(target)
+    )
 
 
 def assess_field_match(
@@ -397,6 +399,7 @@ def assess_field_match(
     cond = analyse_hessian(lin.hessian, length_m)
     at = Pose2D.from_array(pose)
     kept: Pose2D | None = None
+    weak: tuple[float, float, float] | None
     if cond.degenerate:
         status, weak = MatchStatus.DEGENERATE, cond.weak_direction
         message = f"one direction unconstrained (eigenvalue ratio {cond.ratio:.2e})"

@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from scanflow.geometry import Pose2D
-from scanflow.matching.api import MatchResult, MatchStatus, register_method, target_points
+from scanflow.matching.api import MatchResult, MatchStatus, Target, register_method, target_points
 from scanflow.matching.checks import guess_along, weak_length_m
 from scanflow.matching.csm import found_a_pose, match_csm
 from scanflow.matching.inputs import (
@@ -70,7 +70,7 @@ def pick_hypothesis(overlaps: list[float], switch_margin: float) -> int:
 @register_method("csm+plicp", forwards_to=[match_plicp])
 def match_csm_plicp(
     source: NDArray[np.float64],
-    target: object,
+    target: Target,
     guess: Pose2D,
     *,
     linear_m: float = 0.5,

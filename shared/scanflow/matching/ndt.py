@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 from numba import njit
@@ -219,7 +220,7 @@ def newton_level(
         h = positive_definite(ev.hessian)
         if h is None:
             return LevelOutcome(pose, it, MatchStatus.ILL_CONDITIONED, "NDT Hessian is zero")
-        step = -np.linalg.solve(h, ev.gradient)
+        step = cast(NDArray[np.float64], -np.linalg.solve(h, ev.gradient))  # stub: floating[Any]
         slope = float(ev.gradient @ step)
         alpha = 1.0
         while ndt_cost(cells, points, pose + alpha * step) > ev.cost + ARMIJO_C * alpha * slope:
@@ -323,8 +324,8 @@ def match_ndt(
         total += alt.iterations
         if alt.status is None and ndt_cost(cells, source, alt.pose) < ndt_cost(cells, source, pose):
             pose = alt.pose
-    hessian, held = surface_hessian(cells, source, pose)
-    length_m = characteristic_length_m(source, held)  # the spread of the points that count
+    hessian, counted = surface_hessian(cells, source, pose)
+    length_m = characteristic_length_m(source, counted)  # the spread of the points that count
     cond = analyse_hessian(hessian, length_m)
     status, weak = MatchStatus.OK, None
     if cond.degenerate:
@@ -333,7 +334,7 @@ def match_ndt(
         pose = guess_along(weak, Pose2D.from_array(pose), guess, length_m).to_array()
     ev = ndt_evaluate(cells, source, pose)
     try:
-        cov = np.linalg.inv(ev.information)
+        cov = cast(NDArray[np.float64], np.linalg.inv(ev.information))  # stub: floating[Any]
     except np.linalg.LinAlgError:
         cov = unknown_covariance()
     return MatchResult(

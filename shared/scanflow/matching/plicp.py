@@ -255,13 +255,14 @@ def line_match_result(
     paired = assoc >= 0
     length_m = characteristic_length_m(source, paired)
     if code == SINGULAR:
-        weak = analyse_hessian(hessian, length_m).weak_direction
+        unconstrained = analyse_hessian(hessian, length_m).weak_direction
         singular = failed(
             method, MatchStatus.DEGENERATE, guess,
-            f"point-to-line Hessian is singular: no constraint along {np.round(weak, 3).tolist()}",
+            "point-to-line Hessian is singular: no constraint along "
+            f"{np.round(unconstrained, 3).tolist()}",
             iterations,
         )
-        return replace(singular, weak_direction=weak, extra={"length_m": length_m})
+        return replace(singular, weak_direction=unconstrained, extra={"length_m": length_m})
     cov = pair_covariance(source, target, lines, pose, assoc, weights)
     fraction = inliers / len(source)
     cond = analyse_hessian(hessian, length_m)

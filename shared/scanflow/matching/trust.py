@@ -77,6 +77,7 @@ def fit_checked(fn: MethodFn) -> MethodFn:
         return assess_fit(fn(source, target, guess, **options), source, target, margin_m, max_share)
 
     # The method's own options and these two, as `match` checks them and help() shows them.
+    # (inspect.signature reads a function's __signature__, which typeshed does not declare.)
     signature = inspect.signature(fn)
     run.__signature__ = signature.replace(  # type: ignore[attr-defined]
         parameters=[

@@ -19,6 +19,7 @@ from scanflow.matching.checks import (
     guess_along,
     guess_position_along,
     line_hessian,
+    map_surfaces,
     surface_conditioning,
     weak_length_m,
     without_weak_direction,
@@ -309,3 +310,9 @@ def test_rotation_is_scaled_by_the_spread_of_the_points_that_were_matched() -> N
         characteristic_length_m(source)  # nothing matched: the whole source
     assert weak_length_m({"length_m": 1.25}, source) == 1.25
     assert weak_length_m({}, source) == characteristic_length_m(source)
+
+
+def test_map_surfaces_is_a_map_target_and_none_for_points() -> None:
+    world = MatchingMap()
+    assert map_surfaces(world) is world
+    assert map_surfaces(np.zeros((5, 2))) is None
