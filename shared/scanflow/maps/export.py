@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import IO
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from PIL import Image
 
 from scanflow.maps.grid import CellBox, GridSpec
@@ -330,15 +330,18 @@ def npz_arrays(grid: OccupancyGrid) -> dict[str, NDArray]:
     }
 
 
-def npz_bytes(arrays: dict[str, NDArray], compressed: bool = True) -> bytes:
+def npz_bytes(arrays: Mapping[str, ArrayLike], compressed: bool = True) -> bytes:
     """`arrays` as the bytes of one .npz, zlib-compressed unless `compressed` is False (scan
     points, which hardly compress, are written faster plain)."""
     buffer = io.BytesIO()
-    (np.savez_compressed if compressed else np.savez)(buffer, **arrays)
+    # allow_pickle given (its default) so that no array can be taken for it: a name clash fails.
+    (np.savez_compressed if compressed else np.savez)(buffer, allow_pickle=True, **arrays)
     return buffer.getvalue()
 
 
-def write_npz(path: Path | str, arrays: dict[str, NDArray], compressed: bool = True) -> Path:
+def write_npz(
+    path: Path | str, arrays: Mapping[str, ArrayLike], compressed: bool = True
+) -> Path:
     """`arrays` as one .npz (`npz_bytes`) that replaces `path` atomically."""
     return _write_atomic(Path(path), npz_bytes(arrays, compressed))
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
 
 def finite_rows(name: str, points: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -24,7 +24,7 @@ def finite_rows(name: str, points: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 def corner_below(
-    lowest: NDArray[np.float64], step_m: float, offset_m: ArrayLike = 0.0
+    lowest: NDArray[np.float64], step_m: float, offset_m: float | tuple[float, float] = 0.0
 ) -> NDArray[np.float64]:
     """The highest lattice corner offset + k * step at or below `lowest`, per axis. floor(x /
     step) * step can round to just above x (x = -127.70000000000002, step 0.1): one step lower
@@ -95,8 +95,9 @@ class GridSpec:
         row = (p[:, 1] - self.origin_y_m) / self.resolution_m - 0.5
         return np.column_stack((row, col))
 
-    def cell_centers(self, cells: NDArray[np.int64]) -> NDArray[np.float64]:
-        """World (x, y) of the centres of (row, col) cells."""
+    def cell_centers(self, cells: NDArray[np.int64] | NDArray[np.float64]) -> NDArray[np.float64]:
+        """World (x, y) of the centres of (row, col) cells; of fractional (row, col) too, cell
+        centres at integers (e.g. `OccupancyGrid.occupied_hit_means`)."""
         c = np.asarray(cells).reshape(-1, 2)
         x = self.origin_x_m + (c[:, 1] + 0.5) * self.resolution_m
         y = self.origin_y_m + (c[:, 0] + 0.5) * self.resolution_m

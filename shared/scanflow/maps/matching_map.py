@@ -117,7 +117,10 @@ class MatchingMap:
                 layer.mark_dirty(dirty)
         if len(flipped):
             self._occupied_points = None
-            for cells in (*self._ndt.values(), *self._overlapping.values()):
+            stores: list[GridNDTCells | GridOverlappingCells] = [
+                *self._ndt.values(), *self._overlapping.values()
+            ]
+            for cells in stores:
                 cells.mark_dirty(flipped)
         return result
 

@@ -107,7 +107,7 @@ V = TypeVar("V")
 class BlockArrays(NamedTuple):
     """Read-only views of a block store: index by block start, and per-block distributions."""
 
-    index: NDArray[np.int64]
+    block_index: NDArray[np.int64]  # not `index`: that would shadow tuple.index
     means: NDArray[np.float64]
     inv_covs: NDArray[np.float64]
     counts: NDArray[np.int64]

@@ -8,6 +8,7 @@ nearly collinear). `ndt_cells` builds its cell sets from these.
 from __future__ import annotations
 
 import math
+from typing import cast
 
 import numpy as np
 from numba import njit
@@ -160,7 +161,10 @@ def block_distributions(
     sparse_moments or _mask_moments returned for blocks of `size` cells, `cols` per row,
     from `origin`."""
     index, moments, flat = kept
-    corners = np.column_stack((flat % cols, flat // cols)) * size + origin
+    # Integer block numbers times a float size: float64 (numpy's stub says floating[Any]).
+    corners = cast(
+        NDArray[np.float64], np.column_stack((flat % cols, flat // cols)) * size + origin
+    )
     return (index, *cell_distributions(moments, corners))
 
 
