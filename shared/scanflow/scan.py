@@ -147,7 +147,8 @@ class LaserScan:
     @cached_property
     def angles_rad(self) -> NDArray[np.float64]:
         """Angle of every beam in the sensor frame."""
-        return self.angle_min_rad + self.angle_increment_rad * np.arange(self.beam_count)
+        beams = np.arange(self.beam_count, dtype=np.float64)
+        return self.angle_min_rad + self.angle_increment_rad * beams
 
     @cached_property
     def valid_mask(self) -> NDArray[np.bool_]:
@@ -196,7 +197,7 @@ class LaserScan:
         n = self.beam_count
         if n <= 1 or self.scan_duration_s == 0.0:
             return np.zeros(n)
-        return np.arange(n) * (self.scan_duration_s / n)
+        return np.arange(n, dtype=np.float64) * (self.scan_duration_s / n)
 
     @property
     def end_stamp_s(self) -> float:

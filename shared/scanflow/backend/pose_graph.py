@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import operator
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -110,7 +111,8 @@ def _normal_equations(
     size = 3 * (n - 1)
     h = coo_matrix((h_blocks[keep], (rows[keep], cols[keep])), shape=(size, size)).tocsc()
     free = var >= 0
-    g = np.bincount(var[free], weights=g_blocks[free], minlength=size)
+    # With weights bincount sums float64s (numpy's stub says integers).
+    g = cast(NDArray[np.float64], np.bincount(var[free], weights=g_blocks[free], minlength=size))
     return h, g
 
 

@@ -19,8 +19,8 @@ from scanflow.config import BackendSettings, FrontendSettings, SettingsError, ch
 from scanflow.frontend import save_tum
 from scanflow.frontend.prior import FrontendStart, PriorMapError
 from scanflow.io.carmen import load_keyframes
-from scanflow.io.detect import carmen_error_handler, detect_format, open_log
-from scanflow.io.rosbag import BagFormatError, BagOdom
+from scanflow.io.detect import carmen_error_handler, detect_format
+from scanflow.io.rosbag import BagFormatError, BagOdom, BagReader
 from scanflow.maps.export import save_map
 from scanflow.pipeline import Pipeline, PipelineOutput
 from scanflow.sim import SimConfig, simulate
@@ -42,7 +42,7 @@ def _log_outputs(
         for kf in load_keyframes(path, on_error=carmen_error_handler(on_error)):
             yield pipeline.process(kf.scan, kf.odom_pose)
         return
-    for record in open_log(path, on_error=on_error):
+    for record in BagReader(path, on_error=on_error):
         if isinstance(record, BagOdom):
             pipeline.add_odometry(record.odom)
         else:

@@ -20,7 +20,7 @@ from pydantic_settings import BaseSettings
 
 from scanflow import config
 from scanflow.cli import app
-from scanflow.config import SECTIONS, SettingsError, check_environment
+from scanflow.config import SECTIONS, Section, SettingsError, check_environment
 
 # Bases whose fields every service section repeats under its own prefix: listed once.
 SHARED_BASES: tuple[type[BaseSettings], ...] = (
@@ -36,7 +36,7 @@ BOUNDS = (("gt", ">"), ("ge", ">="), ("lt", "<"), ("le", "<="))
 class Setting:
     """One environment variable: its section, field and where the field is declared."""
 
-    section: type[BaseSettings]
+    section: type[Section]
     field: str
     info: FieldInfo
     declared_in: type[BaseSettings]

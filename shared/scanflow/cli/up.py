@@ -115,10 +115,10 @@ def up(
         typer.echo("Ctrl-C stops everything.")
         reported: set[str] = set()
         while not stopping:
-            for name, code in launcher.exited().items():
+            for name, returncode in launcher.exited().items():
                 if name not in reported:
                     reported.add(name)
-                    typer.echo(f"{name} exited with code {code} (log: {log_dir / name}.log)")
+                    typer.echo(f"{name} exited with code {returncode} (log: {log_dir / name}.log)")
             time.sleep(0.5)
     finally:
         typer.echo("stopping...")

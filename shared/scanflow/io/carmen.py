@@ -136,7 +136,7 @@ def open_text(path: str | Path) -> IO[str]:
     with open(path, "rb") as f:
         magic = f.read(2)
     # The caller owns the returned stream (it is used as a context manager).
-    raw: IO[bytes] = gzip.open(path, "rb") if magic == GZIP_MAGIC else open(path, "rb")  # noqa: SIM115
+    raw = gzip.open(path, "rb") if magic == GZIP_MAGIC else open(path, "rb")  # noqa: SIM115
     return io.TextIOWrapper(raw, encoding="latin-1", newline=None)
 
 
@@ -410,15 +410,17 @@ class CarmenReader:
         self, kind: str, parts: list[str], line_no: int, seq: int, limit_m: float
     ) -> CarmenLaser:
         parsed = (_parse_old_laser if kind in OLD_LASER_TYPES else _parse_new_laser)(parts)
+        # Parsed as float64 (the sentinel prescan reads them so); a scan holds float32.
+        intensities = None if parsed.intensities is None else parsed.intensities.astype(np.float32)
         scan = LaserScan(
-            ranges_m=parsed.ranges_m,
+            ranges_m=parsed.ranges_m.astype(np.float32),
             angle_min_rad=parsed.angle_min_rad,
             angle_increment_rad=parsed.angle_increment_rad,
             range_max_m=min(limit_m, parsed.record_max_range_m),
             stamp_s=parsed.stamp_s,
             robot_id=self.robot_id,
             frame_id=FRAME_IDS[kind],
-            intensities=parsed.intensities,
+            intensities=intensities,
             seq=seq,
             mount=parsed.mount,
         )

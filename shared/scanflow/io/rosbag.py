@@ -335,8 +335,8 @@ class BagReader:
                         yield BagOdom(odom, conn.topic, bag_time_s)
                         counts[ODOM_TYPE] += 1
                     elif conn.msgtype in TF_TYPES:
-                        owner = self._owner(robots, conn.topic)
-                        for odom in self._tf_odometry(msg, owner, counts[ODOM_TYPE]):
+                        owner_of = self._owner(robots, conn.topic)
+                        for odom in self._tf_odometry(msg, owner_of, counts[ODOM_TYPE]):
                             yield BagOdom(odom, conn.topic, bag_time_s)
                             counts[ODOM_TYPE] += 1
                 except (ScanError, ValueError) as exc:

@@ -63,7 +63,8 @@ class LidarModel:
     def beam_offsets_s(self) -> NDArray[np.float64]:
         """Firing time of each beam after the first: the head turns at rate_hz revolutions/s."""
         seconds_per_rad = 1.0 / (2.0 * math.pi * self.rate_hz)
-        return np.arange(self.beams) * (self.angle_increment_rad * seconds_per_rad)
+        beams = np.arange(self.beams, dtype=np.float64)
+        return beams * (self.angle_increment_rad * seconds_per_rad)
 
 
 @dataclass(frozen=True, eq=False)

@@ -137,7 +137,9 @@ def simulate(config: SimConfig, trajectory: Trajectory | None = None) -> Iterato
             Odometry(
                 stamp_s=float(odom_stamps_s[j]),
                 pose=Pose2D.from_array(odom_poses[j]),
-                velocity=tuple(float(v) for v in odom_twists[j]),
+                velocity=(
+                    float(odom_twists[j, 0]), float(odom_twists[j, 1]), float(odom_twists[j, 2])
+                ),
                 robot_id=config.robot_id,
                 seq=j,
             )

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import reprlib
-from collections.abc import Container
+from collections.abc import Collection
 from typing import Any
 
 import msgpack
@@ -71,7 +71,7 @@ def pack_message(type_name: str, fields: dict[str, Any], bulk: bool = False) -> 
     return data
 
 
-def unpack_message(data: Any, bulk_types: Container[str] = ()) -> tuple[str, Fields]:
+def unpack_message(data: Any, bulk_types: Collection[str] = ()) -> tuple[str, Fields]:
     """Check size, msgpack syntax, version and type tag; return the type and its fields.
 
     A payload over MAX_PAYLOAD_BYTES is read only if its first key is a `type` in

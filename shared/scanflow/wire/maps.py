@@ -7,7 +7,7 @@ Grid geometry is scanflow.maps.grid.GridSpec (row index grows with y, column wit
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar, Literal, Self
+from typing import ClassVar, Literal, Self, TypeGuard
 
 import numpy as np
 from numpy.typing import NDArray
@@ -42,6 +42,11 @@ from scanflow.wire.schema import (
 
 MAP_IMAGE_FORMATS = ("png", "pgm", "yaml", "zip", "npz")
 MapImageFormat = Literal["png", "pgm", "yaml", "zip", "npz"]
+
+
+def is_map_image_format(fmt: str) -> TypeGuard[MapImageFormat]:
+    """True for a format a MapImageMessage carries (one of MAP_IMAGE_FORMATS)."""
+    return fmt in MAP_IMAGE_FORMATS
 
 
 @dataclass(frozen=True, eq=False)

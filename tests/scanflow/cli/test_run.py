@@ -204,7 +204,7 @@ def test_run_keeps_what_it_read_of_a_bag_that_breaks_off(tmp_path: Path, monkeyp
 
     bag = tmp_path / "cut.bag"
     bag.write_bytes(b"#ROSBAG V2.0\n")
-    monkeypatch.setattr(run_module, "open_log", broken_bag)
+    monkeypatch.setattr(run_module, "BagReader", broken_bag)
     _register()
     out = tmp_path / "out"
     result = CliRunner().invoke(app, ["run", "--log", str(bag), "--json", "--map-out", str(out)])

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scanflow import wire
 from scanflow.geometry import Pose2D
+from scanflow.wire.maps import is_map_image_format
 
 
 def test_map_messages_expose_grid_geometry() -> None:
@@ -74,3 +75,8 @@ def test_keyframe_counts_that_wrap_around_int64_are_refused(payload: Callable[..
             "r", np.arange(n), np.zeros(n), np.zeros((n, 3)), np.zeros((n, 3)),
             np.zeros(n, np.int64), none, np.full(n, 2**62), none,
         )  # fmt: skip
+
+
+def test_a_map_image_format_is_one_the_message_carries() -> None:
+    assert all(is_map_image_format(fmt) for fmt in wire.MAP_IMAGE_FORMATS)
+    assert not is_map_image_format("jpeg") and not is_map_image_format("")
