@@ -30,7 +30,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from typing import Any
+from typing import Any, cast
 
 import zenoh
 from scanflow import keys
@@ -146,7 +146,7 @@ class ServiceShell:
         """Wait until something subscribes to `key` (True), or `timeout_s` passes (False)."""
         pub = self._cached_publisher(key)
         deadline = time.monotonic() + timeout_s
-        while not pub.matching_status.matching:
+        while not _has_subscribers(pub):
             if self.stop_event.wait(0.05) or time.monotonic() > deadline:
                 return False
         return True
@@ -200,16 +200,18 @@ class ServiceShell:
         Zenoh's default does to replies on one key), and the error replies' texts (both empty
         when no queryable matched; a queryable that did not finish within `timeout_s` gives
         the error TIMED_OUT)."""
-        payloads, errors = [], []
+        payloads: list[bytes] = []
+        errors: list[str] = []
         t0 = time.perf_counter()
         replies = self._side_session().get(
             selector, timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE
         )
         for reply in replies:
-            if reply.ok is not None:
-                payloads.append(reply.ok.payload.to_bytes())
+            result = reply.result  # a Sample, or the ReplyError of a failed reply
+            if isinstance(result, zenoh.ReplyError):
+                errors.append(result.payload.to_string())
             else:
-                errors.append(reply.err.payload.to_string())
+                payloads.append(result.payload.to_bytes())
         self._get_s += time.perf_counter() - t0
         return payloads, errors
 
@@ -608,3 +610,9 @@ def rss_bytes() -> int:
             return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
     except (OSError, ValueError, IndexError):
         return 0
+
+
+def _has_subscribers(pub: zenoh.Publisher) -> bool:
+    """Whether something subscribes to `pub`'s key now. zenoh's stub types `matching_status` as
+    a bool; it is a MatchingStatus (zenoh 1.10), whose `matching` says so."""
+    return cast(zenoh.MatchingStatus, pub.matching_status).matching

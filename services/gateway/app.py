@@ -30,6 +30,14 @@ BODY_MODELS: tuple[type[BaseModel], ...] = (MatchIn, ScanIn, OdometryIn)
 log = logging.getLogger("scanflow.gateway")
 
 
+class GatewayApp(FastAPI):
+    """The gateway's FastAPI: its schema also lists the body models routes read by hand."""
+
+    def openapi(self) -> dict[str, Any]:
+        """The generated schema plus those body models (`_openapi`), built once."""
+        return _openapi(self)
+
+
 def create_app(
     settings: GatewaySettings | None = None,
     backend: ZenohBackend | None = None,
@@ -52,7 +60,7 @@ def create_app(
             if backend is None:
                 app.state.backend.close()
 
-    app = FastAPI(
+    app = GatewayApp(
         title="scanflow gateway",
         version="1",
         summary="HTTP access to the scanflow 2D LiDAR pipeline (poses, match, maps, ingest).",
@@ -64,9 +72,11 @@ def create_app(
     reads = [Depends(require_key)] if settings.guard_reads else []  # documented only if on
     for router in ROUTERS:
         app.include_router(router, dependencies=reads, responses=KEY_ANSWERS if reads else None)
-    app.add_exception_handler(BackendError, _backend_error)  # type: ignore[arg-type]
-    app.add_exception_handler(RequestValidationError, _invalid)  # type: ignore[arg-type]
-    app.add_exception_handler(DecodeError, _unreadable_reply)  # type: ignore[arg-type]
+    # FastAPI's decorator, called: Starlette's add_exception_handler types a handler as taking
+    # any Exception, so one that takes its own kind does not fit it.
+    app.exception_handler(BackendError)(_backend_error)
+    app.exception_handler(RequestValidationError)(_invalid)
+    app.exception_handler(DecodeError)(_unreadable_reply)
     app.add_middleware(BodyLimit, max_body_bytes=settings.max_body_bytes)
     app.add_middleware(RequestTiming, metrics=app.state.metrics)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
@@ -75,7 +85,6 @@ def create_app(
     def index() -> FileResponse:
         return FileResponse(STATIC_DIR / "index.html")
 
-    app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app
 
 

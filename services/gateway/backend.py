@@ -11,7 +11,7 @@ import logging
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TypeVar
+from typing import Protocol, TypedDict, TypeVar
 
 import anyio.to_thread
 import zenoh
@@ -72,6 +72,22 @@ class Reply:
     payload: bytes
 
 
+class SessionInfo(TypedDict):
+    """The Zenoh session's state, as /health shows it (`ZenohOut`)."""
+
+    open: bool
+    mode: str
+    zid: str
+    routers: list[str]
+    peers: list[str]
+
+
+class _Declared(Protocol):
+    """A subscriber or publisher the backend undeclares when it closes."""
+
+    def undeclare(self) -> None: ...
+
+
 def error_status(text: str) -> int:
     """HTTP status for an error reply: 'Timeout' 504, 'busy' 503, known exceptions 404/422."""
     if text == "Timeout":
@@ -100,7 +116,7 @@ class ZenohBackend:
         self._ingest_lock = threading.Lock()  # posted messages: numbered and put in order
         self._alive: set[tuple[str, str]] = set()
         self._publishers: dict[str, zenoh.Publisher] = {}
-        self._declared: list[object] = []
+        self._declared: list[_Declared] = []
         self._closed = False
 
     @classmethod
@@ -133,7 +149,7 @@ class ZenohBackend:
         self._closed = True
         for entity in reversed(self._declared + list(self._publishers.values())):
             try:
-                entity.undeclare()  # type: ignore[attr-defined]
+                entity.undeclare()
             except zenoh.ZError:
                 log.debug("undeclare failed during close", exc_info=True)
         self.session.close()
@@ -201,7 +217,7 @@ class ZenohBackend:
         with self._lock:
             return sorted(self._alive)
 
-    def session_info(self) -> dict[str, object]:
+    def session_info(self) -> SessionInfo:
         """The Zenoh session's state for /health: open, mode, own zid, routers and peers."""
         closed = self._closed or self.session.is_closed()
         info = self.session.info
@@ -228,10 +244,11 @@ class ZenohBackend:
         for reply in self.session.get(
             selector, payload=payload, timeout=timeout_s, consolidation=consolidation
         ):
-            if reply.ok is not None:
-                ok.append(Reply(str(reply.ok.key_expr), reply.ok.payload.to_bytes()))
+            result = reply.result  # a Sample, or the ReplyError of a failed reply
+            if isinstance(result, zenoh.ReplyError):
+                errors.append(result.payload.to_string())
             else:
-                errors.append(reply.err.payload.to_string())
+                ok.append(Reply(str(result.key_expr), result.payload.to_bytes()))
         if ok:
             return ok
         if errors:
@@ -321,10 +338,12 @@ class ZenohBackend:
             target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
             timeout=timeout_s,
         ):
-            if reply.ok is not None:
-                answers.append(RetiredMessage.decode(reply.ok.payload.to_bytes()))
-            elif (text := reply.err.payload.to_string()) != "Timeout":
-                errors.append(text)
+            result = reply.result  # a Sample, or the ReplyError of a failed reply
+            if isinstance(result, zenoh.ReplyError):
+                if (text := result.payload.to_string()) != "Timeout":
+                    errors.append(text)
+            else:
+                answers.append(RetiredMessage.decode(result.payload.to_bytes()))
         done = ", ".join(f"{a.service}/{a.instance}" for a in before + answers) or "none"
         again = f" (retired from: {done}; ask again to finish the retire)"
         if errors:

@@ -143,9 +143,9 @@ def render_service_stats(stats: Iterable[ServiceStatsMessage]) -> str:
     for s in sorted(stats, key=lambda m: (m.service, m.instance)):
         base = {"service": s.service, "instance": s.instance}
         _add(families, kinds, "scanflow_service_up", "gauge", base, 1)
-        for counter, value in sorted(s.counters.items()):
+        for counter, count in sorted(s.counters.items()):
             name, labels = _counter_family(counter)
-            _add(families, kinds, name, "counter", {**base, **labels}, value)
+            _add(families, kinds, name, "counter", {**base, **labels}, count)
         for gauge, value in sorted(s.gauges.items()):
             _add(families, kinds, "scanflow_service_gauge", "gauge", {**base, "name": gauge}, value)
     lines: list[str] = []

@@ -11,6 +11,7 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, model_validator
+from pydantic.config import JsonDict
 from scanflow import keys
 from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.matching import DEFAULT_METHOD
@@ -36,7 +37,7 @@ Range = Annotated[float, Field(ge=-COORD_LIMIT_M, le=COORD_LIMIT_M)] | None
 Matrix3 = list[list[float | None]]
 
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
-_EXAMPLE_SCAN = {
+_EXAMPLE_SCAN: JsonDict = {
     "ranges_m": [2.0, 2.1, None, 2.3, 2.2, 2.0, 1.9, 2.0],
     "angle_min_rad": -1.57,
     "angle_increment_rad": 0.39,
@@ -105,6 +106,8 @@ class ScanIn(BaseModel):
     def to_scan(self, robot_id: str, seq: int) -> LaserScan:
         """The LaserScan (null ranges become NaN: masked beams); may raise ScanError."""
         ranges = np.array([math.nan if r is None else r for r in self.ranges_m], np.float32)
+        offsets = self.beam_time_offsets_s
+        intensities = self.intensities
         return LaserScan(
             ranges_m=ranges,
             angle_min_rad=self.angle_min_rad,
@@ -113,10 +116,10 @@ class ScanIn(BaseModel):
             range_max_m=self.range_max_m,
             stamp_s=self.stamp_s,
             scan_duration_s=self.scan_duration_s,
-            beam_time_offsets_s=self.beam_time_offsets_s,
+            beam_time_offsets_s=None if offsets is None else np.array(offsets, np.float64),
             robot_id=robot_id,
             frame_id=self.frame_id,
-            intensities=self.intensities,
+            intensities=None if intensities is None else np.array(intensities, np.float32),
             seq=seq,
             mount=self.mount.to_pose() if self.mount is not None else IDENTITY,
         )

@@ -7,7 +7,7 @@ import math
 import time
 
 import numpy as np
-from scanflow.maps.export import MAP_FILE_FORMATS, map_file_bytes, npz_arrays, npz_bytes
+from scanflow.maps.export import map_file_bytes, npz_arrays, npz_bytes
 from scanflow.maps.grid import CellBox
 from scanflow.wire import (
     MAX_POSITION_M,
@@ -17,6 +17,7 @@ from scanflow.wire import (
     ResumeMessage,
     TrajectoryMessage,
 )
+from scanflow.wire.maps import is_map_image_format
 
 from services.mapserver.robot import RobotMap
 
@@ -32,13 +33,13 @@ def image(robot: RobotMap, fmt: str) -> MapImageMessage:
     yaml and pgm together), npz (native), all built in memory (a resume asks for the npz under
     the map server's lock)."""
     grid = robot.map.grid
+    if not is_map_image_format(fmt):
+        raise ValueError(f"format must be png, pgm, yaml, zip or npz, got {fmt!r}")
     if fmt == "npz":
         data = npz_bytes(npz_arrays(grid))
-    elif fmt in MAP_FILE_FORMATS:
-        data = map_file_bytes(grid, fmt, robot.robot_id)
     else:
-        raise ValueError(f"format must be png, pgm, yaml, zip or npz, got {fmt!r}")
-    return MapImageMessage(robot.robot_id, robot.map.revision, fmt, data)  # type: ignore[arg-type]
+        data = map_file_bytes(grid, fmt, robot.robot_id)
+    return MapImageMessage(robot.robot_id, robot.map.revision, fmt, data)
 
 
 def region(robot: RobotMap, bounds_m: tuple[float, float, float, float] | None) -> MapRegionMessage:

@@ -183,9 +183,10 @@ class MapServer:
             if messages and isinstance(messages[0], MapStateMessage):
                 self._take_state(robot, messages[0], after, through)
                 return
-            if not all(isinstance(m, MapInsertMessage) for m in messages):
+            inserts = [m for m in messages if isinstance(m, MapInsertMessage)]
+            if len(inserts) != len(messages):
                 raise SchemaError(f"the answers are {sorted({m.TYPE for m in messages})}")
-            inserts = sorted(messages, key=lambda m: m.seq)  # type: ignore[attr-defined]
+            inserts.sort(key=lambda m: m.seq)
             chained = [m.previous_seq for m in inserts] == [
                 None if after == FIRST else after, *(m.seq for m in inserts[:-1])
             ]
@@ -332,12 +333,13 @@ def _region(robot: RobotMap, params: zenoh.Parameters) -> Message:
     """The whole map, or the world box given as parameters x0, y0, x1, y1 (metres)."""
     names = ("x0", "y0", "x1", "y1")
     given = [params.get(n) for n in names]
-    if all(v is None for v in given):
+    values = [v for v in given if v is not None]
+    if not values:
         return replies.region(robot, None)
-    if any(v is None for v in given):
+    if len(values) != len(names):
         got = dict(zip(names, given, strict=True))
         raise ValueError(f"region needs all of x0, y0, x1, y1 or none, got {got}")
-    x0, y0, x1, y1 = (float(v) for v in given)  # type: ignore[arg-type]
+    x0, y0, x1, y1 = (float(v) for v in values)
     return replies.region(robot, (x0, y0, x1, y1))
 
 

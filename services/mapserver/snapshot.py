@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scanflow import keys
 from scanflow.backend import ScanNode
 from scanflow.config import MapServerSettings
@@ -70,7 +70,7 @@ def save_snapshot(data_dir: Path, snap: Snapshot, per_file: int = PER_FILE) -> N
     keyframes' scans go `per_file` to a file of their own, each written once (a scan never
     changes): the snapshot holds their seqs and poses, and the scans of the last few."""
     data_dir.mkdir(parents=True, exist_ok=True)
-    arrays = npz_arrays(snap.grid)
+    arrays: dict[str, ArrayLike] = dict(npz_arrays(snap.grid))  # int64 scalars join them
     arrays.update(
         stamps_s=snap.stamps_s, poses=snap.poses, last_seq=np.int64(snap.last_seq),
         redrawn_seq=np.int64(snap.redrawn_seq), last_insert_seq=np.int64(snap.last_insert_seq),
@@ -152,7 +152,8 @@ def load_snapshots(data_dir: Path) -> tuple[list[Snapshot], list[str]]:
     """Every robot snapshot in `data_dir` (none if the directory does not exist), and why any
     other was skipped (unreadable, or not a snapshot): it must not stop the service starting,
     and is set aside (renamed) so that the robot's fresh run does not overwrite it."""
-    snaps, skipped = [], []
+    snaps: list[Snapshot] = []
+    skipped: list[str] = []
     for path in sorted(data_dir.glob(f"*{SUFFIX}")):
         robot_id = path.name.removesuffix(SUFFIX)
         try:

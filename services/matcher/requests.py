@@ -5,12 +5,14 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from scanflow.matching import match
-from scanflow.matching.api import MapTarget
+from scanflow.matching.api import MapTarget, Target
+from scanflow.scan import LaserScan
 from scanflow.wire import MapRef, MatchRequest, MatchResponse
 
 
 def answer(request: MatchRequest, map_of: Callable[[str], MapTarget | None]) -> MatchResponse:
     """Run the requested method; a missing map or bad input becomes an error response."""
+    target: LaserScan | Target | None
     if isinstance(request.target, MapRef):
         target = map_of(request.target.robot_id)
         if target is None:

@@ -149,10 +149,11 @@ class MatcherService:
                 message.mount,
             )
             mapper = self.mappers.get(robot_id)
-            step = None if mapper is None else mapper.add(
-                out, message.points, message.no_return_points, message.mount
-            )
-            redraw = None if step is None else self._redraw(robot_id, out.seq, mapper, step)
+            step: MapperStep | None = None
+            redraw: MapRedrawMessage | None = None
+            if mapper is not None:
+                step = mapper.add(out, message.points, message.no_return_points, message.mount)
+                redraw = None if step is None else self._redraw(robot_id, out.seq, mapper, step)
             self.recent[robot_id].tracked(out.seq, out.inserted, redraw)
         keyframe = step is None or step.culled_to is None
         self._publish(robot_id, message, out, keyframe, redraw)

@@ -20,7 +20,7 @@ router = APIRouter(prefix=API_PREFIX, tags=["health"])
 def health(backend: Backend) -> JSONResponse:
     """Liveliness of the gateway's Zenoh session and of each service's token: "ok", "degraded"
     (a service missing) or "down" (the session closed or cut off from its router: 503)."""
-    zenoh = ZenohOut(**backend.session_info())  # type: ignore[arg-type]
+    zenoh = ZenohOut(**backend.session_info())
     alive = backend.alive_services()
     missing = sorted(set(EXPECTED_SERVICES) - {service for service, _ in alive})
     cut_off = zenoh.mode == "client" and not zenoh.routers

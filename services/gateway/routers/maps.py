@@ -71,9 +71,9 @@ async def map_file(
         image = MapImageMessage.decode(replies[0].payload)
         headers["X-Map-Revision"] = str(image.revision)
         return Response(image.data, media_type=MEDIA[fmt], headers=headers)
-    if any(b is None for b in bounds):
+    if x0 is None or y0 is None or x1 is None or y1 is None:
         raise HTTPException(422, f"query: give all of x0, y0, x1, y1 or none, got {bounds}")
-    if x0 > x1 or y0 > y1:  # type: ignore[operator]
+    if x0 > x1 or y0 > y1:
         raise HTTPException(422, f"query: need x0 <= x1 and y0 <= y1, got {bounds}")
     selector = f"{keys.map_key(robot, 'region', backend.prefix)}?x0={x0};y0={y0};x1={x1};y1={y1}"
     region = MapRegionMessage.decode((await backend.aquery(selector))[0].payload)

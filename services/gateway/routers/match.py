@@ -80,11 +80,13 @@ async def post_match(
 def to_request(body: MatchIn, max_beams: int) -> MatchRequest:
     """The wire MatchRequest of a JSON body (scans numbered 0 and 1)."""
     source = _scan(body.source, "source", "request", 0, max_beams)
-    target = (
-        MapRef(body.robot_id)
-        if body.robot_id is not None
-        else _scan(body.target, "target", "request", 1, max_beams)  # type: ignore[arg-type]
-    )
+    target: MapRef | LaserScan
+    if body.robot_id is not None:
+        target = MapRef(body.robot_id)
+    elif body.target is not None:
+        target = _scan(body.target, "target", "request", 1, max_beams)
+    else:  # MatchIn's own check refuses such a body first
+        raise invalid(("body",), "give exactly one of target or robot_id")
     guess = None if body.initial_guess is None else body.initial_guess.to_pose()
     try:
         return MatchRequest(body.method, source, target, guess, dict(body.options))

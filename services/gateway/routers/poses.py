@@ -26,10 +26,11 @@ from services.gateway.tracks import estimate_arrays, pose_at
 
 router = APIRouter(prefix=API_PREFIX, tags=["poses"])
 TimeParam = Annotated[float | None, Query(ge=0.0, le=1e11, description="seconds")]
-NOT_FOUND = {
+NOT_FOUND: dict[int | str, dict[str, str]] = {
     404: {"description": "unknown robot, or a time outside its trajectory"}, **BAD_GATEWAY
 }
-BEFORE_THE_CACHE = {  # a time before the gateway's cache: the map server's trajectory
+# A time before the gateway's cache: the map server's trajectory.
+BEFORE_THE_CACHE: dict[int | str, dict[str, str]] = {
     503: {"description": "t is before the gateway's cache, and no map server answers"},
     504: {"description": "t is before the gateway's cache, and the map server timed out"},
 }
