@@ -13,7 +13,7 @@ import argparse
 import json
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import replace
 
 import numpy as np
@@ -25,7 +25,6 @@ from scanflow.sim import ConstantVelocityTrajectory, SimConfig, SimFrame, simula
 SPEED_MPS = 1.0
 YAW_RATE_RPS = math.pi  # 180 deg/s
 MOUNT = Pose2D(0.3, 0.1, 0.2)  # a lidar off the robot's origin: each beam's pose composed with it
-QUIET = {"range_noise_m": 0.0, "dropout_prob": 0.0, "odom_scale_error": 0.0, "odom_yaw_noise": 0.0}
 
 
 def _config(beams: int, duration_s: float) -> SimConfig:
@@ -38,7 +37,10 @@ def _config(beams: int, duration_s: float) -> SimConfig:
         odom_rate_hz=50.0,
         max_speed_mps=1.5,
         max_yaw_rate_dps=180,
-        **QUIET,
+        range_noise_m=0.0,  # quiet: no range noise, dropouts or odometry errors
+        dropout_prob=0.0,
+        odom_scale_error=0.0,
+        odom_yaw_noise=0.0,
     )
 
 
@@ -143,7 +145,7 @@ def speed(beams: int, repeats: int) -> dict[str, dict[str, float]]:
     }
 
 
-def run(repeats: int = 200, duration_s: float = 5.0) -> dict[str, object]:
+def run(repeats: int = 200, duration_s: float = 5.0) -> dict[str, Mapping[str, object]]:
     """The setup, the beam errors with odometry and with the constant-velocity model, and the
     speed of deskew at 360 and 1440 beams."""
     frames = list(simulate(_config(360, duration_s), _fast_circle()))

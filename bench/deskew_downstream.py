@@ -16,7 +16,9 @@ import json
 import math
 
 import numpy as np
+from numpy.typing import NDArray
 from scanflow.frontend import default_settings
+from scanflow.geometry import Pose2D
 from scanflow.matching import match
 from scanflow.pipeline import DeskewStage
 from scanflow.sim import SimConfig, simulate
@@ -34,25 +36,22 @@ def pair_errors(speed_mps: float, yaw_dps: float, duration_s: float, seed: int,
                        max_yaw_rate_dps=yaw_dps)
     stage = DeskewStage()
     errors: dict[str, list[tuple[float, float]]] = {"raw": [], "deskewed": []}
-    previous = None
+    # The last scan's points by kind, true pose and odometry pose, when it had one.
+    previous: tuple[dict[str, NDArray[np.float64]], Pose2D, Pose2D] | None = None
     for frame in simulate(config):
         for sample in frame.odometry:
             stage.add_odometry(sample)
         odom_pose = stage.odometry_pose_at(frame.scan.stamp_s)
-        current = {
-            "raw": frame.scan.robot_points(),
-            "deskewed": stage.process(frame.scan).points,
-            "truth": frame.true_pose,
-            "odom": odom_pose,
-        }
-        if previous is not None and odom_pose is not None and previous["odom"] is not None:
-            truth = current["truth"].relative_to(previous["truth"])
-            odom_step = odom_pose.relative_to(previous["odom"])
+        points = {"raw": frame.scan.robot_points(), "deskewed": stage.process(frame.scan).points}
+        if previous is not None and odom_pose is not None:
+            before, before_truth, before_odom = previous
+            truth = frame.true_pose.relative_to(before_truth)
+            odom_step = odom_pose.relative_to(before_odom)
             for kind in ("raw", "deskewed"):
-                result = match(current[kind], previous[kind], odom_step, method=method)
+                result = match(points[kind], before[kind], odom_step, method=method)
                 err = result.pose.relative_to(truth)
                 errors[kind].append((err.translation_norm(), abs(math.degrees(err.theta))))
-        previous = current
+        previous = None if odom_pose is None else (points, frame.true_pose, odom_pose)
     return {kind: _summary(np.array(v)) for kind, v in errors.items()}
 
 
@@ -74,29 +73,28 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--method", default="icp", help="scan-to-scan method")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
-    levels = []
-    for speed, yaw in LEVELS:
-        levels.append({
-            "speed_mps": speed,
-            "yaw_rate_dps": yaw,
-            "scan_to_scan": pair_errors(speed, yaw, args.duration, args.seed, args.method),
-        })
+    levels = [
+        (speed, yaw, pair_errors(speed, yaw, args.duration, args.seed, args.method))
+        for speed, yaw in LEVELS
+    ]
+    fast = run_sim(default_settings(), args.duration, args.seed)
     report = {
         "method": args.method,
         "duration_s": args.duration,
-        "levels": levels,
-        "frontend_fast": run_sim(default_settings(), args.duration, args.seed),
+        "levels": [
+            {"speed_mps": speed, "yaw_rate_dps": yaw, "scan_to_scan": s2s}
+            for speed, yaw, s2s in levels
+        ],
+        "frontend_fast": fast,
     }
     if args.json:
         print(json.dumps(report))
         return
-    for level in levels:
-        s2s = level["scan_to_scan"]
-        print(f"{level['speed_mps']} m/s, {level['yaw_rate_dps']} deg/s: "
+    for speed, yaw, s2s in levels:
+        print(f"{speed} m/s, {yaw} deg/s: "
               f"raw {s2s['raw']['trans_median_mm']:.1f} mm / {s2s['raw']['rot_median_deg']:.2f} deg"
               f", deskewed {s2s['deskewed']['trans_median_mm']:.1f} mm / "
               f"{s2s['deskewed']['rot_median_deg']:.2f} deg (median)")
-    fast = report["frontend_fast"]
     print(f"front end ATE at 1.5 m/s, 180 deg/s: deskewed {fast['deskewed']['ate_rmse_m']:.3f} m, "
           f"raw {fast['raw']['ate_rmse_m']:.3f} m")
 

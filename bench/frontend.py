@@ -129,7 +129,8 @@ class Pass:
 def run_pass(pipeline: Pipeline, frames: list[Keyframe], desc: str) -> Pass:
     """One pass of `frames` through `pipeline`: poses, wall time, time per stage, statuses,
     inserts and rechecks."""
-    poses, statuses = [], {}
+    poses = []
+    statuses: dict[str, int] = {}
     stage = {"deskew": 0.0, "match": 0.0, "insert": 0.0}
     inserted = rechecked = 0
     rechecked_s = 0.0
@@ -224,9 +225,9 @@ def fast_sim_config(
 ) -> SimConfig:
     """The simulator at 1.5 m/s and 180 deg/s; with perfect odometry, exact wheel odometry;
     `lidar` (beams, fov deg, range m, and maybe rate and bearing noise) instead of SimConfig's."""
-    noise = {"odom_scale_error": 0.0, "odom_yaw_noise": 0.0} if perfect_odometry else {}
-    return SimConfig(world=world, duration_s=duration_s, seed=seed, max_speed_mps=1.5,
-                     max_yaw_rate_dps=180.0, mount=mount, **noise, **sim_lidar_fields(lidar))
+    config = SimConfig(world=world, duration_s=duration_s, seed=seed, max_speed_mps=1.5,
+                       max_yaw_rate_dps=180.0, mount=mount, **sim_lidar_fields(lidar))
+    return replace(config, odom_scale_error=0.0, odom_yaw_noise=0.0) if perfect_odometry else config
 
 
 def settings_for(method: str | None, recheck_ratio: float | None = None) -> FrontendSettings:
@@ -263,7 +264,8 @@ def run_sim(
     for name, (enabled, declared) in runs.items():
         pipeline = Pipeline(settings, deskew_enabled=enabled,
                             initial_pose=Pose2D.from_array(truth[0]))
-        poses, statuses = [], {}
+        poses = []
+        statuses: dict[str, int] = {}
         cpu0 = time.process_time()
         for frame in frames:
             for sample in frame.odometry:

@@ -75,7 +75,10 @@ def serve_peer(session: zenoh.Session, world: MatchingMap) -> list[Any]:
     """Answer scan-to-scan and scan-to-map match queries the way the matcher does."""
 
     def on_query(query: zenoh.Query) -> None:
-        request = MatchRequest.decode(query.payload.to_bytes())
+        payload = query.payload
+        if payload is None:
+            raise ValueError("a match query needs a MatchRequest payload")
+        request = MatchRequest.decode(payload.to_bytes())
         query.reply(query.key_expr, answer(request, lambda _robot: world).encode())
 
     return [

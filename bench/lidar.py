@@ -6,10 +6,21 @@ the simulator's own is 360,270,30,10,0)."""
 from __future__ import annotations
 
 import argparse
+from typing import TypedDict
 
 from scanflow.sim import SimConfig
 
-Lidar = dict[str, float]  # SimConfig's lidar fields: beams, fov_deg, range_max_m[, rate_hz[, ...]]
+
+class Lidar(TypedDict, total=False):
+    """SimConfig's lidar fields: `parse_lidar` gives the first three, maybe the rest."""
+
+    beams: int
+    fov_deg: float
+    range_max_m: float
+    rate_hz: float
+    bearing_noise_deg: float
+
+
 LIDAR_FIELDS = ("beams", "fov_deg", "range_max_m", "rate_hz", "bearing_noise_deg")
 
 
@@ -23,8 +34,11 @@ def parse_lidar(text: str) -> Lidar:
         raise argparse.ArgumentTypeError(
             "--lidar takes BEAMS,FOV_DEG,RANGE_M[,RATE_HZ[,BEARING_NOISE_DEG]] (e.g. 181,180,80 "
             f"or 360,360,12,10,0.3), got {text!r}") from exc
-    fields = dict(zip(LIDAR_FIELDS, values, strict=False))
-    fields["beams"] = int(fields["beams"])
+    fields: Lidar = {"beams": int(values[0]), "fov_deg": values[1], "range_max_m": values[2]}
+    if len(values) > 3:
+        fields["rate_hz"] = values[3]
+    if len(values) > 4:
+        fields["bearing_noise_deg"] = values[4]
     return fields
 
 
@@ -35,9 +49,9 @@ def add_lidar_option(parser: argparse.ArgumentParser) -> None:
                         "(default: the simulator's 360,270,30,10,0)")
 
 
-def sim_lidar_fields(lidar: Lidar | None) -> dict[str, float]:
+def sim_lidar_fields(lidar: Lidar | None) -> Lidar:
     """`SimConfig` fields for `lidar` (none: its defaults)."""
-    return dict(lidar) if lidar else {}
+    return lidar.copy() if lidar else {}
 
 
 def lidar_report(config: SimConfig) -> dict[str, float]:

@@ -99,7 +99,8 @@ def tracking_part(
     visit = frames[1::2]
     start = None if grid is not None else visit[0].true_pose
     pipeline = Pipeline(settings, initial_pose=start, grid=grid)
-    errs, statuses = [], {}
+    errs = []
+    statuses: dict[str, int] = {}
     t0 = time.perf_counter()
     for kf in tqdm(visit, desc="tracking", file=sys.stderr, leave=False):
         est = pipeline.process(kf.scan, kf.odom_pose).estimate

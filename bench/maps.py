@@ -26,8 +26,9 @@ import json
 import math
 import resource
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -136,7 +137,11 @@ def run(step_m: float, rebuilds: int) -> dict[str, object]:
         for hits, misses, origin in scans:
             result = None
 
-            def insert(h=hits, m=misses, o=origin) -> None:
+            def insert(
+                h: NDArray[np.float64] = hits,
+                m: NDArray[np.float64] = misses,
+                o: NDArray[np.float64] = origin,
+            ) -> None:
                 nonlocal result
                 result = world.update(h, o, m)
 
@@ -294,14 +299,14 @@ def view_refresh(
     return out
 
 
-def print_table(r: dict[str, object]) -> None:
-    """Print the report of `run` as text."""
+def print_table(r: Mapping[str, Any]) -> None:
+    """Print the report of `run` as text (its JSON object: values of every kind)."""
     print(f"{r['world']}, {r['resolution_m']} m cells, one scan every {r['step_m']} m")
     print(
         f"extent {r['extent_cells']} cells = {r['mapped_area_m2']} m^2, "
         f"storage {r['storage_cells']} cells"
     )
-    for name, p in r["phases"].items():  # type: ignore[union-attr]
+    for name, p in r["phases"].items():
         ins, f0, pyr = p["insert_ms"], p["field0_refresh_ms"], p["pyramid_refresh_ms"]
         print(
             f"{name:8s} {p['scans']} scans ({p['scans_flipping_occupancy']} flipped occupancy, "
@@ -322,14 +327,14 @@ def print_table(r: dict[str, object]) -> None:
     )
 
 
-def print_views(v: dict[str, object]) -> None:
-    """Print the report of `view_refresh` as text."""
+def print_views(v: Mapping[str, Any]) -> None:
+    """Print the report of `view_refresh` as text (its JSON object: values of every kind)."""
     ins = v["insert_ms"]
     print(f"matching views on {v['log']} ({v['scans']} scans at the corrected poses):")
-    print(f"insert p50 {ins['p50']} mean {ins['mean']} p95 {ins['p95']} ms "  # type: ignore[index]
+    print(f"insert p50 {ins['p50']} mean {ins['mean']} p95 {ins['p95']} ms "
           f"(all {v['inserts_total_s']} s); all redrawn in one pass {v['redraw_s']} s")
     for name in ("small", "large"):
-        w = v[name]  # type: ignore[index]
+        w = v[name]
         print(
             f"{name:6s} after {w['after_scans']} scans: extent {w['extent_cells']} cells "
             f"({w['mapped_area_m2']} m^2), {w['occupied_cells']} occupied, "
@@ -358,18 +363,20 @@ def main() -> None:
     args = parser.parse_args()
     if args.views_only and args.data is None:
         parser.error("--views-only needs --data")
-    result = {} if args.views_only else run(args.step_m, args.rebuilds)
+    result: dict[str, object] = {} if args.views_only else run(args.step_m, args.rebuilds)
+    views = None
     if args.data is not None:
-        result["views"] = view_refresh(
+        views = view_refresh(
             args.data, args.small_scans, args.samples, args.rebuilds, args.limit, args.tile_cells
         )
+        result["views"] = views
     if args.json:
         print(json.dumps(result, indent=2))
         return
     if not args.views_only:
         print_table(result)
-    if args.data is not None:
-        print_views(result["views"])  # type: ignore[arg-type]
+    if views is not None:
+        print_views(views)
 
 
 if __name__ == "__main__":

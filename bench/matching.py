@@ -452,9 +452,9 @@ def main(argv: list[str] | None = None) -> None:
     if robust_trust:
         print("\nrobustness trust: trusted / silently wrong / flagged good per level")
         print(f"{'matcher':<18} " + " ".join(f"{lv:>20}" for lv in levels))
-        for name, row in robust_trust.items():
+        for name, trust in robust_trust.items():
             cells = [f"{t['trusted']:.1%}/{t['silently_wrong']:.1%}/{t['flagged_good']:.1%}"
-                     for t in row.values()]
+                     for t in trust.values()]
             print(f"{name:<18} " + " ".join(f"{c:>20}" for c in cells))
     if closures:
         print(format_closure(closures, args.gap))

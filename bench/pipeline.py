@@ -30,7 +30,7 @@ from scanflow import keys
 from scanflow.config import BackendSettings, LaunchSettings, ZenohSettings
 from scanflow.pipeline import Pipeline
 from scanflow.scan import LaserScan
-from scanflow.wire import ScanMessage, ServiceStatsMessage, decode_any
+from scanflow.wire import PoseEstimateMessage, ScanMessage, ServiceStatsMessage
 
 from bench.cpu import process_cpu_s
 from bench.data import corrected_log
@@ -99,8 +99,12 @@ class Observer:
         self.pose_s: dict[int, float] = {}
         self.poses = 0  # every pose received, across replays
         self.done = threading.Condition()
-        self._raw = session.declare_subscriber(keys.raw_scan(), self._on(self.raw_s))
-        self._pose = session.declare_subscriber(keys.pose(), self._on(self.pose_s))
+        self._raw = session.declare_subscriber(
+            keys.raw_scan(), self._on(self.raw_s, ScanMessage.decode)
+        )
+        self._pose = session.declare_subscriber(
+            keys.pose(), self._on(self.pose_s, PoseEstimateMessage.decode)
+        )
 
     def first_raw_only(self, timeout_s: float) -> None:
         """Keep the first raw scan's arrival, then stop receiving raw scans: a throughput run
@@ -110,10 +114,12 @@ class Observer:
                 raise TimeoutError(f"no raw scan after {timeout_s} s")
         self._raw.undeclare()
 
-    def _on(self, table: dict[int, float]) -> Callable[[Any], None]:
+    def _on(
+        self, table: dict[int, float], decode: Callable[[bytes], ScanMessage | PoseEstimateMessage]
+    ) -> Callable[[Any], None]:
         def record(sample: Any) -> None:
             now = time.perf_counter()
-            table[decode_any(sample.payload.to_bytes()).seq] = now
+            table[decode(sample.payload.to_bytes()).seq] = now
             with self.done:
                 self.poses += table is self.pose_s
                 self.done.notify_all()
@@ -131,7 +137,7 @@ def stats(session: Any, service: str) -> ServiceStatsMessage:
     """The stats of `service` instance 0 (first reply within 5 s); RuntimeError when none."""
     for reply in session.get(keys.stats(service, "0"), timeout=5.0):
         if reply.ok is not None:
-            return decode_any(reply.ok.payload.to_bytes())  # type: ignore[return-value]
+            return ServiceStatsMessage.decode(reply.ok.payload.to_bytes())
     raise RuntimeError(f"no stats from {service}")
 
 

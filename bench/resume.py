@@ -62,10 +62,11 @@ def through_router(payload: bytes) -> tuple[bytes | None, str | None, float]:
         t0 = time.perf_counter()
         got, error = None, None
         for reply in client.get(KEY, timeout=120.0, consolidation=zenoh.ConsolidationMode.NONE):
-            if reply.ok is not None:
-                got = reply.ok.payload.to_bytes()
+            result = reply.result  # a Sample, or the ReplyError of a failed reply
+            if isinstance(result, zenoh.ReplyError):
+                error = result.payload.to_string()
             else:
-                error = reply.err.payload.to_string()
+                got = result.payload.to_bytes()
         return got, error, time.perf_counter() - t0
     finally:
         for session in (client, server, router):

@@ -50,9 +50,8 @@ def run(
     """Snapshots of a run `count` keyframes long, then `GROWTH` keyframes longer (keyframes'
     scans `per_file` to a file)."""
     kept = kept_keyframes(frames, count + GROWTH)
-    grown = {"seqs": kept.seqs, "nodes": kept.nodes, "poses": kept.poses}
-    for name, values in grown.items():
-        setattr(kept, name, values[:count])
+    grown = kept.seqs, kept.nodes, kept.poses
+    kept.seqs, kept.nodes, kept.poses = kept.seqs[:count], kept.nodes[:count], kept.poses[:count]
     row: dict[str, Any] = {"keyframes": count}
     with tempfile.TemporaryDirectory(prefix="scanflow-bench-") as tmp:
         folder = Path(tmp)
@@ -64,8 +63,7 @@ def run(
             return round(time.perf_counter() - t0, 3)
 
         row["first_s"] = snapshot()
-        for name, values in grown.items():
-            setattr(kept, name, values)
+        kept.seqs, kept.nodes, kept.poses = grown
         row["next_s"] = snapshot()
         row["disk_mib"] = disk_mib(folder)
         t0 = time.perf_counter()

@@ -97,26 +97,27 @@ def run(runs: int, seed: int) -> dict[str, Any]:
     exact = ScanMessage.decode(packed).scan.ranges_m.tobytes() == scan.ranges_m.tobytes()
     if not (exact and np.array_equal(json_decode(text).ranges_m, scan.ranges_m, equal_nan=True)):
         raise RuntimeError("a codec did not reproduce the scan's ranges")
-    result = {
+    msgpack_figures = {
+        "encode_us": median_us(message.encode, runs),
+        "decode_us": median_us(lambda: ScanMessage.decode(packed), runs),
+        "bytes": len(packed),
+    }
+    json_figures = {
+        "encode_us": median_us(lambda: json_encode(scan), runs),
+        "decode_us": median_us(lambda: json_decode(text), runs),
+        "bytes": len(text),
+    }
+    return {
         "beams": scan.beam_count,
         "runs": runs,
         "python": platform.python_version(),
-        "msgpack": {
-            "encode_us": median_us(message.encode, runs),
-            "decode_us": median_us(lambda: ScanMessage.decode(packed), runs),
-            "bytes": len(packed),
-        },
-        "json": {
-            "encode_us": median_us(lambda: json_encode(scan), runs),
-            "decode_us": median_us(lambda: json_decode(text), runs),
-            "bytes": len(text),
+        "msgpack": msgpack_figures,
+        "json": json_figures,
+        "json_over_msgpack": {
+            key: json_figures[key] / msgpack_figures[key]
+            for key in ("encode_us", "decode_us", "bytes")
         },
     }
-    result["json_over_msgpack"] = {
-        key: result["json"][key] / result["msgpack"][key]
-        for key in ("encode_us", "decode_us", "bytes")
-    }
-    return result
 
 
 def main(argv: list[str] | None = None) -> None:
