@@ -18,8 +18,10 @@ run: $(STAMP)
 test: $(STAMP)
 	bash tools/run-tests.sh $(PY)
 
+# ruff's lint, then mypy's types (pyproject.toml: files, plugins), scanflow read from shared/.
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
+	MYPYPATH=shared $(VENV)/bin/mypy
 
 clean:
-	rm -rf $(VENV) .pytest_cache .hypothesis .ruff_cache
+	rm -rf $(VENV) .pytest_cache .hypothesis .ruff_cache .mypy_cache
