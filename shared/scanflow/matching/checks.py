@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
 
 from scanflow.geometry import Pose2D, angle_diff, normalize_angle
 from scanflow.matching.api import MatchStatus
@@ -138,20 +139,41 @@ def guess_position_along(
     return Pose2D(pose.x + shift * axis[0], pose.y + shift * axis[1], pose.theta)
 
 
+@runtime_checkable
 class MapSurfaces(Protocol):
-    """What `surface_conditioning` asks of a map target (a MatchingMap): its cells' mean hit
-    points near some points, to fit the map's own surface lines through."""
+    """What `surface_conditioning` asks of a target: its surface points near some points, to
+    fit the target's own surface lines through (a MatchingMap's cells' mean hit points, or a
+    target scan's points: `ScanSurfaces`)."""
 
     def hit_means_near(self, points_world: ArrayLike, radius_m: float) -> NDArray[np.float64]:
-        """(K, 2) mean hit points of the occupied cells within `radius_m` of the points (some
-        farther ones too)."""
+        """(K, 2) surface points within `radius_m` of the points (some farther ones too)."""
         ...
 
 
-def map_surfaces(target: object) -> MapSurfaces | None:
-    """`target` when it is a map whose surfaces can be asked (`hit_means_near`), else None (a
-    point target)."""
-    return target if hasattr(target, "hit_means_near") else None
+@dataclass(frozen=True, eq=False)
+class ScanSurfaces:
+    """A target given as points (a scan) as `MapSurfaces`: the target's own surfaces judge the
+    source's isolated two-point lines (`surface_conditioning`). Unlike a map's, a scan's
+    silence about a spot is no evidence (`map_agrees`' `unseen_agrees`)."""
+
+    points: NDArray[np.float64]
+
+    def hit_means_near(self, points_world: ArrayLike, radius_m: float) -> NDArray[np.float64]:
+        """The target points within 2 x `radius_m` of any of the points: a patch of `radius_m`
+        around the nearest one is then whole."""
+        query = np.asarray(points_world, dtype=np.float64).reshape(-1, 2)
+        if len(query) == 0 or len(self.points) == 0:
+            return np.zeros((0, 2))
+        near = cKDTree(query).query_ball_point(self.points, 2.0 * radius_m, return_length=True)
+        return self.points[near > 0]
+
+
+def surfaces_of(target: object) -> MapSurfaces | None:
+    """The surfaces of a match's target for `surface_conditioning`: a map's own, a point
+    target's points (`ScanSurfaces`); None for anything else."""
+    if isinstance(target, MapSurfaces):
+        return target
+    return ScanSurfaces(target) if isinstance(target, np.ndarray) else None
 
 
 # Neighbours of each matched point its normal is fitted to (see `surface_conditioning`).
@@ -188,7 +210,8 @@ def unconfirmed_patches(
     bearing noise) held one to three. Next to a third point, its partner's wider patch gives
     it away. An isolated pair cannot be told from a small surface facing the sensor (aces has
     such pairs 20 m off through an opening: leaving them out flagged 7 more of its 439 next-scan
-    plicp pairs, all within 5 cm), so only a map, where there is one, judges it."""
+    plicp pairs, all within 5 cm), so only the target, a map or a scan, judges it
+    (`map_agrees`)."""
     reach = np.maximum(NORMAL_RADIUS_M, surface_gap_m(np.hypot(grid.points[:, 0],
                                                                 grid.points[:, 1])))
     sizes = np.count_nonzero(lines.neighbours >= 0, axis=1)  # -1 padded: each patch's points
@@ -219,14 +242,34 @@ def _unconfirmed(grid, normals, neighbours, sizes, ok, reach, agreement):  # typ
     return disagrees, isolated
 
 
+def faces_the_origin(lines: TargetLines) -> NDArray[np.bool_]:
+    """Lines whose normal lies within PARTNER_AGREEMENT_RAD of the beam to their centre: what
+    two beams on a small object (a tree trunk) or a binned lidar's two beams at one spot make,
+    where a wall seen aslant by two beams at different ranges does not."""
+    reach = np.maximum(np.hypot(lines.centres[:, 0], lines.centres[:, 1]), 1e-9)
+    along_beam = np.abs(np.sum(lines.normals * lines.centres, axis=1)) / reach
+    return along_beam >= math.cos(PARTNER_AGREEMENT_RAD)
+
+
 def map_agrees(
-    surfaces: MapSurfaces, points: NDArray[np.float64], normals: NDArray[np.float64]
+    surfaces: MapSurfaces,
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64],
+    unseen_agrees: bool = False,
 ) -> NDArray[np.bool_]:
-    """Whether the map's surface at each of `points` (map frame) runs as `normals` say, within
-    PARTNER_AGREEMENT_RAD: the line fitted through the map's mean hit points around the nearest
-    one (`MatchingMap.hit_means_near`), as a scan's patch is fitted; False where the map holds
-    no line-like patch within NORMAL_RADIUS_M."""
-    agrees = np.zeros(len(points), dtype=np.bool_)
+    """Whether the target's surface at each of `points` (target frame) runs as `normals` say,
+    within PARTNER_AGREEMENT_RAD: the line fitted through the target's surface points around
+    the nearest one (a map's mean hit points, a scan's points), as a scan's patch is fitted.
+    Where the target holds no line-like patch within NORMAL_RADIUS_M: `unseen_agrees`.
+
+    With `unseen_agrees` (a scan target, its points seen from its origin) the target's own
+    two-point lines are judged too: one its neighbours contradict (`unconfirmed_patches`), or
+    an isolated one facing its origin (`faces_the_origin`), is no evidence either way. On the
+    simulated campus two beams on a far tree trunk made such lines in both scans, 30-40 deg
+    apart (two chords of one trunk), and flagged 6-7 more good pairs of 239 for plicp and
+    csm+plicp; an isolated pair along a wall seen aslant (the binned corridor's) still counts,
+    as two beams at one spot cannot make it."""
+    agrees = np.full(len(points), unseen_agrees, dtype=np.bool_)
     means = surfaces.hit_means_near(points, NORMAL_RADIUS_M) if len(points) else points
     if len(means) < 2:
         return agrees
@@ -236,8 +279,13 @@ def map_agrees(
     nearest = grid_nearest_all(grid.arrays, points, np.full(len(points), NORMAL_RADIUS_M))
     found = nearest >= 0
     at = nearest[found]
+    evidence = lines.ok
+    if unseen_agrees:
+        disagrees, isolated = unconfirmed_patches(grid, lines)
+        evidence = evidence & ~disagrees & ~(isolated & faces_the_origin(lines))
     shared = np.abs(np.sum(lines.normals[at] * normals[found], axis=1))
-    agrees[found] = lines.ok[at] & (shared >= math.cos(PARTNER_AGREEMENT_RAD))
+    agrees[found] = np.where(evidence[at], shared >= math.cos(PARTNER_AGREEMENT_RAD),
+                             unseen_agrees)
     return agrees
 
 
@@ -337,8 +385,10 @@ def surface_conditioning(
     Two guards against a lidar that reports its bearings binned (an RPLidar: each beam up to
     half a step off the angle the scan gives), where the corridor's ratio rose from 2e-4 to
     2e-3..6e-3 and gn slid 5-15 m along the simulated corridor (BENCHMARKS.md, "Front end"):
-    - two-point lines that their neighbours, or the map where there is one (`surfaces`, a
-      MatchingMap target: `map_agrees`), contradict do not count (`unconfirmed_patches`);
+    - two-point lines that their neighbours contradict do not count (`unconfirmed_patches`),
+      nor isolated ones that the target's surfaces (`surfaces`: `surfaces_of` the target)
+      do not confirm: a map's must run along them, a scan's must not run across them
+      (`map_agrees`); without `surfaces` isolated ones count;
     - the weakest direction counts as constrained only by the information left once each
       normal's bearing noise is taken off (`information_above_noise`, `normal_tilt_std`): a
       bearing known to within the scan's angular step (std step / sqrt(12)). The scan cannot
@@ -346,7 +396,9 @@ def surface_conditioning(
       turns OK into DEGENERATE, along the direction the Hessian found weakest.
     Either alone left the front end sliding 2-6 m along that corridor; together 0.1-0.9 m over
     five seeds, while the real logs' next-scan pairs and tracking stayed as they were (one
-    aces pair flagged more; BENCHMARKS.md, "Front end", 2026-11-28)."""
+    aces pair flagged more; BENCHMARKS.md, "Front end", 2026-11-28). Scan to scan on that
+    corridor, the target scan's surfaces took csm+plicp's ok-yet-wrong pairs from 5.4 to
+    0.8 % (BENCHMARKS.md, "Scan matching", thirty-second session)."""
     # A dense scan (3,000+ beams) is averaged per bearing bin first: its 16 nearest points lie
     # a few mm apart, where the range noise fails the flatness test (`thin_dense_target`).
     points = thin_dense_target(source[matched])
@@ -361,8 +413,11 @@ def surface_conditioning(
         disagrees, isolated = unconfirmed_patches(grid, lines)
         ok = lines.ok & ~disagrees
         if surfaces is not None and np.any(isolated):
+            # A map has seen around its surfaces; one scan's view is sparse (a far tree trunk:
+            # one beam on it), so only what it shows can contradict.
             ok[isolated] = map_agrees(surfaces, points[isolated] @ turn + [pose.x, pose.y],
-                                      lines.normals[isolated] @ turn)
+                                      lines.normals[isolated] @ turn,
+                                      unseen_agrees=isinstance(surfaces, ScanSurfaces))
         hessian = line_hessian(points[ok] @ turn, lines.normals[ok] @ turn)
     # Rotation scaled by the spread of the points that carry the information (a glitch point
     # far off the target would otherwise make every rotation look unconstrained): the caller's

@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 from scanflow.geometry import Pose2D
 from scanflow.maps.maxpool import SCORE_SCALE, MaxPoolStack
 from scanflow.matching.api import MatchResult, MatchStatus, Target, failed, match, register_method
-from scanflow.matching.checks import map_surfaces, surface_conditioning
+from scanflow.matching.checks import surface_conditioning, surfaces_of
 from scanflow.matching.csm_search import (
     MAX_TOP_CANDIDATES,
     build_candidates,
@@ -135,7 +135,7 @@ def correlative_match(
              for c in found]
     matched = stack.lookup(0, cand.rows[k] + iy, cand.cols[k] + ix) > 0
     status, weak, message = surface_conditioning(
-        source, matched, poses[0], surfaces=map_surfaces(target)
+        source, matched, poses[0], surfaces=surfaces_of(target)
     )
     pose = poses[0]
     result = MatchResult(

@@ -27,8 +27,8 @@ from scanflow.matching.checks import (
     characteristic_length_m,
     guess_along,
     guess_position_along,
-    map_surfaces,
     surface_conditioning,
+    surfaces_of,
 )
 from scanflow.matching.covariance import least_squares_covariance
 from scanflow.matching.inputs import require_grid_cells
@@ -363,7 +363,7 @@ def run_coarse_to_fine(
         )
     scan = not hasattr(target, "likelihood_pyramid")
     return assess_field_match(
-        method, pyramid[-1], source, pose, total, guess, scan, map_surfaces(target)
+        method, pyramid[-1], source, pose, total, guess, scan, surfaces_of(target)
     )
 
 
@@ -389,8 +389,8 @@ def assess_field_match(
     front end's map, gn slid 7 m along that corridor over a run; there only a corridor's axis
     takes the guess's position, the heading stays the match's (`guess_position_along`): the
     front end's predictions can be degrees off in heading, which `guess_along` turned into
-    position error (BENCHMARKS.md, "Front end"). `surfaces`: the map target, whose surfaces
-    judge the source's isolated two-point lines (`surface_conditioning`).
+    position error (BENCHMARKS.md, "Front end"). `surfaces`: the target's (`surfaces_of`),
+    which judge the source's isolated two-point lines (`surface_conditioning`).
     """
     # Rotation scaled by the spread of the points on the field: far ones off it carry nothing.
     matched = field.sample(moved_points(source, pose))[0] >= MATCHED_VALUE

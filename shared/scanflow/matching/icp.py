@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from scanflow.geometry import Pose2D
 from scanflow.matching.api import MatchResult, check_point_inputs, register_method, target_points
-from scanflow.matching.checks import line_hessian
+from scanflow.matching.checks import line_hessian, surfaces_of
 from scanflow.matching.correspondence import (
     THIN_BELOW_DEG,
     GridArrays,
@@ -199,7 +199,7 @@ def match_icp(
     hessian = line_hessian(moved - [pose.x, pose.y], normals)
     result = line_match_result(
         "icp", source, tgt, lines, guess, pose, hessian, assoc, lined.astype(np.float64),
-        iterations, code, min_inlier_fraction,
+        iterations, code, min_inlier_fraction, surfaces_of(target),
     )
     if not np.all(np.isfinite(result.covariance)):
         return result

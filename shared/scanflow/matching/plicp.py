@@ -26,10 +26,12 @@ from scanflow.matching.api import (
     target_points,
 )
 from scanflow.matching.checks import (
+    MapSurfaces,
     analyse_hessian,
     characteristic_length_m,
     guess_along,
     surface_conditioning,
+    surfaces_of,
 )
 from scanflow.matching.correspondence import (
     MAD_TO_SIGMA,
@@ -203,7 +205,7 @@ def match_plicp(
     )
     return line_match_result(
         "plicp", source, tgt, lines, guess, Pose2D.from_array(pose_arr), hess, assoc, weights,
-        iterations, code, min_inlier_fraction,
+        iterations, code, min_inlier_fraction, surfaces_of(target),
     )
 
 
@@ -242,9 +244,11 @@ def line_match_result(
     iterations: int,
     code: int,
     min_inlier_fraction: float,
+    surfaces: MapSurfaces | None,
 ) -> MatchResult:
     """Status, covariance and degeneracy of a solution scored on target lines (icp, plicp); a
-    DEGENERATE pose keeps the guess's value along its weak direction."""
+    DEGENERATE pose keeps the guess's value along its weak direction. `surfaces`: the target's
+    (`surfaces_of`), which judge the source's isolated two-point lines."""
     inliers = int(np.count_nonzero(assoc >= 0))
     if code == TOO_FEW:
         return failed(
@@ -276,9 +280,11 @@ def line_match_result(
             f"weakly constrained along {np.round(weak, 3).tolist()} "
             f"(eigenvalue ratio {cond.ratio:.1e}), e.g. a corridor"
         )
-    elif (surface := surface_conditioning(source, paired, pose, length_m))[0] is not MatchStatus.OK:
+    elif (surface := surface_conditioning(source, paired, pose, length_m, surfaces)
+          )[0] is not MatchStatus.OK:
         # The Hessian above holds the fitted normals' noise, which fakes a constraint along a
-        # corridor (a near wall's dense points, 1 cm noise over a few cm): ask the surfaces.
+        # corridor (a near wall's dense points, 1 cm noise over a few cm): ask the surfaces,
+        # the target's judging the source's isolated two-point lines.
         status, weak, message = surface
     elif code == MAX_ITER:
         status, message = MatchStatus.MAX_ITERATIONS, f"no convergence in {iterations} iterations"
