@@ -324,6 +324,29 @@ def test_a_target_scans_lone_pair_facing_it_is_no_evidence() -> None:
     assert map_agrees(wall, at, np.array([[1.0, -1.0]]) / math.sqrt(2.0), unseen_agrees=True)[0]
 
 
+coordinate = st.floats(-5.0, 5.0, allow_nan=False)
+point_lists = st.lists(st.tuples(coordinate, coordinate), max_size=30)
+
+
+@given(point_lists, point_lists, st.floats(0.0, 3.0))
+def test_a_scans_surface_points_are_its_points_within_twice_the_radius(
+    target: list, query: list, radius_m: float
+) -> None:
+    """The target points within 2 x radius_m of some asked point, against a brute force (up to
+    rounding at the boundary); none when either set is empty."""
+    points = np.array(target, dtype=np.float64).reshape(-1, 2)
+    asked = np.array(query, dtype=np.float64).reshape(-1, 2)
+    near = ScanSurfaces(points).hit_means_near(asked, radius_m)
+    gaps = np.full(len(points), np.inf)
+    if len(asked):
+        gaps = np.min(np.hypot(*(points[:, None, :] - asked[None, :, :]).transpose(2, 0, 1)),
+                      axis=1)
+    inside, maybe = gaps <= 2.0 * radius_m - 1e-9, gaps <= 2.0 * radius_m + 1e-9
+    assert np.count_nonzero(inside) <= len(near) <= np.count_nonzero(maybe)
+    returned = {tuple(p) for p in near}
+    assert {tuple(p) for p in points[inside]} <= returned <= {tuple(p) for p in points[maybe]}
+
+
 def test_surfaces_of_a_target() -> None:
     """A map judges with its own surfaces, a point target with its points near the asked ones
     (a patch's whole reach: twice the radius), anything else not at all."""
