@@ -27,6 +27,20 @@ def wait_until_answered(shell: ServiceShell, key: str, payload: bytes) -> None:
         time.sleep(0.05)
 
 
+def wait_until_served(session, key: str) -> None:
+    """Block until a queryable on `key` has reached `session`'s router: a query sent before
+    meets no match and comes back empty (a fresh declaration takes a moment to propagate,
+    longer under load)."""
+    querier = session.declare_querier(key)
+    deadline = time.monotonic() + 30.0
+    try:
+        while not querier.matching_status.matching:
+            assert time.monotonic() < deadline, f"nothing serves {key}"
+            time.sleep(0.05)
+    finally:
+        querier.undeclare()
+
+
 def test_a_slow_message_is_logged_counted_and_measured(caplog) -> None:
     """A message handled for longer than slow_message_s holds up everything behind it: it is
     logged with its kind and duration, counted as slow.<kind>, and handle_max_s shows it."""
@@ -163,13 +177,17 @@ def test_a_side_query_is_answered_while_a_slow_query_holds_the_query_thread() ->
     shell.serve("scanflow-test/slow", slow)
     shell.serve("scanflow-test/side", lambda q: q.reply(q.key_expr, b"side"), side=True)
     shell.start(install_signals=False)
+    probe = open_session(ZenohSettings(connect=[endpoint]))
     try:
+        for key in ("scanflow-test/slow", "scanflow-test/side"):
+            wait_until_served(probe, key)
         waiting = threading.Thread(target=shell.get, args=("scanflow-test/slow", 10.0))
         waiting.start()
         assert started.wait(5.0)
         assert shell.get("scanflow-test/side", 1.0) == ([b"side"], [])
         waiting.join()
     finally:
+        probe.close()
         shell.close(flush_s=0.0)
         router.close()
 
@@ -208,8 +226,10 @@ def test_a_failing_stats_source_is_an_error_reply_naming_it() -> None:
 
     shell.add_stats(gauges)
     shell.start(install_signals=False)
+    probe = open_session(ZenohSettings(connect=[endpoint]))
     try:
         key = keys.stats("deskew", "*", shell.prefix)
+        wait_until_served(probe, keys.stats("deskew", shell.instance, shell.prefix))
         payloads, errors = shell.get(key, 5.0)
         assert payloads == [] and len(errors) == 1
         assert "deskew/" in errors[0] and "KeyError" in errors[0] and "robot r7" in errors[0]
@@ -218,6 +238,7 @@ def test_a_failing_stats_source_is_an_error_reply_naming_it() -> None:
         assert errors == [] and len(payloads) == 1
         assert shell.counters.get("stats.failed") == 1
     finally:
+        probe.close()
         shell.close(flush_s=0.0)
         router.close()
 
@@ -457,12 +478,7 @@ class RetireBus:
     def ask(self, key: str, payload: bytes | None) -> list:
         """The replies to a retire query (ok: RetiredMessage, error: its text), once the
         shell's queryable has reached the router."""
-        querier = self.client.declare_querier(key)
-        deadline = time.monotonic() + 30.0
-        while not querier.matching_status.matching:
-            assert time.monotonic() < deadline, f"nothing serves {key}"
-            time.sleep(0.05)
-        querier.undeclare()
+        wait_until_served(self.client, key)
         return [
             RetiredMessage.decode(r.ok.payload.to_bytes()) if r.ok is not None
             else r.err.payload.to_string()
