@@ -41,7 +41,11 @@ def test_concurrent_posts_reach_the_bus_in_the_order_of_their_seqs(peer, backend
     with ThreadPoolExecutor(8) as pool:
         seqs = list(pool.map(lambda _: post(), range(80)))
     assert sorted(seqs) == list(range(80))
-    eventually(lambda: len(scans) >= 80, "every post on the bus", 30.0)
+    try:
+        eventually(lambda: len(scans) >= 80, "every post on the bus", 30.0)
+    except AssertionError as exc:  # say which went missing (a CI run once saw fewer than 80)
+        got = [ScanMessage.decode(b).seq for b in list(scans)]
+        raise AssertionError(f"{exc}: {len(got)} of 80 arrived, in this order: {got}") from exc
     assert [ScanMessage.decode(b).seq for b in scans] == list(range(80))
 
 
