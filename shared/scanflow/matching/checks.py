@@ -154,7 +154,7 @@ class MapSurfaces(Protocol):
 class ScanSurfaces:
     """A target given as points (a scan) as `MapSurfaces`: the target's own surfaces judge the
     source's isolated two-point lines (`surface_conditioning`). Unlike a map's, a scan's
-    silence about a spot is no evidence (`map_agrees`' `unseen_agrees`)."""
+    silence about a spot is no evidence (`surfaces_agree`' `unseen_agrees`)."""
 
     points: NDArray[np.float64]
 
@@ -211,7 +211,7 @@ def unconfirmed_patches(
     it away. An isolated pair cannot be told from a small surface facing the sensor (aces has
     such pairs 20 m off through an opening: leaving them out flagged 7 more of its 439 next-scan
     plicp pairs, all within 5 cm), so only the target, a map or a scan, judges it
-    (`map_agrees`)."""
+    (`surfaces_agree`)."""
     reach = np.maximum(NORMAL_RADIUS_M, surface_gap_m(np.hypot(grid.points[:, 0],
                                                                 grid.points[:, 1])))
     sizes = np.count_nonzero(lines.neighbours >= 0, axis=1)  # -1 padded: each patch's points
@@ -251,7 +251,7 @@ def faces_the_origin(lines: TargetLines) -> NDArray[np.bool_]:
     return along_beam >= math.cos(PARTNER_AGREEMENT_RAD)
 
 
-def map_agrees(
+def surfaces_agree(
     surfaces: MapSurfaces,
     points: NDArray[np.float64],
     normals: NDArray[np.float64],
@@ -388,7 +388,7 @@ def surface_conditioning(
     - two-point lines that their neighbours contradict do not count (`unconfirmed_patches`),
       nor isolated ones that the target's surfaces (`surfaces`: `surfaces_of` the target)
       do not confirm: a map's must run along them, a scan's must not run across them
-      (`map_agrees`); without `surfaces` isolated ones count;
+      (`surfaces_agree`); without `surfaces` isolated ones count;
     - the weakest direction counts as constrained only by the information left once each
       normal's bearing noise is taken off (`information_above_noise`, `normal_tilt_std`): a
       bearing known to within the scan's angular step (std step / sqrt(12)). The scan cannot
@@ -415,9 +415,10 @@ def surface_conditioning(
         if surfaces is not None and np.any(isolated):
             # A map has seen around its surfaces; one scan's view is sparse (a far tree trunk:
             # one beam on it), so only what it shows can contradict.
-            ok[isolated] = map_agrees(surfaces, points[isolated] @ turn + [pose.x, pose.y],
-                                      lines.normals[isolated] @ turn,
-                                      unseen_agrees=isinstance(surfaces, ScanSurfaces))
+            ok[isolated] = surfaces_agree(
+                surfaces, points[isolated] @ turn + [pose.x, pose.y],
+                lines.normals[isolated] @ turn, unseen_agrees=isinstance(surfaces, ScanSurfaces),
+            )
         hessian = line_hessian(points[ok] @ turn, lines.normals[ok] @ turn)
     # Rotation scaled by the spread of the points that carry the information (a glitch point
     # far off the target would otherwise make every rotation look unconstrained): the caller's

@@ -20,8 +20,8 @@ from scanflow.matching.checks import (
     guess_along,
     guess_position_along,
     line_hessian,
-    map_agrees,
     surface_conditioning,
+    surfaces_agree,
     surfaces_of,
     weak_length_m,
     without_weak_direction,
@@ -317,11 +317,11 @@ def test_a_target_scans_lone_pair_facing_it_is_no_evidence() -> None:
     source_normal = np.array([[math.cos(math.pi / 4), math.sin(math.pi / 4)]])
     trunk = ScanSurfaces(np.array([[10.0, -0.1], [10.0, 0.1], [0.0, 5.0], [0.0, 5.3]]))
     at = np.array([[10.0, 0.0]])
-    assert map_agrees(trunk, at, source_normal, unseen_agrees=True)[0]
-    assert not map_agrees(trunk, at, source_normal)[0]
+    assert surfaces_agree(trunk, at, source_normal, unseen_agrees=True)[0]
+    assert not surfaces_agree(trunk, at, source_normal)[0]
     wall = ScanSurfaces(np.array([[9.85, -0.15], [10.15, 0.15], [0.0, 5.0], [0.0, 5.3]]))
-    assert not map_agrees(wall, at, np.array([[1.0, 0.0]]), unseen_agrees=True)[0]
-    assert map_agrees(wall, at, np.array([[1.0, -1.0]]) / math.sqrt(2.0), unseen_agrees=True)[0]
+    assert not surfaces_agree(wall, at, np.array([[1.0, 0.0]]), unseen_agrees=True)[0]
+    assert surfaces_agree(wall, at, np.array([[1.0, -1.0]]) / math.sqrt(2.0), unseen_agrees=True)[0]
 
 
 coordinate = st.floats(-5.0, 5.0, allow_nan=False)
