@@ -34,8 +34,19 @@ class GatewayApp(FastAPI):
     """The gateway's FastAPI: its schema also lists the body models routes read by hand."""
 
     def openapi(self) -> dict[str, Any]:
-        """The generated schema plus those body models (`_openapi`), built once."""
-        return _openapi(self)
+        """The generated schema plus the body models routes read by hand (JSON or msgpack),
+        built once."""
+        if self.openapi_schema is None:
+            schema = get_openapi(
+                title=self.title, version=self.version, summary=self.summary, routes=self.routes
+            )
+            components = schema.setdefault("components", {}).setdefault("schemas", {})
+            for model in BODY_MODELS:
+                body = model.model_json_schema(ref_template="#/components/schemas/{model}")
+                components.update(body.pop("$defs", {}))
+                components[model.__name__] = body
+            self.openapi_schema = schema
+        return self.openapi_schema
 
 
 def create_app(
@@ -108,18 +119,3 @@ async def _invalid(_request: Request, exc: RequestValidationError) -> JSONRespon
         for e in exc.errors()
     ]
     return JSONResponse({"detail": detail}, status_code=422)
-
-
-def _openapi(app: FastAPI) -> dict[str, Any]:
-    """The generated schema plus the body models routes read by hand (JSON or msgpack)."""
-    if app.openapi_schema is None:
-        schema = get_openapi(
-            title=app.title, version=app.version, summary=app.summary, routes=app.routes
-        )
-        components = schema.setdefault("components", {}).setdefault("schemas", {})
-        for model in BODY_MODELS:
-            body = model.model_json_schema(ref_template="#/components/schemas/{model}")
-            components.update(body.pop("$defs", {}))
-            components[model.__name__] = body
-        app.openapi_schema = schema
-    return app.openapi_schema
