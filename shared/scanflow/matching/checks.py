@@ -16,7 +16,6 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial import cKDTree
 
 from scanflow.geometry import Pose2D, angle_diff, normalize_angle
 from scanflow.matching.api import MatchStatus
@@ -28,7 +27,7 @@ from scanflow.matching.correspondence import (
     target_lines,
     thin_dense_target,
 )
-from scanflow.matching.surface import surface_gap_m
+from scanflow.matching.surface import GAP_BASE_M, GAP_PER_RANGE
 
 # Ratio of smallest to largest scaled eigenvalue below which a direction counts as unconstrained.
 DEGENERATE_RATIO = 2e-3
@@ -74,16 +73,37 @@ def analyse_hessian(hessian: NDArray[np.float64], length_m: float) -> Conditioni
     h = np.asarray(hessian, dtype=np.float64)
     if h.shape != (3, 3) or not np.all(np.isfinite(h)):
         return Conditioning(np.zeros(3), (1.0, 0.0, 0.0), 0.0)
-    scale = np.array([1.0, 1.0, 1.0 / length_m])
-    hs = h * np.outer(scale, scale)
-    vals, vecs = np.linalg.eigh(0.5 * (hs + hs.T))
+    vals, weak = _scaled_eigen(np.ascontiguousarray(h), length_m)
     top = float(vals[-1])
     ratio = float(vals[0]) / top if top > 0.0 else 0.0
+    return Conditioning(vals, (float(weak[0]), float(weak[1]), float(weak[2])), ratio)
+
+
+@njit(cache=True)
+def scaled_eigh(h, length_m):  # type: ignore[no-untyped-def]
+    """(eigenvalues, eigenvectors, scale) of the symmetric part of H with theta scaled by
+    1 / `length_m` (scale: that diagonal), compiled for the kernels that analyse or solve
+    with it."""
+    scale = np.array([1.0, 1.0, 1.0 / length_m])
+    hs = np.empty((3, 3))
+    for a in range(3):
+        for b in range(3):
+            hs[a, b] = 0.5 * (h[a, b] + h[b, a]) * scale[a] * scale[b]
+    vals, vecs = np.linalg.eigh(hs)
+    return vals, vecs, scale
+
+
+@njit(cache=True)
+def _scaled_eigen(h, length_m):  # type: ignore[no-untyped-def]
+    """Eigenvalues of H with theta scaled by 1 / `length_m`, and its weakest direction back in
+    (x, y, theta), unit length, its largest component positive: one compiled call, as every
+    match asks this two or three times."""
+    vals, vecs, scale = scaled_eigh(h, length_m)
     weak = vecs[:, 0] * scale
     weak /= np.linalg.norm(weak)
     if weak[np.argmax(np.abs(weak))] < 0.0:
         weak = -weak
-    return Conditioning(vals, (float(weak[0]), float(weak[1]), float(weak[2])), ratio)
+    return vals, weak
 
 
 def line_hessian(points: NDArray[np.float64], normals: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -150,6 +170,10 @@ class MapSurfaces(Protocol):
         ...
 
 
+# Point-query distances `ScanSurfaces.hit_means_near` holds at once (16 bytes each).
+NEAR_BLOCK_PAIRS = 1 << 16
+
+
 @dataclass(frozen=True, eq=False)
 class ScanSurfaces:
     """A target given as points (a scan) as `MapSurfaces`: the target's own surfaces judge the
@@ -164,16 +188,24 @@ class ScanSurfaces:
         query = np.asarray(points_world, dtype=np.float64).reshape(-1, 2)
         if len(query) == 0 or len(self.points) == 0:
             return np.zeros((0, 2))
-        near = cKDTree(query).query_ball_point(self.points, 2.0 * radius_m, return_length=True)
-        return self.points[near > 0]
+        # Brute force, a block of queries at a time (memory bounded on a dense target): a few
+        # isolated pairs against a scan's hundreds of points, where a search tree's build cost
+        # more than the whole check.
+        near = np.zeros(len(self.points), dtype=np.bool_)
+        block = max(1, NEAR_BLOCK_PAIRS // len(self.points))
+        for start in range(0, len(query), block):
+            offsets = self.points[:, None, :] - query[None, start:start + block, :]
+            d2 = np.einsum("ijk,ijk->ij", offsets, offsets)
+            near |= np.any(d2 <= (2.0 * radius_m) ** 2, axis=1)
+        return self.points[near]
 
 
 def surfaces_of(target: object) -> MapSurfaces | None:
     """The surfaces of a match's target for `surface_conditioning`: a map's own, a point
     target's points (`ScanSurfaces`); None for anything else."""
-    if isinstance(target, MapSurfaces):
-        return target
-    return ScanSurfaces(target) if isinstance(target, np.ndarray) else None
+    if isinstance(target, np.ndarray):  # first: a runtime protocol check costs ~10 us
+        return ScanSurfaces(target)
+    return target if isinstance(target, MapSurfaces) else None
 
 
 # Neighbours of each matched point its normal is fitted to (see `surface_conditioning`).
@@ -188,10 +220,15 @@ PARTNER_AGREEMENT_RAD = math.radians(30.0)
 def angular_step_rad(points: NDArray[np.float64]) -> float:
     """The scan's angular increment: the median gap between the points' distinct bearings seen
     from the origin (0.0 for fewer than two)."""
+    return float(_angular_step(np.ascontiguousarray(points, dtype=np.float64)))
+
+
+@njit(cache=True)
+def _angular_step(points):  # type: ignore[no-untyped-def]
     bearings = np.sort(np.arctan2(points[:, 1], points[:, 0]))
     gaps = np.diff(bearings)
     gaps = gaps[gaps > 1e-9]
-    return float(np.median(gaps)) if len(gaps) else 0.0
+    return np.median(gaps) if len(gaps) else 0.0
 
 
 def unconfirmed_patches(
@@ -212,21 +249,27 @@ def unconfirmed_patches(
     such pairs 20 m off through an opening: leaving them out flagged 7 more of its 439 next-scan
     plicp pairs, all within 5 cm), so only the target, a map or a scan, judges it
     (`surfaces_agree`)."""
-    reach = np.maximum(NORMAL_RADIUS_M, surface_gap_m(np.hypot(grid.points[:, 0],
-                                                                grid.points[:, 1])))
-    sizes = np.count_nonzero(lines.neighbours >= 0, axis=1)  # -1 padded: each patch's points
-    return _unconfirmed(grid.arrays, lines.normals, lines.neighbours, sizes, lines.ok, reach,
-                        math.cos(PARTNER_AGREEMENT_RAD))
+    return _unconfirmed(grid.arrays, lines.normals, lines.neighbours, lines.ok, NORMAL_RADIUS_M,
+                        GAP_BASE_M, GAP_PER_RANGE, math.cos(PARTNER_AGREEMENT_RAD))
 
 
 @njit(cache=True)
-def _unconfirmed(grid, normals, neighbours, sizes, ok, reach, agreement):  # type: ignore[no-untyped-def]
+def _unconfirmed(grid, normals, neighbours, ok, radius_m, gap_base_m, gap_per_range, agreement):  # type: ignore[no-untyped-def]
+    points = grid[0]
     n = len(normals)
+    # A point's reach: the patch radius, or as far as one surface spans at its range
+    # (`surface_gap_m`), if that is farther.
+    reach = np.empty(n)
+    sizes = np.zeros(n, dtype=np.int64)  # each patch's points (`neighbours` is -1 padded)
+    for i in range(n):
+        reach[i] = max(radius_m, gap_base_m + gap_per_range * math.hypot(points[i, 0],
+                                                                          points[i, 1]))
+        while sizes[i] < neighbours.shape[1] and neighbours[i, sizes[i]] >= 0:
+            sizes[i] += 1
     disagrees = np.zeros(n, dtype=np.bool_)
     isolated = np.zeros(n, dtype=np.bool_)
     best_d2 = np.empty(3)
     best_j = np.empty(3, dtype=np.int64)
-    points = grid[0]
     for i in range(n):
         if not ok[i] or sizes[i] != 2:
             continue
@@ -419,7 +462,8 @@ def surface_conditioning(
                 surfaces, points[isolated] @ turn + [pose.x, pose.y],
                 lines.normals[isolated] @ turn, unseen_agrees=isinstance(surfaces, ScanSurfaces),
             )
-        hessian = line_hessian(points[ok] @ turn, lines.normals[ok] @ turn)
+        moved, normals = points[ok] @ turn, lines.normals[ok] @ turn  # in the target frame
+        hessian = line_hessian(moved, normals)
     # Rotation scaled by the spread of the points that carry the information (a glitch point
     # far off the target would otherwise make every rotation look unconstrained): the caller's
     # `length_m` when it judges in that metric too, so a weak direction keeps one metric.
@@ -432,8 +476,7 @@ def surface_conditioning(
         tilt = normal_tilt_std(points, lines, angular_step_rad(source) / math.sqrt(12.0))
         direction = np.asarray(cond.weak_direction) * np.array([1.0, 1.0, length_m])
         ratio = information_above_noise(
-            points[ok] @ turn, lines.normals[ok] @ turn, tilt[ok],
-            direction / np.linalg.norm(direction), length_m,
+            moved, normals, tilt[ok], direction / np.linalg.norm(direction), length_m
         ) / top
         weak, above = int(not ratio > DEGENERATE_RATIO), " above the normals' noise"
     if weak >= 2:

@@ -59,12 +59,9 @@ class GridIndex:
         """Bucket the points into cells of `cell_m` (larger if the grid would be too big)."""
         if not cell_m > 0.0:
             raise ValueError(f"cell_m must be > 0, got {cell_m}")
-        lo = points.min(axis=0)
-        size = points.max(axis=0) - lo
-        cell = max(cell_m, math.sqrt(float((size[0] + 2 * cell_m) * (size[1] + 2 * cell_m))
-                                     / MAX_GRID_CELLS))
-        order, starts, cols, rows = _bucket(points, lo[0] - cell, lo[1] - cell, cell)
-        return GridIndex(points, order, starts, lo[0] - cell, lo[1] - cell, cell, cols, rows)
+        if len(points) == 0:
+            raise ValueError("a grid needs at least one point")
+        return GridIndex(points, *_bucket(points, cell_m, MAX_GRID_CELLS))
 
     @property
     def arrays(self) -> GridArrays:
@@ -75,11 +72,18 @@ class GridIndex:
 
 @njit(cache=True)
 def _bucket(
-    points: NDArray[np.float64], ox: float, oy: float, cell: float
-) -> tuple[NDArray[np.int64], NDArray[np.int64], int, int]:
+    points: NDArray[np.float64], cell_m: float, max_cells: int
+) -> tuple[NDArray[np.int64], NDArray[np.int64], float, float, float, int, int]:
+    """The grid's layout in one compiled call (a match builds two or three): cells of `cell_m`,
+    larger when more than `max_cells` would cover the points, a cell of margin around them."""
     n = len(points)
-    cols = int((points[:, 0].max() - ox) / cell) + 2
-    rows = int((points[:, 1].max() - oy) / cell) + 2
+    lo_x, lo_y = points[:, 0].min(), points[:, 1].min()
+    hi_x, hi_y = points[:, 0].max(), points[:, 1].max()
+    cell = max(cell_m, math.sqrt((hi_x - lo_x + 2 * cell_m) * (hi_y - lo_y + 2 * cell_m)
+                                 / max_cells))
+    ox, oy = lo_x - cell, lo_y - cell
+    cols = int((hi_x - ox) / cell) + 2
+    rows = int((hi_y - oy) / cell) + 2
     keys = np.empty(n, dtype=np.int64)
     for i in range(n):
         keys[i] = int((points[i, 1] - oy) / cell) * cols + int((points[i, 0] - ox) / cell)
@@ -89,7 +93,7 @@ def _bucket(
         starts[keys[i] + 1] += 1
     for c in range(rows * cols):
         starts[c + 1] += starts[c]
-    return order, starts, cols, rows
+    return order, starts, ox, oy, cell, cols, rows
 
 
 @njit(cache=True)
@@ -182,6 +186,19 @@ def _depth_chunks(
     return labels
 
 
+@njit(cache=True)
+def _bearing_bins(points: NDArray[np.float64], width: float) -> NDArray[np.int64]:
+    """Each point's bearing bin, `width` rad wide, seen from the origin."""
+    return np.floor(np.arctan2(points[:, 1], points[:, 0]) / width).astype(np.int64)
+
+
+@njit(cache=True)
+def _any_shared(bins: NDArray[np.int64]) -> bool:
+    """Whether two of the bins are the same (the common answer, no, in one compiled call)."""
+    ordered = np.sort(bins)
+    return bool(np.any(ordered[1:] == ordered[:-1]))
+
+
 def thin_dense_target(
     points: NDArray[np.float64], below_deg: float = THIN_BELOW_DEG
 ) -> NDArray[np.float64]:
@@ -205,9 +222,8 @@ def thin_dense_target(
     if below_deg <= 0.0 or len(points) < 2:
         return points
     width = math.radians(below_deg)
-    bins = np.floor(np.arctan2(points[:, 1], points[:, 0]) / width).astype(np.int64)
-    sorted_bins = np.sort(bins)
-    if not np.any(sorted_bins[1:] == sorted_bins[:-1]):
+    bins = _bearing_bins(np.ascontiguousarray(points, dtype=np.float64), width)
+    if not _any_shared(bins):
         return points
     ranges = np.hypot(points[:, 0], points[:, 1])
     order = np.lexsort((ranges, bins))

@@ -55,10 +55,15 @@ def least_squares_covariance(
 
 
 
-def pose_parameter_jacobian(pose_xy: NDArray[np.float64]) -> NDArray[np.float64]:
+@njit(cache=True)
+def pose_parameter_jacobian(pose_xy):  # type: ignore[no-untyped-def]
     """d(x, y, theta) / d(left increment): maps a covariance of T <- Exp(d) T to the pose's own
-    parameters, the convention of every `MatchResult.covariance`."""
-    return np.array([[1.0, 0.0, -pose_xy[1]], [0.0, 1.0, pose_xy[0]], [0.0, 0.0, 1.0]])
+    parameters, the convention of every `MatchResult.covariance`. Compiled: `_sandwich` uses
+    it on every match."""
+    jacobian = np.eye(3)
+    jacobian[0, 2] = -pose_xy[1]
+    jacobian[1, 2] = pose_xy[0]
+    return jacobian
 
 
 def line_fit_covariance(
@@ -93,20 +98,27 @@ def line_fit_covariance(
         np.ascontiguousarray(spread_m2, dtype=np.float64),
         np.ascontiguousarray(target, dtype=np.float64),
     )
+    try:
+        cov, ok = _sandwich(hessian, noise_gain, np.ascontiguousarray(residuals, np.float64), s,
+                            np.ascontiguousarray(pose_xy, np.float64))
+    except np.linalg.LinAlgError:  # H singular, or not finite
+        return unknown_covariance()
+    return cov if ok else unknown_covariance()
+
+
+@njit(cache=True)
+def _sandwich(hessian, noise_gain, residuals, s, pose_xy):  # type: ignore[no-untyped-def]
+    """(cov, ok): Censi's sigma^2 A G A^T, A = d(params)/d(increment) H^-1, in one compiled
+    call; ok False when it is not a covariance (non-finite, a negative variance)."""
     # Robust (MAD) spread of the residuals normalised by their noise gain: a weighted mean of
     # r^2 would be biased low by the Cauchy weights, a plain one inflated by the outliers.
-    sigma2 = (MAD_TO_SIGMA * float(np.median(np.abs(residuals) / np.sqrt(s)))) ** 2
-    sigma2 *= m / (m - POSE_DOF)
-    try:
-        h_inv = np.linalg.inv(hessian)
-    except np.linalg.LinAlgError:
-        return unknown_covariance()
-    a = pose_parameter_jacobian(pose_xy) @ h_inv
+    m = len(residuals)
+    sigma2 = (MAD_TO_SIGMA * np.median(np.abs(residuals) / np.sqrt(s))) ** 2 * (m / (m - POSE_DOF))
+    a = pose_parameter_jacobian(pose_xy) @ np.linalg.inv(hessian)
     cov = sigma2 * (a @ noise_gain @ a.T)
     cov = 0.5 * (cov + cov.T)
-    if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) < 0.0):
-        return unknown_covariance()
-    return cov
+    ok = np.all(np.isfinite(cov)) and np.all(np.diag(cov) >= 0.0)
+    return cov, ok
 
 
 @njit(cache=True)

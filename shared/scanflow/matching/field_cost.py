@@ -27,6 +27,7 @@ from scanflow.matching.checks import (
     characteristic_length_m,
     guess_along,
     guess_position_along,
+    scaled_eigh,
     surface_conditioning,
     surfaces_of,
 )
@@ -267,12 +268,7 @@ def _solve_kernel(hessian, rhs, length_m, ratio):  # type: ignore[no-untyped-def
     step = np.zeros(3)
     if not np.all(np.isfinite(hessian)):
         return False, step
-    scale = np.array([1.0, 1.0, 1.0 / length_m])
-    hs = np.empty((3, 3))
-    for a in range(3):
-        for b in range(3):
-            hs[a, b] = 0.5 * (hessian[a, b] + hessian[b, a]) * scale[a] * scale[b]
-    vals, vecs = np.linalg.eigh(hs)
+    vals, vecs, scale = scaled_eigh(hessian, length_m)
     if vals[2] <= 0.0:
         return False, step
     kept = 0

@@ -12,7 +12,7 @@ from scanflow.frontend import default_settings, insert_scan, occupancy_params
 from scanflow.geometry import Pose2D, normalize_angle
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.occupancy import OccupancyGrid
-from scanflow.matching import MatchStatus, match
+from scanflow.matching import MatchStatus, checks, match
 from scanflow.matching.checks import (
     ScanSurfaces,
     analyse_hessian,
@@ -345,6 +345,19 @@ def test_a_scans_surface_points_are_its_points_within_twice_the_radius(
     assert np.count_nonzero(inside) <= len(near) <= np.count_nonzero(maybe)
     returned = {tuple(p) for p in near}
     assert {tuple(p) for p in points[inside]} <= returned <= {tuple(p) for p in points[maybe]}
+
+
+def test_a_dense_targets_surface_points_come_the_same_a_block_of_queries_at_a_time(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Queries asked a few at a time (the memory bound on a dense target) find what all at
+    once do."""
+    rng = np.random.default_rng(7)
+    points, asked = rng.uniform(-5.0, 5.0, (200, 2)), rng.uniform(-5.0, 5.0, (23, 2))
+    whole = ScanSurfaces(points).hit_means_near(asked, 0.3)
+    monkeypatch.setattr(checks, "NEAR_BLOCK_PAIRS", 1000)  # 5 queries per block
+    np.testing.assert_array_equal(ScanSurfaces(points).hit_means_near(asked, 0.3), whole)
+    assert 0 < len(whole) < len(points)
 
 
 def test_surfaces_of_a_target() -> None:
