@@ -195,7 +195,7 @@ class ScanSurfaces:
         block = max(1, NEAR_BLOCK_PAIRS // len(self.points))
         for start in range(0, len(query), block):
             offsets = self.points[:, None, :] - query[None, start:start + block, :]
-            d2 = np.einsum("ijk,ijk->ij", offsets, offsets)
+            d2 = offsets[..., 0] ** 2 + offsets[..., 1] ** 2
             near |= np.any(d2 <= (2.0 * radius_m) ** 2, axis=1)
         return self.points[near]
 

@@ -70,11 +70,12 @@ def match_lm(
                 pose, 1, MatchStatus.ILL_CONDITIONED, "H constrains fewer than two directions"
             )
         damping = np.maximum(np.diag(lin.hessian), 1e-9 * np.max(np.diag(lin.hessian)))
+        damping_matrix = np.diag(damping)  # fixed for the level: only mu changes
         mu, nu, rejected = tau, 2.0, False
         for it in range(1, max_iterations + 1):
             # Unconstrained directions (a corridor's axis) get no step, as in gn.
             step = solve_well_determined(
-                lin.hessian + mu * np.diag(damping), -lin.gradient, length_m
+                lin.hessian + mu * damping_matrix, -lin.gradient, length_m
             )
             small = step is None or converged_step(step, t_tol, r_tol)
             # A small step ends the level when LM is close to Gauss-Newton or cannot improve;
