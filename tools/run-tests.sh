@@ -4,9 +4,9 @@
 # Without pytest arguments (`make test`, CI) the container tests (-m docker: minutes spent
 # mostly waiting on image builds, Zenoh leases and health checks) and the tests marked
 # second_lane (long service runs, chosen so that the two processes end about together) run in a
-# second pytest process alongside the rest, on the otherwise idle second core; their report
-# follows the main one and either run failing fails the whole. With arguments: one pytest run
-# with exactly those.
+# second pytest process alongside the rest, on the otherwise idle second core (the container
+# tests first: tests/docker/conftest.py says why); their report follows the main one and
+# either run failing fails the whole. With arguments: one pytest run with exactly those.
 set -u
 py="${1:-python3}"
 bash "$(dirname "$0")/system-deps.sh"
