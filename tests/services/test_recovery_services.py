@@ -14,7 +14,9 @@ from services.ingest.sources import source_events
 
 from .test_pipeline_services import assert_same_grid, in_process
 
-pytestmark = [pytest.mark.integration, pytest.mark.slow]
+# Crashes and restarts of real services (about 65 s): `make test` runs them beside the rest
+# (tools/run-tests.sh), after the container tests.
+pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.second_lane]
 
 SCANS = 80
 SIM = {

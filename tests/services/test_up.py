@@ -22,7 +22,9 @@ from services.common.launch import free_port
 from services.common.zsession import open_session
 from services.ingest.sources import bus_message, source_events
 
-pytestmark = [pytest.mark.integration, pytest.mark.slow]
+# Six whole `scanflow up` runs (about 70 s): `make test` runs them beside the rest
+# (tools/run-tests.sh), after the container tests.
+pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.second_lane]
 
 
 def up_command(data, *extra: str) -> list[str]:
