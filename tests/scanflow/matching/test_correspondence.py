@@ -98,6 +98,11 @@ def test_grid_refuses_a_cell_size_that_is_not_positive(cell_m: float) -> None:
         GridIndex.build(np.zeros((3, 2)), cell_m)
 
 
+def test_grid_refuses_no_points() -> None:
+    with pytest.raises(ValueError, match="at least one point"):
+        GridIndex.build(np.zeros((0, 2)))
+
+
 @pytest.mark.parametrize(("extent_m", "grows"), [(5.0, False), (2000.0, True)])
 def test_grid_buckets_every_point_in_its_cell_and_grows_cells_on_a_wide_target(
     extent_m: float, grows: bool
