@@ -24,6 +24,7 @@ from scanflow.matching.correspondence import (
     TargetLines,
     grid_k_nearest,
     grid_nearest_all,
+    partner_reach_m,
     target_lines,
     thin_dense_target,
 )
@@ -257,13 +258,11 @@ def unconfirmed_patches(
 def _unconfirmed(grid, normals, neighbours, ok, radius_m, gap_base_m, gap_per_range, agreement):  # type: ignore[no-untyped-def]
     points = grid[0]
     n = len(normals)
-    # A point's reach: the patch radius, or as far as one surface spans at its range
-    # (`surface_gap_m`), if that is farther.
     reach = np.empty(n)
     sizes = np.zeros(n, dtype=np.int64)  # each patch's points (`neighbours` is -1 padded)
     for i in range(n):
-        reach[i] = max(radius_m, gap_base_m + gap_per_range * math.hypot(points[i, 0],
-                                                                          points[i, 1]))
+        reach[i] = partner_reach_m(points[i, 0], points[i, 1], radius_m, gap_base_m,
+                                   gap_per_range)
         while sizes[i] < neighbours.shape[1] and neighbours[i, sizes[i]] >= 0:
             sizes[i] += 1
     disagrees = np.zeros(n, dtype=np.bool_)

@@ -237,6 +237,16 @@ def thin_dense_target(
 
 
 @njit(cache=True)
+def partner_reach_m(
+    x: float, y: float, radius_m: float, gap_base_m: float, gap_per_range: float
+) -> float:
+    """How far a point at (x, y) reaches for a line partner: `radius_m`, or as far as one
+    surface spans at its range (`surface_gap_m`: gap_base_m + gap_per_range x range), if
+    that is farther."""
+    return max(radius_m, gap_base_m + gap_per_range * math.hypot(x, y))
+
+
+@njit(cache=True)
 def _lines(
     grid: GridArrays, k: int, radius_m: float, fit_radius_m: float, max_flatness: float,
     gap_base_m: float, gap_per_range: float,
@@ -256,8 +266,8 @@ def _lines(
         # sparse scans keep short lines and dense ones average noise), else the two-point line.
         count = grid_k_nearest(grid, points[i, 0], points[i, 1], fit_radius_m, best_d2, best_j)
         if count < 2:
-            reach = max(radius_m, gap_base_m + gap_per_range * math.hypot(points[i, 0],
-                                                                          points[i, 1]))
+            reach = partner_reach_m(points[i, 0], points[i, 1], radius_m, gap_base_m,
+                                    gap_per_range)
             count = min(grid_k_nearest(grid, points[i, 0], points[i, 1], reach, best_d2,
                                        best_j), 2)
         if count < 2:
