@@ -24,6 +24,9 @@ from scanflow.matching.surface import GAP_BASE_M, GAP_PER_RANGE
 MAD_TO_SIGMA = 1.4826
 # Grid cells grow beyond the requested size when the target would need more cells than this.
 MAX_GRID_CELLS = 1 << 16
+# A lookup skips cells farther than this factor x its bound (> 1: rounding never makes it skip
+# one that holds a point within the bound, only visit one more).
+CELL_SLACK = 1.0 + 1e-9
 
 
 @njit(cache=True)
@@ -114,15 +117,25 @@ def grid_k_nearest(
     cx = math.floor((qx - ox) / cell)
     cy = math.floor((qy - oy) / cell)
     r2 = radius_m * radius_m
-    # Square rings of cells outward from the query's cell: a point outside rings 0..r-1 is more
-    # than (r - 1) cells away, so the search stops once the k-th best is nearer than that.
+    # Square rings of cells outward from the query's cell: a point outside rings 0..r-1 lies
+    # beyond their block's nearest edge, so the search stops once the k-th best (or the
+    # radius) is nearer than that; within a ring, a cell whose nearest edge is beyond them
+    # cannot give a point. Both bounds carry CELL_SLACK against rounding.
     for ring in range(math.ceil(radius_m / cell) + 1):
-        if ring > 1 and best_d2[k - 1] <= ((ring - 1) * cell) ** 2:
-            break
+        bound = min(r2, best_d2[k - 1]) * CELL_SLACK
+        if ring > 0:
+            inner = min(qx - (ox + (cx - ring + 1) * cell), ox + (cx + ring) * cell - qx,
+                        qy - (oy + (cy - ring + 1) * cell), oy + (cy + ring) * cell - qy)
+            if bound <= inner * inner:
+                break
         for yy in range(max(cy - ring, 0), min(cy + ring + 1, rows)):
             edge_row = yy == cy - ring or yy == cy + ring
+            gap_y = max(oy + yy * cell - qy, qy - (oy + (yy + 1) * cell), 0.0)
             for xx in range(cx - ring, cx + ring + 1, 1 if edge_row else 2 * ring):
                 if xx < 0 or xx >= cols:
+                    continue
+                gap_x = max(ox + xx * cell - qx, qx - (ox + (xx + 1) * cell), 0.0)
+                if gap_x * gap_x + gap_y * gap_y > min(r2, best_d2[k - 1]) * CELL_SLACK:
                     continue
                 c = yy * cols + xx
                 for s in range(starts[c], starts[c + 1]):

@@ -152,6 +152,30 @@ def test_grid_k_nearest_matches_kdtree(seed: int, gate: float, k: int, cell: flo
 @settings(max_examples=40, deadline=None)
 @given(
     seed=st.integers(0, 2**31),
+    gate=st.sampled_from([0.125, 0.25, 0.375, 0.5, 1.0]),
+    k=st.sampled_from([1, 2, 16]),
+)
+def test_grid_k_nearest_on_cell_edges_equals_a_brute_force_search(
+    seed: int, gate: float, k: int
+) -> None:
+    """Points and queries on the cells' edges and corners, with duplicates, where a distance
+    equals the radius or the skip and stop bounds exactly: no cell skipped holds one of the k."""
+    rng = np.random.default_rng(seed)
+    pts = rng.integers(-8, 8, (300, 2)) * 0.125
+    queries = np.vstack((rng.integers(-10, 10, (40, 2)) * 0.125, pts[:10]))
+    grid = GridIndex.build(pts, 0.25)
+    best_d2, best_j = np.empty(k), np.empty(k, dtype=np.int64)
+    for q in queries:
+        found = grid_k_nearest(grid.arrays, q[0], q[1], gate, best_d2, best_j)
+        d2 = np.sort(np.sum((pts - q) ** 2, axis=1))  # brute force; the gate is inclusive
+        expected = d2[d2 <= gate * gate][:k]
+        assert found == len(expected)
+        np.testing.assert_array_equal(np.sum((pts[best_j[:found]] - q) ** 2, axis=1), expected)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    seed=st.integers(0, 2**31),
     scale=st.sampled_from([1.0, 1000.0]),
     cell=st.sampled_from([0.05, 0.25, 1.0]),
 )
