@@ -113,6 +113,29 @@ def test_the_chain_splits_the_silently_wrong_share() -> None:
                                                      frames, 3)
 
 
+def test_repeats_pass_over_the_pairs_that_often_and_keep_the_first_passes_pose() -> None:
+    """`repeats` passes over the pairs (after one untimed warm-up call); the times are each
+    pair's least, the pose the first pass's."""
+    poses = tour(7)
+    pairs = keyframe_pairs(frames_along(poses), 2, 1, None)
+    calls: list[int] = []
+
+    def drifting(src: np.ndarray, tgt: np.ndarray, guess: Pose2D) -> Pose2D:
+        calls.append(1)
+        return guess * Pose2D(0.01 * len(calls), 0.0, 0.0)
+
+    run = run_matcher("drifting", drifting, pairs, [p.guess for p in pairs], repeats=3)
+    assert len(calls) == 1 + 3 * len(pairs)
+    firsts = [2 + k for k in range(len(pairs))]  # call numbers of the first pass
+    for pose, pair, n in zip(run.poses, pairs, firsts, strict=True):
+        assert same(pose, pair.guess * Pose2D(0.01 * n, 0.0, 0.0))
+
+
+def test_repeats_must_be_positive() -> None:
+    out = run_bench("matching", "--data", str(LOG), "--repeats", "0")
+    assert out.returncode == 2 and "--repeats must be >= 1, got 0" in out.stderr
+
+
 def test_simulated_keyframes_carry_exact_truth_and_the_wheel_odometry() -> None:
     config = SimConfig(world="campus", duration_s=3.0, seed=2, beams=181, fov_deg=180.0,
                        range_max_m=80.0)
@@ -144,10 +167,10 @@ def test_start_step_must_be_positive() -> None:
 def test_bench_matching_json_with_closure_on_real_pairs() -> None:
     out = run_bench("matching", "--data", str(LOG), "--gap", "3", "--start-step", "1",
                     "--limit", "4", "--methods", "odometry", "plicp", "--peers",
-                    "--robust-pairs", "0", "--closure", "--json")
+                    "--robust-pairs", "0", "--closure", "--repeats", "2", "--json")
     assert out.returncode == 0, out.stderr
     report = json.loads(out.stdout)
-    assert report["pairs"] == 4 and report["start_step"] == 1
+    assert report["pairs"] == 4 and report["start_step"] == 1 and report["repeats"] == 2
     assert set(report["results"]) == {"odometry", "plicp"}
     assert set(report["closure"]) == {"plicp"}  # odometry's chain is its guess
     assert isinstance(report["peer_libraries_not_loaded"], dict)
