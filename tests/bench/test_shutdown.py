@@ -8,7 +8,9 @@ import pytest
 
 from .conftest import run_bench
 
-pytestmark = [pytest.mark.integration, pytest.mark.slow]
+# A whole system stopped after 200 scans (about 30 s): `make test` runs it beside the rest
+# (tools/run-tests.sh), with the container tests.
+pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.second_lane]
 
 
 def test_a_stop_right_after_the_robot_sent_keeps_every_scan() -> None:

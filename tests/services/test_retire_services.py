@@ -14,7 +14,8 @@ from scanflow.wire import OdometryMessage, ScanMessage
 from services.common.launch import free_port, wait_for_port
 from services.ingest.sources import source_events
 
-pytestmark = [pytest.mark.integration, pytest.mark.slow]
+# `make test` runs it beside the rest (tools/run-tests.sh), with the container tests: balance.
+pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.second_lane]
 
 ONE_ROBOT = {f"SCANFLOW_{name}_MAX_ROBOTS": "1"
              for name in ("DESKEW", "MATCHER", "MAPSERVER", "GATEWAY")}
