@@ -334,6 +334,9 @@ def surfaces_agree(
 @njit(cache=True)
 def _tilt_std(points, normals, centres, neighbours, ok, bearing_std_rad):  # type: ignore[no-untyped-def]
     std = np.zeros(len(points))
+    ranges = np.empty(len(points))  # once per point, not once per patch it is in (16)
+    for j in range(len(points)):
+        ranges[j] = max(math.hypot(points[j, 0], points[j, 1]), 1e-9)
     for i in range(len(points)):
         if not ok[i]:
             continue
@@ -345,7 +348,7 @@ def _tilt_std(points, normals, centres, neighbours, ok, bearing_std_rad):  # typ
                 break
             px, py = points[j, 0], points[j, 1]
             along = (px - centres[i, 0]) * ny - (py - centres[i, 1]) * nx
-            r = max(math.hypot(px, py), 1e-9)
+            r = ranges[j]
             facing = (px * nx + py * ny) / r  # cos(beam, normal)
             variance = (r * bearing_std_rad) ** 2 * (1.0 - facing * facing)
             extent += along * along
