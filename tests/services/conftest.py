@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import contextlib
 import os
-import signal
-import subprocess
 import sys
 import tempfile
 import threading
@@ -21,7 +18,7 @@ from scanflow.maps.export import load_npz
 from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.wire import ServiceStatsMessage, decode_any
 
-from services.common.launch import STOP_TIMEOUT_S, Launcher, free_port
+from services.common.launch import Launcher, free_port
 from services.common.zsession import open_session
 
 _DEFAULT_DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
@@ -121,28 +118,11 @@ def launcher(tmp_path: Path) -> Iterator[Launcher]:
     )
     launch.start("router")
     yield launch
-    codes = stop_after_the_test(launch)
+    # The test has checked what it checks: nothing waits for what a stop flushes downstream
+    # (`stop_all`, one at a time, added 3-4 s to every test here).
+    codes = launch.stop_together(last=("router",))
     for name in launch.processes:
         print(f"---- {name} (exit {codes.get(name)}) ----\n{launch.log_text(name)[-3000:]}")
-
-
-def stop_after_the_test(launch: Launcher) -> dict[str, int | None]:
-    """Stop what a test started, its exit codes as `Launcher.stop_all` gives them: SIGTERM to
-    every service at once, then the router. The test has checked what it checks by then, so
-    nothing waits for what a stop flushes downstream, for which `stop_all` (as `scanflow up`)
-    stops one at a time: each stop's drain, flush and exit (about 0.9 s) added up to 3-4 s of
-    every test here. One not gone within STOP_TIMEOUT_S is left to `stop_all` (SIGKILL)."""
-    stopping = [proc for name, proc in launch.processes.items()
-                if name != "router" and proc.poll() is None]
-    for proc in stopping:
-        proc.send_signal(signal.SIGTERM)
-    deadline = time.monotonic() + STOP_TIMEOUT_S
-    for proc in stopping:
-        with contextlib.suppress(subprocess.TimeoutExpired):
-            proc.wait(max(0.0, deadline - time.monotonic()))
-    codes = launch.stop_all()
-    return {name: 0 if proc in stopping and codes[name] == -signal.SIGTERM else codes[name]
-            for name, proc in launch.processes.items()}
 
 
 @pytest.fixture

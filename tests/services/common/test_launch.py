@@ -41,3 +41,32 @@ def test_stop_all_stops_the_named_services_first_in_order_then_the_rest_newest_f
     assert list(codes) == ["ingest", "deskew", "matcher", "mapserver", "router"]
     assert set(codes.values()) == {0}
     assert stopped.read_text().split() == ["ingest", "deskew", "matcher", "mapserver", "router"]
+
+
+def test_stop_together_signals_every_service_at_once_then_the_last_ones(tmp_path):
+    """Each service here exits only once all three have had their SIGTERM: one at a time they
+    would be killed at the timeout; together they all stop cleanly, the router after them."""
+    log = tmp_path / "stopped"
+    launcher = Launcher({}, tmp_path)
+    launcher.processes["router"] = _python(
+        f"signal.signal(signal.SIGTERM, lambda *_: (open({str(log)!r}, 'a')"
+        ".write('router\\n'), sys.exit(0)))"
+    )
+    for name in ("deskew", "matcher", "mapserver"):
+        launcher.processes[name] = _python(
+            "def stop(*_):\n"
+            f"    open({str(log)!r}, 'a').write('{name}\\n')\n"
+            f"    while len(open({str(log)!r}).read().split()) < 3:\n"
+            "        time.sleep(0.01)\n"
+            "    sys.exit(0)\n"
+            "signal.signal(signal.SIGTERM, stop)"
+        )
+    launcher.processes["fails"] = _python("signal.signal(signal.SIGTERM, lambda *_: sys.exit(3))")
+    launcher.processes["done"] = subprocess.Popen([sys.executable, "-c", "raise SystemExit(4)"])
+    launcher.processes["done"].wait()
+    codes = launcher.stop_together(last=("router",), timeout_s=20.0)
+    assert codes == {"deskew": 0, "matcher": 0, "mapserver": 0, "fails": 3, "done": 4,
+                     "router": 0}
+    assert list(codes)[-1] == "router"
+    assert sorted(log.read_text().split()[:3]) == ["deskew", "mapserver", "matcher"]
+    assert log.read_text().split()[3:] == ["router"]
