@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import re
 import time
 
 import numpy as np
@@ -413,24 +414,26 @@ def test_scans_waiting_in_the_matchers_inbox_at_sigterm_still_get_their_poses(la
     poses = bus.record(keys.pose("r"))
     stage = DeskewStage()
     frames = list(simulate(SimConfig(duration_s=30.0, seed=2)))
-    for frame in frames:
+    payloads = []
+    for frame in frames:  # all encoded first: the puts then outrun the matcher by far
         for sample in frame.odometry:
             stage.add_odometry(sample)
         result = stage.process(frame.scan)
         beams = len(frame.scan.ranges_m)
-        bus.put(keys.deskewed_scan("r"), DeskewedScanMessage(
+        payloads.append(DeskewedScanMessage(
             "r", frame.scan.seq, result.reference_stamp_s, result.points, result.source_used,
             False, beams, beams - len(result.points), result.no_return_points,
         ).encode())
-    stats = bus.wait_until(
-        lambda: (s := bus.stats("matcher")) and s.counters.get("received.scan") == len(frames)
-        and s, 30.0, "every scan in the matcher")
-    # The inbox (256) was full while the bus held the rest back: a backlog when the stop comes.
-    assert stats.gauges["inbox_depth"] > 0
+    for payload in payloads:
+        bus.put(keys.deskewed_scan("r"), payload)
+    # The stop comes while most of the 300 scans wait (the inbox holds 256, the bus the rest);
+    # a stats query here would be a race: a fast machine matches 256 scans in half a second.
     assert launcher.stop("matcher", timeout_s=180.0) == 0
     bus.wait_until(lambda: len(poses) == len(frames), 10.0, "every pose on the bus")
     assert sorted(p.seq for p in poses) == [f.scan.seq for f in frames]
-    assert "messages left in the inbox" in launcher.log_text("matcher")
+    drained = re.search(r"handled the (\d+) messages left in the inbox",
+                        launcher.log_text("matcher"))
+    assert drained is not None and int(drained[1]) > 0
 
 
 def test_a_retired_robot_is_dropped_whole_and_frees_its_place_and_its_match_key() -> None:
