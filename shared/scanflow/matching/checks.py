@@ -284,6 +284,95 @@ def _unconfirmed(grid, normals, neighbours, ok, radius_m, gap_base_m, gap_per_ra
     return disagrees, isolated
 
 
+# An isolated pair's flanking points (`flanked_pairs`): the nearest FLANK_CANDIDATES other
+# points within FLANK_REACHES of its reach (`partner_reach_m`), and how far off their line it
+# may lie: FLANK_NOISE_SIGMAS of its bearing noise (r x step / sqrt(12)), at least FLANK_MIN_M.
+FLANK_CANDIDATES = 8
+FLANK_REACHES = 3.0
+FLANK_NOISE_SIGMAS = 2.0
+FLANK_MIN_M = 0.03
+
+
+def flanked_pairs(
+    points: NDArray[np.float64], lines: TargetLines, isolated: NDArray[np.bool_],
+    others: GridIndex, bearing_std_rad: float,
+) -> NDArray[np.bool_]:
+    """The isolated pairs (`unconfirmed_patches`) that lie on a wider surface of the same scan
+    running across them: two of the nearest other points (`others`: every point of the scan,
+    matched or not), one on either side, make a line that passes through the pair's midpoint
+    within its bearing noise and runs more than PARTNER_AGREEMENT_RAD off the pair's line.
+
+    Why: a beam cast off its reported angle (bearing noise, a binned driver) can land at the
+    spot of a wall its neighbour hit, seen at a grazing angle from afar; the two come out a
+    step apart across the beam, a pair facing the sensor whose normal lies along the wall, on
+    the line through the wall's other, sparse points. On the simulated corridor (0.3 deg bearing
+    noise) one such pair alone held the corridor's axis: gn ended 0.1-0.8 m along it, ok
+    (BENCHMARKS.md, "Scan matching", thirty-fifth session). A small object facing the sensor
+    (a tree trunk) sits in front of what is behind it, off that line."""
+    return _flanked(points, lines.neighbours, isolated, others.arrays, bearing_std_rad,
+                    FLANK_CANDIDATES, FLANK_REACHES, FLANK_NOISE_SIGMAS, FLANK_MIN_M,
+                    math.cos(PARTNER_AGREEMENT_RAD))
+
+
+@njit(cache=True)
+def _flanked(  # type: ignore[no-untyped-def]
+    points, neighbours, isolated, others, bearing_std_rad, candidates, reaches, sigmas, min_m,
+    across,
+):
+    out = np.zeros(len(points), dtype=np.bool_)
+    best_d2 = np.empty(candidates + 2)  # the pair's own two points are among the nearest
+    best_j = np.empty(candidates + 2, dtype=np.int64)
+    near = np.empty(candidates + 2, dtype=np.int64)
+    flank = others[0]
+    for i in range(len(points)):
+        j = neighbours[i, 1]
+        if not isolated[i] or j < 0 or out[i]:
+            continue
+        cx = 0.5 * (points[i, 0] + points[j, 0])
+        cy = 0.5 * (points[i, 1] + points[j, 1])
+        ux = points[j, 0] - points[i, 0]
+        uy = points[j, 1] - points[i, 1]
+        length = math.hypot(ux, uy)
+        if length <= 0.0:
+            continue
+        ux /= length
+        uy /= length
+        r = math.hypot(cx, cy)
+        reach = partner_reach_m(cx, cy, NORMAL_RADIUS_M, GAP_BASE_M, GAP_PER_RANGE)
+        found = grid_k_nearest(others, cx, cy, reaches * reach, best_d2, best_j)
+        count = 0
+        for m in range(found):  # not the pair's own points
+            q = best_j[m]
+            if ((flank[q, 0] == points[i, 0] and flank[q, 1] == points[i, 1])
+                    or (flank[q, 0] == points[j, 0] and flank[q, 1] == points[j, 1])):
+                continue
+            if count < candidates:
+                near[count] = q
+                count += 1
+        tol = max(min_m, sigmas * r * bearing_std_rad)
+        hit = False
+        for a in range(count):
+            for b in range(a + 1, count):
+                ax, ay = flank[near[a], 0], flank[near[a], 1]
+                vx, vy = flank[near[b], 0] - ax, flank[near[b], 1] - ay
+                span = math.hypot(vx, vy)
+                if span <= 0.0:
+                    continue
+                vx /= span
+                vy /= span
+                t = ((cx - ax) * vx + (cy - ay) * vy) / span
+                off = abs((cx - ax) * vy - (cy - ay) * vx)
+                if 0.0 < t < 1.0 and off <= tol and abs(vx * ux + vy * uy) < across:
+                    hit = True
+                    break
+            if hit:
+                break
+        if hit:
+            out[i] = True
+            out[j] = True
+    return out & isolated
+
+
 def faces_the_origin(lines: TargetLines) -> NDArray[np.bool_]:
     """Lines whose normal lies within PARTNER_AGREEMENT_RAD of the beam to their centre: what
     two beams on a small object (a tree trunk) or a binned lidar's two beams at one spot make,
@@ -431,9 +520,10 @@ def surface_conditioning(
     half a step off the angle the scan gives), where the corridor's ratio rose from 2e-4 to
     2e-3..6e-3 and gn slid 5-15 m along the simulated corridor (BENCHMARKS.md, "Front end"):
     - two-point lines that their neighbours contradict do not count (`unconfirmed_patches`),
-      nor isolated ones that the target's surfaces (`surfaces`: `surfaces_of` the target)
-      do not confirm: a map's must run along them, a scan's must not run across them
-      (`surfaces_agree`); without `surfaces` isolated ones count;
+      nor isolated ones on the line of a wider surface of the scan that runs across them
+      (`flanked_pairs`), nor isolated ones that the target's surfaces (`surfaces`:
+      `surfaces_of` the target) do not confirm: a map's must run along them, a scan's must
+      not run across them (`surfaces_agree`); without `surfaces` the others count;
     - the weakest direction counts as constrained only by the information left once each
       normal's bearing noise is taken off (`information_above_noise`, `normal_tilt_std`): a
       bearing known to within the scan's angular step (std step / sqrt(12)). The scan cannot
@@ -451,11 +541,18 @@ def surface_conditioning(
     c, s = math.cos(pose.theta), math.sin(pose.theta)
     turn = np.array([[c, s], [-s, c]])  # row vectors times R^T: into the target frame
     lines, ok = None, np.zeros(len(points), dtype=np.bool_)
+    bearing_std_rad = angular_step_rad(source) / math.sqrt(12.0)  # a bearing known to a step
     if len(points) >= 2:
         grid = GridIndex.build(points)
         lines = target_lines(grid, k=NORMAL_NEIGHBOURS, radius_m=NORMAL_RADIUS_M,
                              fit_radius_m=NORMAL_RADIUS_M, seen_from_origin=True)
         disagrees, isolated = unconfirmed_patches(grid, lines)
+        # Every point of the scan flanks, matched or not: a far wall's next beam may lie
+        # beyond the target's view (that grid built only when there is a pair to flank).
+        whole = matched.all() or not np.any(isolated)
+        others = grid if whole else GridIndex.build(thin_dense_target(source))
+        fake = flanked_pairs(points, lines, isolated, others, bearing_std_rad)
+        disagrees, isolated = disagrees | fake, isolated & ~fake
         ok = lines.ok & ~disagrees
         if surfaces is not None and np.any(isolated):
             # A map has seen around its surfaces; one scan's view is sparse (a far tree trunk:
@@ -475,7 +572,7 @@ def surface_conditioning(
     weak = int(np.count_nonzero(cond.eigenvalues <= DEGENERATE_RATIO * top)) if top > 0 else 3
     ratio, above = cond.ratio, ""
     if weak == 0 and lines is not None:
-        tilt = normal_tilt_std(points, lines, angular_step_rad(source) / math.sqrt(12.0))
+        tilt = normal_tilt_std(points, lines, bearing_std_rad)
         direction = np.asarray(cond.weak_direction) * np.array([1.0, 1.0, length_m])
         ratio = information_above_noise(
             moved, normals, tilt[ok], direction / np.linalg.norm(direction), length_m
