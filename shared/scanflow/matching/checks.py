@@ -350,27 +350,30 @@ def _flanked(  # type: ignore[no-untyped-def]
                 near[count] = q
                 count += 1
         tol = max(min_m, sigmas * r * bearing_std_rad)
-        hit = False
-        for a in range(count):
-            for b in range(a + 1, count):
-                ax, ay = flank[near[a], 0], flank[near[a], 1]
-                vx, vy = flank[near[b], 0] - ax, flank[near[b], 1] - ay
-                span = math.hypot(vx, vy)
-                if span <= 0.0:
-                    continue
-                vx /= span
-                vy /= span
-                t = ((cx - ax) * vx + (cy - ay) * vy) / span
-                off = abs((cx - ax) * vy - (cy - ay) * vx)
-                if 0.0 < t < 1.0 and off <= tol and abs(vx * ux + vy * uy) < across:
-                    hit = True
-                    break
-            if hit:
-                break
-        if hit:
+        if _line_across(flank, near[:count], cx, cy, ux, uy, tol, across):
             out[i] = True
             out[j] = True
     return out & isolated
+
+
+@njit(cache=True)
+def _line_across(flank, near, cx, cy, ux, uy, tol, across):  # type: ignore[no-untyped-def]
+    # Whether two of the points flank[near] lie on either side of (cx, cy) on a line passing
+    # within tol of it and running across the unit direction (ux, uy) (|cos| < across).
+    for a in range(len(near)):
+        ax, ay = flank[near[a], 0], flank[near[a], 1]
+        for b in range(a + 1, len(near)):
+            vx, vy = flank[near[b], 0] - ax, flank[near[b], 1] - ay
+            span = math.hypot(vx, vy)
+            if span <= 0.0:
+                continue
+            vx /= span
+            vy /= span
+            t = ((cx - ax) * vx + (cy - ay) * vy) / span
+            off = abs((cx - ax) * vy - (cy - ay) * vx)
+            if 0.0 < t < 1.0 and off <= tol and abs(vx * ux + vy * uy) < across:
+                return True
+    return False
 
 
 def faces_the_origin(lines: TargetLines) -> NDArray[np.bool_]:
