@@ -1,6 +1,7 @@
 """Loop closure and pose-graph optimisation on a real log, against the front end alone.
 
 `python -m bench.slam --data PATH [--limit N] [--method M] [--json]`
+`python -m bench.slam --data PATH --starts N [--limit N] [--method M] [--json]`
 `python -m bench.slam --sim [--world loop] [--duration 240] [--odom-scale-error 0.03] [--method M]
 [--json]`
 
@@ -25,6 +26,9 @@ carry no reference noise. With `--prior-s S` both passes run on a prior map, the
 of an earlier run over the tour's first S seconds from the same start: localising on it and
 extending it (the front end alone), against loop closure on it. `abs_mean_m` / `abs_max_m` are
 then the errors without alignment, where the prior map puts the robot.
+`--starts N` runs both passes on the log from each of its first N keyframes instead and reports
+every ATE: one run's figure on a real log swings with where it starts (a fast turn, a
+corridor decides it), so a change is judged by the spread.
 """
 
 from __future__ import annotations
@@ -42,7 +46,7 @@ from numpy.typing import NDArray
 from scanflow.config import BackendSettings, FrontendSettings
 from scanflow.frontend import default_settings
 from scanflow.geometry import Pose2D
-from scanflow.io.carmen import load_keyframes
+from scanflow.io.carmen import Keyframe, load_keyframes
 from scanflow.maps.export import save_png
 from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.pipeline import Pipeline
@@ -185,16 +189,43 @@ def compare(
     return report
 
 
+def log_feed(frames: list[Keyframe]) -> tuple[Feed, NDArray[np.float64]]:
+    """The keyframes' scans with their wheel odometry, and their corrected poses."""
+    feed = Feed([kf.scan for kf in frames], [kf.odom_pose for kf in frames],
+                [[] for _ in frames])
+    return feed, poses_array([kf.true_pose for kf in frames])
+
+
 def run_log(path: Path, limit: int | None, settings: FrontendSettings | None = None) -> dict:
     """Both passes on the log's keyframes (the first `limit`) against its corrected poses, and
     the odometry's accuracy."""
     frames = load_keyframes(path)[:limit] if limit else load_keyframes(path)
-    feed = Feed([kf.scan for kf in frames], [kf.odom_pose for kf in frames],
-                [[] for _ in frames])
-    truth = poses_array([kf.true_pose for kf in frames])
+    feed, truth = log_feed(frames)
     report = {"log": path.name,
               **compare(path.name.split(".")[0], feed, truth, settings=settings)}
     report["odometry"] = accuracy(poses_array([kf.odom_pose for kf in frames]), truth)
+    return report
+
+
+def run_log_starts(
+    path: Path, limit: int | None, starts: int, settings: FrontendSettings | None = None
+) -> dict:
+    """Both passes on the log from each of its first `starts` keyframes: every ATE, and the
+    median and largest of each pass's."""
+    settings = settings or default_settings()
+    frames = load_keyframes(path)[:limit] if limit else load_keyframes(path)
+    report: dict[str, object] = {"log": path.name, "method": settings.method}
+    for label, backend in (
+        ("frontend", None),
+        ("loop_closure", BackendSettings(loop_closure=True)),  # SCANFLOW_BACKEND_* apply
+    ):
+        ates = []
+        for k in range(starts):
+            feed, truth = log_feed(frames[k:])
+            result = run_pass(feed, settings, backend, f"{label} from {k}")
+            ates.append(ate_rmse_m(result.poses, truth))
+        report[label] = {"ate_by_start_m": ates, "median_ate_m": float(np.median(ates)),
+                         "max_ate_m": float(np.max(ates))}
     return report
 
 
@@ -242,12 +273,16 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--prior-s", type=float, default=0.0,
                         help="sim: both passes on the map of an earlier run's first S seconds")
     parser.add_argument("--method", default=None, help="the front end's scan-to-map method")
+    parser.add_argument("--starts", type=int, default=0,
+                        help="log: both passes from each of the first N keyframes instead")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
     settings = settings_for(args.method)
     if args.sim:
         report = run_sim(args.world, args.duration, args.odom_scale_error, args.odom_yaw_noise,
                          args.prior_s, settings)
+    elif args.data is not None and args.starts > 0:
+        report = run_log_starts(args.data, args.limit, args.starts, settings)
     elif args.data is not None:
         report = run_log(args.data, args.limit, settings)
     else:

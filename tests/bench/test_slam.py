@@ -4,11 +4,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 from scanflow.frontend import default_settings
 
 from bench.data import corrected_log
-from bench.slam import main, run_log, run_sim
+from bench.slam import main, run_log, run_log_starts, run_sim
 
 INTEL = corrected_log("intel")
 
@@ -71,6 +72,18 @@ def test_log_mode_scores_against_the_corrected_poses() -> None:
     assert 0 < report["loop_closure"]["keyframes"] <= 60
     assert report["loop_closure"]["ate_rmse_m"] < report["odometry"]["ate_rmse_m"]
 
+
+
+@pytest.mark.skipif(not INTEL.exists(), reason="the shared intel log is not beside the checkout")
+def test_log_starts_run_both_passes_from_each_start() -> None:
+    """Each start runs the log's rest: its own ATE per pass, and their median and largest."""
+    report = run_log_starts(INTEL, 40, 2)
+    for label in ("frontend", "loop_closure"):
+        row = report[label]
+        ates = row["ate_by_start_m"]
+        assert len(ates) == 2 and len(set(ates)) == 2 and all(0.0 <= a < 1.0 for a in ates)
+        assert row["median_ate_m"] == pytest.approx(np.median(ates))
+        assert row["max_ate_m"] == max(ates)
 
 def test_main_needs_a_source(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit):
