@@ -147,6 +147,12 @@ def closure_agreement(
     return {"closures": len(mapper.closures), "disagreeing": wrong}
 
 
+def passes() -> tuple[tuple[str, BackendSettings | None], ...]:
+    """The two passes: the front end alone, then with loop closure (SCANFLOW_BACKEND_* apply,
+    read now)."""
+    return ("frontend", None), ("loop_closure", BackendSettings(loop_closure=True))
+
+
 def compare(
     name: str, feed: Feed, truth: NDArray[np.float64], initial_pose: Pose2D | None = None,
     prior: OccupancyGrid | None = None, settings: FrontendSettings | None = None,
@@ -156,10 +162,7 @@ def compare(
     settings = settings or default_settings()
     OUT_DIR.mkdir(exist_ok=True)
     report: dict[str, object] = {"scans": len(feed.scans), "method": settings.method}
-    for label, backend in (
-        ("frontend", None),
-        ("loop_closure", BackendSettings(loop_closure=True)),  # SCANFLOW_BACKEND_* apply
-    ):
+    for label, backend in passes():
         result = run_pass(feed, settings, backend, label, initial_pose, prior)
         pipeline, poses, wall_s = result.pipeline, result.poses, result.wall_s
         grid = (pipeline.frontend.map if pipeline.mapper is None
@@ -214,11 +217,10 @@ def run_log_starts(
     median and largest of each pass's."""
     settings = settings or default_settings()
     frames = load_keyframes(path)[:limit] if limit else load_keyframes(path)
+    if not 0 < starts < len(frames):
+        raise ValueError(f"starts must be in 1..{len(frames) - 1} for {path.name}, got {starts}")
     report: dict[str, object] = {"log": path.name, "method": settings.method}
-    for label, backend in (
-        ("frontend", None),
-        ("loop_closure", BackendSettings(loop_closure=True)),  # SCANFLOW_BACKEND_* apply
-    ):
+    for label, backend in passes():
         ates = []
         for k in range(starts):
             feed, truth = log_feed(frames[k:])
@@ -281,8 +283,11 @@ def main(argv: list[str] | None = None) -> None:
     if args.sim:
         report = run_sim(args.world, args.duration, args.odom_scale_error, args.odom_yaw_noise,
                          args.prior_s, settings)
-    elif args.data is not None and args.starts > 0:
-        report = run_log_starts(args.data, args.limit, args.starts, settings)
+    elif args.data is not None and args.starts:
+        try:
+            report = run_log_starts(args.data, args.limit, args.starts, settings)
+        except ValueError as exc:
+            parser.error(str(exc))
     elif args.data is not None:
         report = run_log(args.data, args.limit, settings)
     else:

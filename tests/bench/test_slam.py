@@ -84,6 +84,10 @@ def test_log_starts_run_both_passes_from_each_start() -> None:
         assert len(ates) == 2 and len(set(ates)) == 2 and all(0.0 <= a < 1.0 for a in ates)
         assert row["median_ate_m"] == pytest.approx(np.median(ates))
         assert row["max_ate_m"] == max(ates)
+    with pytest.raises(ValueError, match=r"starts must be in 1\.\.39"):
+        run_log_starts(INTEL, 40, 40)
+    with pytest.raises(ValueError, match="starts"):
+        run_log_starts(INTEL, 40, -1)
 
 def test_main_needs_a_source(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit):
