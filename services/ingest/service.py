@@ -60,6 +60,7 @@ class Ingest:
         events = source_events(
             s.log, s.robot_id, s.sim_duration_s, s.sim_seed, s.limit, s.mount_pose(),
             sim_world=s.sim_world, sim_odom_scale_error=s.sim_odom_scale_error,
+            sim_odom_yaw_noise=s.sim_odom_yaw_noise,
             on_error=self._on_skipped,
         )
         try:

@@ -30,16 +30,16 @@ def bus_message(event: Event, prefix: str = keys.DEFAULT_PREFIX) -> tuple[str, b
 
 def sim_events(
     duration_s: float, seed: int, robot_id: str, mount: Pose2D = IDENTITY,
-    world: str = "rooms", odom_scale_error: float = 0.01,
+    world: str = "rooms", odom_scale_error: float = 0.01, odom_yaw_noise: float = 0.002,
 ) -> Iterator[Event]:
     """The built-in simulator (its lidar at `mount` on the robot, in `world`, with wheel
-    odometry off by `odom_scale_error`): each frame's odometry samples, then its (distorted)
-    scan."""
+    odometry off by `odom_scale_error` and `odom_yaw_noise` in heading): each frame's
+    odometry samples, then its (distorted) scan."""
     from scanflow.sim import SimConfig, simulate
 
     config = SimConfig(
         world=world, duration_s=duration_s, seed=seed, robot_id=robot_id, mount=mount,
-        odom_scale_error=odom_scale_error,
+        odom_scale_error=odom_scale_error, odom_yaw_noise=odom_yaw_noise,
     )
     for frame in simulate(config):
         yield from frame.odometry
@@ -100,6 +100,7 @@ def source_events(
     *,
     sim_world: str = "rooms",
     sim_odom_scale_error: float = 0.01,
+    sim_odom_yaw_noise: float = 0.002,
     on_error: Callable[[str], None] | None = None,
 ) -> Iterator[Event]:
     """The numbered, limited stream of one replay of the configured source; `mount` (when
@@ -108,7 +109,7 @@ def source_events(
     if log is None:
         raw = sim_events(
             sim_duration_s, sim_seed, robot_id, mount or IDENTITY, sim_world,
-            sim_odom_scale_error,
+            sim_odom_scale_error, sim_odom_yaw_noise,
         )
     else:
         raw = log_events(log, robot_id, on_error)

@@ -236,6 +236,10 @@ class IngestSettings(ServiceSettings):
     sim_odom_scale_error: float = Field(
         0.01, ge=0.0, lt=0.5, description="the simulator's wheel odometry scale error"
     )
+    sim_odom_yaw_noise: float = Field(
+        0.002, ge=0.0, lt=0.5, description="the simulator's wheel odometry heading drift: a "
+        "yaw-rate bias random-walking by this many rad/s per sqrt(s)"
+    )
     mount: Annotated[list[float], NoDecode] = Field(
         default_factory=list,
         description="the lidar's pose on the robot, 'x_m,y_m,yaw_deg' (T_base_laser): set on "

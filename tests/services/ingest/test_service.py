@@ -105,3 +105,28 @@ def test_odometry_no_message_can_carry_is_skipped_and_named() -> None:
         ingest.shell.close(flush_s=0.0)
     assert [type(m) for m in sent] == [OdometryMessage, ScanMessage]
     assert ingest.shell.counters.get("source.skipped") == 1
+
+
+def test_the_simulators_odometry_settings_reach_its_source() -> None:
+    """SCANFLOW_INGEST_SIM_ODOM_YAW_NOISE (and _SCALE_ERROR) reach the simulated source: the
+    same run published with its odometry's heading drifting ends elsewhere in heading."""
+    from scanflow.config import IngestSettings, ZenohSettings
+    from scanflow.geometry import angle_diff
+    from scanflow.wire import OdometryMessage, decode_any
+
+    from services.ingest.service import Ingest
+
+    def last_heading(yaw_noise: float) -> float:
+        settings = IngestSettings(window=0, wait_subscribers_s=0.0, sim_duration_s=3.0,
+                                  sim_seed=1, sim_odom_scale_error=0.0,
+                                  sim_odom_yaw_noise=yaw_noise)
+        ingest = Ingest(settings, ZenohSettings(mode="peer", connect=[]))
+        sent: list = []
+        ingest.shell.put = lambda key, payload: sent.append(decode_any(payload))
+        try:
+            assert ingest.replay_once() == 30
+        finally:
+            ingest.shell.close(flush_s=0.0)
+        return [m for m in sent if isinstance(m, OdometryMessage)][-1].odom.pose.theta
+
+    assert abs(angle_diff(last_heading(0.0), last_heading(0.05))) > 1e-3

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from scanflow.geometry import Pose2D
+from scanflow.geometry import Pose2D, angle_diff
 from scanflow.scan import LaserScan, Odometry
 
 from services.ingest.sources import source_events
@@ -38,3 +38,20 @@ def test_the_simulator_mounts_its_lidar_where_declared() -> None:
     assert {s.mount for s in scans} == {MOUNT}
     # The lidar sits elsewhere, so it measures other ranges (not just another label).
     assert scans[0].ranges_m.tobytes() != plain[0].ranges_m.tobytes()
+
+
+def test_the_simulators_odometry_drifts_in_heading_as_set() -> None:
+    """sim_odom_yaw_noise reaches the simulator: the same run with its wheel odometry's heading
+    drifting; the scans are the same."""
+    def run(yaw_noise: float) -> list:
+        return list(source_events(None, "r", 3.0, 1, None, sim_odom_scale_error=0.0,
+                                  sim_odom_yaw_noise=yaw_noise))
+
+    quiet, drifting = run(0.0), run(0.05)
+    assert [type(e) for e in quiet] == [type(e) for e in drifting]
+    for a, b in zip(scans_of(quiet), scans_of(drifting), strict=True):
+        assert a.ranges_m.tobytes() == b.ranges_m.tobytes()
+    odom_quiet = [e.pose for e in quiet if isinstance(e, Odometry)]
+    odom_drifting = [e.pose for e in drifting if isinstance(e, Odometry)]
+    assert odom_quiet[0] == odom_drifting[0]
+    assert abs(angle_diff(odom_quiet[-1].theta, odom_drifting[-1].theta)) > math.radians(0.1)
