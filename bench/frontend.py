@@ -43,13 +43,14 @@ from numpy.typing import NDArray
 from scanflow.config import FrontendSettings
 from scanflow.frontend import default_settings
 from scanflow.geometry import IDENTITY, Pose2D, normalize_angles
-from scanflow.io.carmen import Keyframe, load_keyframes
+from scanflow.io.carmen import Keyframe
 from scanflow.maps.export import save_png
 from scanflow.matching import match
 from scanflow.pipeline import Pipeline
 from scanflow.sim import WORLDS, SimConfig, simulate
 from tqdm import tqdm
 
+from bench.data import log_keyframes
 from bench.lidar import Lidar, add_lidar_option, lidar_report, sim_lidar_fields
 
 OUT_DIR = Path(__file__).resolve().parent / "out"
@@ -159,7 +160,7 @@ def peak_rss_mb() -> float:
 def run_log(path: Path, settings: FrontendSettings, limit: int | None, replays: int) -> dict:
     """The log through the pipeline: accuracy against the corrected poses (also odometry's and
     chained ICP's), throughput, stage shares, the map and its PNG; replays on that map."""
-    frames = load_keyframes(path)[:limit] if limit else load_keyframes(path)
+    frames = log_keyframes(path, limit)
     truth = poses_array([kf.true_pose for kf in frames])
     odometry = poses_array([kf.odom_pose for kf in frames])
     pipeline = Pipeline(settings)
@@ -206,7 +207,7 @@ def run_starts(path: Path, settings: FrontendSettings, limit: int | None, starts
     """The log from each of its first `starts` keyframes: the ATE of every run. A log whose
     figure swings with where it starts is decided by a few scans (a fast turn, a corridor),
     not by the method's precision; the spread says how much one run's ATE can be trusted."""
-    frames = load_keyframes(path)[:limit] if limit else load_keyframes(path)
+    frames = log_keyframes(path, limit)
     ates, rechecked = [], []
     for k in range(starts):
         truth = poses_array([kf.true_pose for kf in frames[k:]])

@@ -22,13 +22,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scanflow.io.carmen import load_keyframes
 from scanflow.maps.export import grid_from_npz_bytes
 from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.pipeline import Pipeline
 from scanflow.wire import MapInsertMessage, MapStateMessage
 
-from bench.data import corrected_log
+from bench.data import corrected_log, log_keyframes
 from services.mapserver.robot import RobotMap
 from services.matcher.recent import RecentInserts, map_state
 
@@ -38,7 +37,7 @@ ROBOT = "robot"
 def run(path: Path, limit: int | None) -> dict[str, Any]:
     """The log's inserts taken as one MapStateMessage and resent one by one: bytes and times
     (ms) of each; asserts both end with the front end's map."""
-    frames = load_keyframes(path)[:limit] if limit else load_keyframes(path)
+    frames = log_keyframes(path, limit)
     pipeline = Pipeline()
     recent = RecentInserts(0)
     inserts: list[MapInsertMessage] = []

@@ -46,7 +46,7 @@ from numpy.typing import NDArray
 from scanflow.config import BackendSettings, FrontendSettings
 from scanflow.frontend import default_settings
 from scanflow.geometry import Pose2D
-from scanflow.io.carmen import Keyframe, load_keyframes
+from scanflow.io.carmen import Keyframe
 from scanflow.maps.export import save_png
 from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.pipeline import Pipeline
@@ -54,6 +54,7 @@ from scanflow.scan import LaserScan, Odometry
 from scanflow.sim import SimConfig, simulate
 from tqdm import tqdm
 
+from bench.data import log_keyframes
 from bench.frontend import (
     OUT_DIR,
     SIM_MAP_FROM_WORLD,
@@ -202,7 +203,7 @@ def log_feed(frames: list[Keyframe]) -> tuple[Feed, NDArray[np.float64]]:
 def run_log(path: Path, limit: int | None, settings: FrontendSettings | None = None) -> dict:
     """Both passes on the log's keyframes (the first `limit`) against its corrected poses, and
     the odometry's accuracy."""
-    frames = load_keyframes(path)[:limit] if limit else load_keyframes(path)
+    frames = log_keyframes(path, limit)
     feed, truth = log_feed(frames)
     report = {"log": path.name,
               **compare(path.name.split(".")[0], feed, truth, settings=settings)}
@@ -216,14 +217,14 @@ def run_log_starts(
     """Both passes on the log from each of its first `starts` keyframes: every ATE, and the
     median and largest of each pass's."""
     settings = settings or default_settings()
-    frames = load_keyframes(path)[:limit] if limit else load_keyframes(path)
+    frames = log_keyframes(path, limit)
     if not 0 < starts < len(frames):
         raise ValueError(f"starts must be in 1..{len(frames) - 1} for {path.name}, got {starts}")
     report: dict[str, object] = {"log": path.name, "method": settings.method}
+    runs = [log_feed(frames[k:]) for k in range(starts)]
     for label, backend in passes():
         ates = []
-        for k in range(starts):
-            feed, truth = log_feed(frames[k:])
+        for k, (feed, truth) in enumerate(runs):
             result = run_pass(feed, settings, backend, f"{label} from {k}")
             ates.append(ate_rmse_m(result.poses, truth))
         report[label] = {"ate_by_start_m": ates, "median_ate_m": float(np.median(ates)),

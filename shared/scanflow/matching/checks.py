@@ -550,12 +550,12 @@ def surface_conditioning(
         lines = target_lines(grid, k=NORMAL_NEIGHBOURS, radius_m=NORMAL_RADIUS_M,
                              fit_radius_m=NORMAL_RADIUS_M, seen_from_origin=True)
         disagrees, isolated = unconfirmed_patches(grid, lines)
-        # Every point of the scan flanks, matched or not: a far wall's next beam may lie
-        # beyond the target's view (that grid built only when there is a pair to flank).
-        whole = matched.all() or not np.any(isolated)
-        others = grid if whole else GridIndex.build(thin_dense_target(source))
-        fake = flanked_pairs(points, lines, isolated, others, bearing_std_rad)
-        disagrees, isolated = disagrees | fake, isolated & ~fake
+        if np.any(isolated):
+            # Every point of the scan flanks, matched or not: a far wall's next beam may lie
+            # beyond the target's view.
+            others = grid if matched.all() else GridIndex.build(thin_dense_target(source))
+            fake = flanked_pairs(points, lines, isolated, others, bearing_std_rad)
+            disagrees, isolated = disagrees | fake, isolated & ~fake
         ok = lines.ok & ~disagrees
         if surfaces is not None and np.any(isolated):
             # A map has seen around its surfaces; one scan's view is sparse (a far tree trunk:
