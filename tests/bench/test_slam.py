@@ -15,8 +15,12 @@ INTEL = corrected_log("intel")
 
 
 def test_sim_reports_both_passes_and_the_closures_help(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The ring with 5 % yaw noise in the odometry: the front end's heading drifts (0.11 m ATE),
+    loop closure takes it back (0.05 m). With 1 % the front end's error lies along the
+    corridors and cancels over the lap, leaving the revisit nothing to correct (BENCHMARKS.md,
+    "Scan matching", the thirty-sixth session)."""
     monkeypatch.delenv("SCANFLOW_BACKEND_CULL_M", raising=False)
-    report = run_sim("loop", 100.0, 0.03, 0.01)
+    report = run_sim("loop", 100.0, 0.03, 0.05)
     plain, closed = report["frontend"], report["loop_closure"]
     assert "closures" not in plain
     assert closed["closures"] > 0 and closed["disagreeing"] == 0
@@ -24,7 +28,7 @@ def test_sim_reports_both_passes_and_the_closures_help(monkeypatch: pytest.Monke
     assert closed["culled"] == 0 and closed["cull_m"] == 0.0  # culling is opt-in
     assert closed["ate_rmse_m"] < plain["ate_rmse_m"]
     # As the services serve it (corrected at the redraw, no last optimisation) the path is
-    # better than the front end's too; uncorrected, it would be worse (0.20 m against 0.16).
+    # better than the front end's too.
     assert closed["served_ate_rmse_m"] < plain["ate_rmse_m"]
     # The drifted lap draws walls twice; the optimised one does not.
     assert closed["occupied_cells"] < plain["occupied_cells"]
@@ -55,12 +59,13 @@ def test_sim_counts_the_culled_inserts(monkeypatch: pytest.MonkeyPatch) -> None:
 def test_sim_on_a_prior_map_closes_the_loop_in_its_frame(monkeypatch: pytest.MonkeyPatch) -> None:
     """The ring's first 30 s as a prior map, then 80 s from the same start on it: the front
     end alone comes back round drifted; with loop closure the keyframes close on those made
-    on the prior map, and the errors in the prior map's frame shrink (0.36 -> 0.08 m mean)."""
+    on the prior map, and the errors in the prior map's frame shrink (0.16 -> 0.05 m mean,
+    with 3 % yaw noise in the odometry)."""
     monkeypatch.delenv("SCANFLOW_BACKEND_CULL_M", raising=False)
-    report = run_sim("loop", 80.0, 0.03, 0.01, prior_s=30.0)
+    report = run_sim("loop", 80.0, 0.03, 0.03, prior_s=30.0)
     plain, closed = report["frontend"], report["loop_closure"]
     assert report["prior_s"] == 30.0 and closed["closures"] > 0
-    assert plain["abs_mean_m"] > 0.2 and closed["abs_mean_m"] < 0.5 * plain["abs_mean_m"]
+    assert plain["abs_mean_m"] > 0.1 and closed["abs_mean_m"] < 0.5 * plain["abs_mean_m"]
     assert closed["abs_max_m"] < 0.5 * plain["abs_max_m"]
 
 

@@ -131,11 +131,14 @@ def test_deskew_stage_gives_the_measured_odometry_at_its_exact_stamp() -> None:
 
 
 def test_loop_closure_corrects_a_drifting_lap() -> None:
-    """A lap of the simulator's ring corridor with poor wheel odometry (3 % scale error): the
-    front end alone drifts; with the back end the closures at the revisit bring the keyframes
-    back, and the pipeline's outputs report what it did."""
+    """A lap of the simulator's ring corridor with poor wheel odometry (3 % scale error, 5 %
+    yaw noise): the front end alone drifts; with the back end the closures at the revisit bring
+    the keyframes back, and the pipeline's outputs report what it did. (With 1 % yaw noise the
+    front end's error, 0.12 m rms, is along the corridors, where its scans are degenerate and
+    the odometry's scale error leads: it cancels out over the lap, so a revisit finds nothing
+    to correct.)"""
     config = SimConfig(world="loop", duration_s=100.0, seed=1, odom_scale_error=0.03,
-                       odom_yaw_noise=0.01)
+                       odom_yaw_noise=0.05)
     frames = list(simulate(config))
     truth = np.array([(MAP_FROM_WORLD * f.true_pose).to_array() for f in frames])
 

@@ -356,3 +356,11 @@ def target_lines(
     gap_base_m, gap_per_range = (GAP_BASE_M, GAP_PER_RANGE) if seen_from_origin else (0.0, 0.0)
     return TargetLines(*_lines(grid.arrays, k, radius_m, fit_radius_m, max_flatness, gap_base_m,
                                gap_per_range))
+
+
+def surface_normals(points: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Unit normal of the line through each point's neighbours in its own scan (`target_lines`,
+    seen from the origin); zero where the neighbourhood is no line (a corner, clutter, a lone
+    point). The field matchers take the field's slope across these surfaces only."""
+    lines = target_lines(GridIndex.build(points), seen_from_origin=True)
+    return np.where(lines.ok[:, None], lines.normals, 0.0)

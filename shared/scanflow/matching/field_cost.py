@@ -4,6 +4,21 @@ Residual r_i = 1 - M(S_i(pose)), S_i the source point moved by the pose; its Jac
 -grad M(S_i) * dS_i/dpose with dS/dpose = [[1, 0, -s x - c y], [0, 1, c x - s y]] (seed 2,
 part 1). The pose is updated additively in (x, y, theta). Both methods run coarse to fine over
 a likelihood-field pyramid and end with the same checks, so that machinery lives here too.
+
+The field's slope is trusted only across the surface a point lies on: where the source point's
+neighbours in its own scan make a line, grad M is projected onto that line's normal before it
+enters J. Along a straight wall the true field is flat; its sampled copy (cell means, bilinear
+interpolation) ripples there, and hundreds of wall points summed that ripple into a pull along
+the walls that moved the optimum and tilted the heading (BENCHMARKS.md, "Scan matching", the
+thirty-sixth session). Points with no line (corners, clutter) keep the whole gradient, and so
+do the coarse levels: far from the optimum a blurred field's slope along a wall still points
+the way (projected there too, gn started 1 m / 30 deg off found the truth on 9 % of simulated
+pairs instead of 54 %). So does a finest level whose H, so taken, would leave a direction
+barely constrained (a corridor's axis: its normals' noise then sent steps past the limit, and
+the front end on a corridor seen by a lidar with binned bearings from 0.06 to 0.38 m ATE).
+`gn` takes the slope so on its finest level; `lm` keeps the whole gradient, since its gain
+ratio weighs the model's predicted decrease against the true cost's, and a projected model
+under-predicts it wherever the ripple slopes.
 """
 
 from __future__ import annotations
@@ -31,6 +46,7 @@ from scanflow.matching.checks import (
     surface_conditioning,
     surfaces_of,
 )
+from scanflow.matching.correspondence import surface_normals
 from scanflow.matching.covariance import least_squares_covariance
 from scanflow.matching.inputs import require_grid_cells
 from scanflow.matching.surface import densify_scan
@@ -47,11 +63,15 @@ COARSE_TOLERANCE_FACTOR = 10.0
 # A point counts as matched within 2 sigma of the field's surface (value exp(-2)): a far wall's
 # points 4 sigma off still slope the field, but do not pin the pose (`assess_field_match`).
 MATCHED_VALUE = math.exp(-0.5 * 2.0**2)
+# The finest level takes the field's slope across the surfaces only where H so taken keeps
+# every direction this far above degenerate (`finest_normals`).
+PINNED_RATIO = 10.0 * DEGENERATE_RATIO
 
 
 @dataclass(frozen=True)
 class FieldLinearisation:
-    """Cost, Gauss-Newton Hessian J^T J and gradient J^T r of the field cost at one pose."""
+    """Cost, Gauss-Newton Hessian J^T J and gradient J^T r of the field cost at one pose (J with
+    each point's field slope taken across its surface: module docstring)."""
 
     cost: float
     hessian: NDArray[np.float64]
@@ -80,8 +100,9 @@ def out_of_iterations(pose: NDArray[np.float64], max_iterations: int, finest: bo
     return LevelOutcome(pose, max_iterations, None)
 
 
-LevelSolver = Callable[  # (field, source points, pose, whether the level is the finest)
-    [LikelihoodField, NDArray[np.float64], NDArray[np.float64], bool], LevelOutcome
+LevelSolver = Callable[  # (field, source points, their normals, pose, whether finest)
+    [LikelihoodField, NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], bool],
+    LevelOutcome,
 ]
 
 
@@ -95,12 +116,14 @@ def moved_points(points: NDArray[np.float64], pose: NDArray[np.float64]) -> NDAr
 
 
 @njit(cache=True)
-def _accumulate(values, origin, resolution_m, points, pose, with_jacobian):  # type: ignore[no-untyped-def]
+def _accumulate(values, origin, resolution_m, points, normals, pose, with_jacobian):  # type: ignore[no-untyped-def]
     """One pass over the points: cost, hits and (optionally) J^T J and J^T r.
 
     Bilinear value and gradient as in LikelihoodField.sample (points whose interpolation square
     leaves the grid have value 0 and no gradient), without per-call numpy temporaries: at a few
-    hundred points numpy's dispatch overhead, not arithmetic, dominated the cost.
+    hundred points numpy's dispatch overhead, not arithmetic, dominated the cost. In J the
+    gradient is projected onto the point's normal (source frame, turned by the pose); a zero
+    normal keeps it whole.
     """
     rows, cols = values.shape
     c, s = math.cos(pose[2]), math.sin(pose[2])
@@ -127,6 +150,11 @@ def _accumulate(values, origin, resolution_m, points, pose, with_jacobian):  # t
         if value != 0.0:
             hits += 1
         if with_jacobian:
+            nx = c * normals[i, 0] - s * normals[i, 1]
+            ny = s * normals[i, 0] + c * normals[i, 1]
+            if nx != 0.0 or ny != 0.0:
+                across = gx * nx + gy * ny
+                gx, gy = across * nx, across * ny
             j = (-gx, -gy, -(gx * (-s * px - c * py) + gy * (c * px - s * py)))
             for a in range(3):
                 gradient[a] += j[a] * r
@@ -140,6 +168,7 @@ def _run_kernel(
     points: NDArray[np.float64],
     pose: NDArray[np.float64],
     with_jacobian: bool,
+    normals: NDArray[np.float64] | None = None,
 ) -> tuple[float, int, NDArray[np.float64], NDArray[np.float64]]:
     spec = field.spec
     if spec.rows < 2 or spec.cols < 2:  # no interpolation square fits: nothing is inside
@@ -149,6 +178,7 @@ def _run_kernel(
         np.array([spec.origin_x_m, spec.origin_y_m]),
         spec.resolution_m,
         points,
+        np.zeros_like(points) if normals is None else normals,
         np.asarray(pose, dtype=np.float64),
         with_jacobian,
     )
@@ -169,10 +199,16 @@ def field_hits(
 
 
 def linearise(
-    field: LikelihoodField, points: NDArray[np.float64], pose: NDArray[np.float64]
+    field: LikelihoodField,
+    points: NDArray[np.float64],
+    pose: NDArray[np.float64],
+    normals: NDArray[np.float64] | None = None,
 ) -> FieldLinearisation:
-    """Cost, H = J^T J and g = J^T r at `pose` (step: H dx = -g)."""
-    cost, hits, hessian, gradient = _run_kernel(field, points, pose, True)
+    """Cost, H = J^T J and g = J^T r at `pose` (step: H dx = -g); with `normals` (one per point,
+    zero where it has none; `surface_normals`) the field's slope is taken across each surface."""
+    if normals is not None and normals.shape != points.shape:
+        raise ValueError(f"normals must have shape {points.shape}, got {normals.shape}")
+    cost, hits, hessian, gradient = _run_kernel(field, points, pose, True, normals)
     return FieldLinearisation(float(cost), hessian, gradient, int(hits))
 
 
@@ -316,6 +352,20 @@ def check_inputs(
     return None
 
 
+def finest_normals(
+    field: LikelihoodField, source: NDArray[np.float64], pose: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """The source's `surface_normals` for the finest level when, with the slope taken across
+    the surfaces, H at `pose` still pins every direction down (scaled eigenvalue ratio at least
+    PINNED_RATIO); else zero normals, the whole gradient. Along a corridor the projected H
+    leaves the axis barely constrained, and its noise sent steps past the limit (module
+    docstring)."""
+    normals = surface_normals(source)
+    hessian = linearise(field, source, pose, normals).hessian
+    pinned = analyse_hessian(hessian, characteristic_length_m(source)).ratio >= PINNED_RATIO
+    return normals if pinned else np.zeros_like(source)
+
+
 def run_coarse_to_fine(
     method: str,
     source: NDArray[np.float64],
@@ -325,12 +375,17 @@ def run_coarse_to_fine(
     levels: int,
     resolution_m: float,
     sigma_m: float,
+    across_surfaces: bool = False,
 ) -> MatchResult:
-    """Validate, build the pyramid, run `solve_level` per level (coarse first), assess."""
+    """Validate, build the pyramid, run `solve_level` per level (coarse first), assess. With
+    `across_surfaces` the finest level's solver and the assessment get `finest_normals` (the
+    field's slope taken across each surface where that still pins the pose: module docstring);
+    coarser levels, and every level without it, get zero normals (the whole gradient)."""
     bad = check_inputs(method, source, target, guess)
     if bad is not None:
         return bad
     pyramid = field_pyramid(target, levels, resolution_m, sigma_m)
+    normals = np.zeros_like(source)  # the whole gradient, until the finest level
     pose = guess.to_array()
     start_cost = field_cost(pyramid[-1], source, pose)
     total = 0
@@ -343,7 +398,10 @@ def run_coarse_to_fine(
                 f"fewer than {MIN_POINTS} points fall on the field at level {index}",
                 total,
             )
-        outcome = solve_level(field, source, pose, index == len(pyramid) - 1)
+        finest = index == len(pyramid) - 1
+        if finest and across_surfaces:
+            normals = finest_normals(field, source, pose)
+        outcome = solve_level(field, source, normals, pose, finest)
         total += outcome.iterations
         if outcome.status is not None:
             return failed(method, outcome.status, guess, outcome.message, total)
@@ -359,7 +417,7 @@ def run_coarse_to_fine(
         )
     scan = not hasattr(target, "likelihood_pyramid")
     return assess_field_match(
-        method, pyramid[-1], source, pose, total, guess, scan, surfaces_of(target)
+        method, pyramid[-1], source, pose, total, guess, scan, surfaces_of(target), normals
     )
 
 
@@ -372,6 +430,7 @@ def assess_field_match(
     guess: Pose2D,
     scan_target: bool = False,
     surfaces: MapSurfaces | None = None,
+    normals: NDArray[np.float64] | None = None,
 ) -> MatchResult:
     """Covariance sigma^2 H^-1 and the conditioning checks at the final pose on the finest field;
     a DEGENERATE pose keeps the guess's value along its weak direction (against a map, from the
@@ -386,12 +445,13 @@ def assess_field_match(
     takes the guess's position, the heading stays the match's (`guess_position_along`): the
     front end's predictions can be degrees off in heading, which `guess_along` turned into
     position error (BENCHMARKS.md, "Front end"). `surfaces`: the target's (`surfaces_of`),
-    which judge the source's isolated two-point lines (`surface_conditioning`).
+    which judge the source's isolated two-point lines (`surface_conditioning`). `normals`: the
+    source's (`linearise`), so that H holds only what the surfaces carry.
     """
     # Rotation scaled by the spread of the points on the field: far ones off it carry nothing.
     matched = field.sample(moved_points(source, pose))[0] >= MATCHED_VALUE
     length_m = characteristic_length_m(source, matched)
-    lin = linearise(field, source, pose)
+    lin = linearise(field, source, pose, normals)
     cond = analyse_hessian(lin.hessian, length_m)
     at = Pose2D.from_array(pose)
     kept: Pose2D | None = None
@@ -409,7 +469,7 @@ def assess_field_match(
                 status, weak, message = MatchStatus.OK, None, ""
     if kept is not None:
         pose = kept.to_array()
-        lin = linearise(field, source, pose)
+        lin = linearise(field, source, pose, normals)
     return MatchResult(
         pose=Pose2D.from_array(pose),
         covariance=least_squares_covariance(lin.hessian, lin.cost, lin.hits),

@@ -3,7 +3,9 @@
 Each iteration solves H dx = -g for the field cost (see field_cost), restricted to the
 directions H constrains, and stops on a step small in BOTH translation and |rotation|. A step
 larger than the limits ends the match with STEP_LIMIT (the linearisation cannot be trusted that
-far), a cost rising well above its level start with DIVERGED.
+far), a cost rising well above its level start with DIVERGED. On the finest level J takes the
+field's slope across the surface each source point lies on (field_cost's docstring): the
+sampled field's ripple along walls no longer pulls the pose along them.
 """
 
 from __future__ import annotations
@@ -62,10 +64,14 @@ def match_gn(
     length_m = characteristic_length_m(source)
 
     def solve_level(
-        field: LikelihoodField, points: NDArray[np.float64], pose: NDArray[np.float64], finest: bool
+        field: LikelihoodField,
+        points: NDArray[np.float64],
+        normals: NDArray[np.float64],
+        pose: NDArray[np.float64],
+        finest: bool,
     ) -> LevelOutcome:
         t_tol, r_tol = level_tolerances(finest, translation_tol_m, rotation_tol_rad)
-        lin = linearise(field, points, pose)
+        lin = linearise(field, points, pose, normals)
         for it in range(1, max_iterations + 1):
             step = solve_well_determined(lin.hessian, -lin.gradient, length_m)
             if step is None and it > 1:
@@ -84,11 +90,11 @@ def match_gn(
                     f"({max_step_m} m, {max_step_rad} rad)",
                 )
             # Linearised at the trial pose: an accepted step needs no second pass.
-            trial = linearise(field, points, pose + step)
+            trial = linearise(field, points, pose + step, normals)
             # Bilinear fields have kinks at the cell centres: halve a step that overshoots one.
             while trial.cost > lin.cost and not converged_step(step, t_tol, r_tol):
                 step = 0.5 * step
-                trial = linearise(field, points, pose + step)
+                trial = linearise(field, points, pose + step, normals)
             if trial.cost <= lin.cost:
                 pose, lin = pose + step, trial
             if converged_step(step, t_tol, r_tol):
@@ -96,5 +102,6 @@ def match_gn(
         return out_of_iterations(pose, max_iterations, finest)
 
     return run_coarse_to_fine(
-        "gn", source, target, guess, solve_level, levels, resolution_m, sigma_m
+        "gn", source, target, guess, solve_level, levels, resolution_m, sigma_m,
+        across_surfaces=True,
     )

@@ -61,10 +61,14 @@ def match_lm(
     length_m = characteristic_length_m(source)
 
     def solve_level(
-        field: LikelihoodField, points: NDArray[np.float64], pose: NDArray[np.float64], finest: bool
+        field: LikelihoodField,
+        points: NDArray[np.float64],
+        normals: NDArray[np.float64],
+        pose: NDArray[np.float64],
+        finest: bool,
     ) -> LevelOutcome:
         t_tol, r_tol = level_tolerances(finest, translation_tol_m, rotation_tol_rad)
-        lin = linearise(field, points, pose)
+        lin = linearise(field, points, pose, normals)
         if solve_well_determined(lin.hessian, lin.gradient, length_m) is None:
             return LevelOutcome(
                 pose, 1, MatchStatus.ILL_CONDITIONED, "H constrains fewer than two directions"
@@ -90,7 +94,7 @@ def match_lm(
             rho = actual / predicted if predicted > 0 else -1.0
             if rho > 0:
                 pose = pose + step
-                lin = linearise(field, points, pose)
+                lin = linearise(field, points, pose, normals)
                 mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
                 nu, rejected = 2.0, False
             else:

@@ -30,6 +30,7 @@ from scanflow.matching.field_cost import (
     field_cost,
     field_hits,
     field_pyramid,
+    finest_normals,
     is_empty_target,
     level_tolerances,
     linearise,
@@ -104,6 +105,57 @@ def test_cost_and_gauss_newton_terms_equal_the_sampled_field_on_a_random_grid(
     np.testing.assert_allclose(lin.hessian, jac.T @ jac, rtol=1e-10, atol=1e-9)
     np.testing.assert_allclose(lin.gradient, jac.T @ r, rtol=1e-10, atol=1e-9)
 
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31))
+def test_with_normals_the_terms_take_the_sampled_slope_across_each_surface(seed: int) -> None:
+    """With a normal per point (source frame; zero: none), J holds the sampled gradient
+    projected onto the normal turned by the pose, and the whole gradient where it is zero; the
+    cost and hits do not change."""
+    rng = np.random.default_rng(seed)
+    spec = GridSpec(-1.0, -1.0, 0.1, 20, 20)
+    field = LikelihoodField(spec, rng.uniform(0.0, 1.0, spec.shape), 0.1)
+    points = rng.uniform(-0.8, 0.8, (60, 2))
+    angle = rng.uniform(-math.pi, math.pi, len(points))
+    normals = np.column_stack((np.cos(angle), np.sin(angle))) * (rng.random(60) < 0.7)[:, None]
+    pose = np.array([rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05), rng.uniform(-1, 1)])
+    value, grad = field.sample(moved_points(points, pose))
+    turned = moved_points(normals, np.array([0.0, 0.0, pose[2]]))
+    has = np.any(normals != 0.0, axis=1)
+    grad[has] = np.sum(grad[has] * turned[has], axis=1)[:, None] * turned[has]
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    d_theta = np.column_stack((-s * points[:, 0] - c * points[:, 1],
+                               c * points[:, 0] - s * points[:, 1]))
+    jac = -np.column_stack((grad, np.sum(grad * d_theta, axis=1)))
+    r = 1.0 - value
+    lin = linearise(field, points, pose, normals)
+    whole = linearise(field, points, pose)
+    assert lin.cost == whole.cost and lin.hits == whole.hits
+    np.testing.assert_allclose(lin.hessian, jac.T @ jac, rtol=1e-10, atol=1e-9)
+    np.testing.assert_allclose(lin.gradient, jac.T @ r, rtol=1e-10, atol=1e-9)
+    with pytest.raises(ValueError, match="normals must have shape"):
+        linearise(field, points, pose, normals[:-1])
+
+
+def test_the_finest_level_takes_normals_only_where_they_still_pin_the_pose(
+    room: np.ndarray, corridor: np.ndarray, caster: Caster, room_map_points: np.ndarray,
+    corridor_map_points: np.ndarray,
+) -> None:
+    """In the room most points get their wall's normal (corners none); along a corridor whose
+    walls are exact, where the slope across them says nothing of the axis, every point gets
+    none. (With noise their normals tilt and can fake a constraint along the axis, as a near
+    wall's do in `surface_conditioning`; the checks after the match judge that.)"""
+    in_room = caster(room, ROOM_POSE, noise_m=0.005)
+    normals = finest_normals(points_field(room_map_points, 0.05, 0.1), in_room,
+                             ROOM_POSE.to_array())
+    has = np.any(normals != 0.0, axis=1)
+    assert has.mean() > 0.8
+    np.testing.assert_allclose(np.hypot(*normals[has].T), 1.0)
+    along = caster(corridor, Pose2D(0.0, 0.2, 0.1))
+    none = finest_normals(points_field(corridor_map_points, 0.05, 0.1), along,
+                          np.array([0.0, 0.2, 0.1]))
+    assert not np.any(none)
 
 def test_gauss_newton_terms_equal_a_finite_difference_jacobian(
     room_map_points: np.ndarray, room: np.ndarray, caster: Caster
@@ -341,7 +393,8 @@ def _fixed_solver(
     """A level solver that records (cell size, finest) and always answers `pose`."""
 
     def solve(
-        field: LikelihoodField, source: np.ndarray, start: np.ndarray, finest: bool
+        field: LikelihoodField, source: np.ndarray, normals: np.ndarray, start: np.ndarray,
+        finest: bool,
     ) -> LevelOutcome:
         calls.append((field.spec.resolution_m, finest))
         return LevelOutcome(pose, iterations, status, "stub" if status else "")
