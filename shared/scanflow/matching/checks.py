@@ -24,6 +24,7 @@ from scanflow.matching.correspondence import (
     TargetLines,
     grid_k_nearest,
     grid_nearest_all,
+    grid_within_any,
     partner_reach_m,
     target_lines,
     thin_dense_target,
@@ -54,12 +55,37 @@ def characteristic_length_m(
     """RMS distance of the points (those `used`, when any are) from their centroid (>= 1 cm),
     the scale for rotations: the spread of the points that carry the information, as a far
     unmatched point (a doorway onto a long hall) would make every rotation look weak."""
-    if used is not None and np.any(used):
-        points = points[used]
-    if len(points) == 0:
+    points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
+    if used is None:
+        used = np.ones(len(points), dtype=np.bool_)
+    if len(used) != len(points):
+        raise ValueError(f"used has {len(used)} flags for {len(points)} points")
+    return float(_rms_spread(points, np.ascontiguousarray(used, dtype=np.bool_)))
+
+
+@njit(cache=True)
+def _rms_spread(points, used):  # type: ignore[no-untyped-def]
+    # `characteristic_length_m` in one compiled pass (it runs on every match).
+    if not np.any(used):
+        used = np.ones(len(points), dtype=np.bool_)
+    count = 0
+    mx = 0.0
+    my = 0.0
+    for i in range(len(points)):
+        if used[i]:
+            count += 1
+            mx += points[i, 0]
+            my += points[i, 1]
+    if count == 0:
         return 1.0
-    c = points - points.mean(axis=0)
-    return max(float(np.sqrt(np.mean(np.sum(c * c, axis=1)))), 0.01)
+    mx /= count
+    my /= count
+    total = 0.0
+    for i in range(len(points)):
+        if used[i]:
+            dx, dy = points[i, 0] - mx, points[i, 1] - my
+            total += dx * dx + dy * dy
+    return max(math.sqrt(total / count), 0.01)
 
 
 def weak_length_m(extra: dict[str, object], source: NDArray[np.float64]) -> float:
@@ -171,8 +197,8 @@ class MapSurfaces(Protocol):
         ...
 
 
-# Point-query distances `ScanSurfaces.hit_means_near` holds at once (16 bytes each).
-NEAR_BLOCK_PAIRS = 1 << 16
+# The smallest cell of `ScanSurfaces`' grid (a zero reach would ask for zero-width cells).
+MIN_NEAR_CELL_M = 0.01
 
 
 @dataclass(frozen=True, eq=False)
@@ -189,16 +215,11 @@ class ScanSurfaces:
         query = np.asarray(points_world, dtype=np.float64).reshape(-1, 2)
         if len(query) == 0 or len(self.points) == 0:
             return np.zeros((0, 2))
-        # Brute force, a block of queries at a time (memory bounded on a dense target): a few
-        # isolated pairs against a scan's hundreds of points, where a search tree's build cost
-        # more than the whole check.
-        near = np.zeros(len(self.points), dtype=np.bool_)
-        block = max(1, NEAR_BLOCK_PAIRS // len(self.points))
-        for start in range(0, len(query), block):
-            offsets = self.points[:, None, :] - query[None, start:start + block, :]
-            d2 = offsets[..., 0] ** 2 + offsets[..., 1] ** 2
-            near |= np.any(d2 <= (2.0 * radius_m) ** 2, axis=1)
-        return self.points[near]
+        # A bucket grid with cells as wide as the reach: each query visits at most 3 x 3 cells
+        # (a dense target stays cheap, and no query-by-point table is ever held).
+        reach_m = 2.0 * radius_m
+        grid = GridIndex.build(self.points, max(reach_m, MIN_NEAR_CELL_M))
+        return self.points[grid_within_any(grid.arrays, query, reach_m)]
 
 
 def surfaces_of(target: object) -> MapSurfaces | None:
@@ -408,11 +429,13 @@ def surfaces_agree(
     if len(means) < 2:
         return agrees
     grid = GridIndex.build(means)
-    lines = target_lines(grid, k=NORMAL_NEIGHBOURS, radius_m=NORMAL_RADIUS_M,
-                         fit_radius_m=NORMAL_RADIUS_M)
     nearest = grid_nearest_all(grid.arrays, points, np.full(len(points), NORMAL_RADIUS_M))
     found = nearest >= 0
     at = nearest[found]
+    wanted = np.zeros(len(means), dtype=np.bool_)
+    wanted[at] = True  # the lines asked about (and their partners), not every mean's
+    lines = target_lines(grid, k=NORMAL_NEIGHBOURS, radius_m=NORMAL_RADIUS_M,
+                         fit_radius_m=NORMAL_RADIUS_M, wanted=wanted)
     evidence = lines.ok
     if unseen_agrees:
         disagrees, isolated = unconfirmed_patches(grid, lines)

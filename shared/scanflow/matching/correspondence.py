@@ -171,6 +171,33 @@ def grid_nearest_all(
     return out
 
 
+@njit(cache=True)
+def grid_within_any(
+    grid: GridArrays, queries: NDArray[np.float64], radius_m: float
+) -> NDArray[np.bool_]:
+    """Which grid points lie within radius_m of at least one query (each query visits only
+    the cells its disc's bounding box covers)."""
+    points, order, starts, ox, oy, cell, cols, rows = grid
+    near = np.zeros(len(points), dtype=np.bool_)
+    r2 = radius_m * radius_m
+    for i in range(len(queries)):
+        qx, qy = queries[i, 0], queries[i, 1]
+        x0 = max(math.floor((qx - radius_m - ox) / cell), 0)
+        x1 = min(math.floor((qx + radius_m - ox) / cell), cols - 1)
+        y0 = max(math.floor((qy - radius_m - oy) / cell), 0)
+        y1 = min(math.floor((qy + radius_m - oy) / cell), rows - 1)
+        for yy in range(y0, y1 + 1):
+            for xx in range(x0, x1 + 1):
+                c = yy * cols + xx
+                for s in range(starts[c], starts[c + 1]):
+                    j = order[s]
+                    dx = points[j, 0] - qx
+                    dy = points[j, 1] - qy
+                    if dx * dx + dy * dy <= r2:
+                        near[j] = True
+    return near
+
+
 # Thinning of a dense point target (`thin_dense_target`): bearing bins of this width seen from
 # the target's origin, split along the range at a gap (an occlusion edge) or a depth (a surface
 # running away from the origin), both far above range noise: a cut through a wall's noise would
@@ -262,19 +289,42 @@ def partner_reach_m(
 @njit(cache=True)
 def _lines(
     grid: GridArrays, k: int, radius_m: float, fit_radius_m: float, max_flatness: float,
-    gap_base_m: float, gap_per_range: float,
+    gap_base_m: float, gap_per_range: float, wanted: NDArray[np.bool_],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_], NDArray[np.int64],
            NDArray[np.float64]]:
-    points = grid[0]
-    n = len(points)
+    n = len(grid[0])
     normals = np.zeros((n, 2))
     centres = np.zeros((n, 2))
     ok = np.zeros(n, dtype=np.bool_)
     neighbours = np.full((n, k), -1, dtype=np.int64)
     spread = np.zeros(n)
+    out = (normals, centres, ok, neighbours, spread)
+    asked = np.flatnonzero(wanted)
+    _fit_lines(asked, grid, radius_m, fit_radius_m, max_flatness, gap_base_m, gap_per_range, out)
+    # A wanted two-point line's partner, whose own patch judges it (`unconfirmed_patches`).
+    partners = np.empty(len(asked), dtype=np.int64)
+    count = 0
+    for i in asked:
+        j = neighbours[i, 1]
+        if ok[i] and j >= 0 and (k == 2 or neighbours[i, 2] < 0) and not wanted[j]:
+            partners[count] = j
+            count += 1
+    _fit_lines(np.unique(partners[:count]), grid, radius_m, fit_radius_m, max_flatness,
+               gap_base_m, gap_per_range, out)
+    return out
+
+
+@njit(cache=True)
+def _fit_lines(  # type: ignore[no-untyped-def]
+    indices, grid, radius_m, fit_radius_m, max_flatness, gap_base_m, gap_per_range, out,
+):
+    # The lines of the points `indices` into their rows of `out` (see `target_lines`).
+    points = grid[0]
+    normals, centres, ok, neighbours, spread = out
+    k = neighbours.shape[1]
     best_d2 = np.empty(k)
     best_j = np.empty(k, dtype=np.int64)
-    for i in range(n):
+    for i in indices:
         # Up to k neighbours within the fit radius (as many as the local density gives, so
         # sparse scans keep short lines and dense ones average noise), else the two-point line.
         count = grid_k_nearest(grid, points[i, 0], points[i, 1], fit_radius_m, best_d2, best_j)
@@ -316,7 +366,6 @@ def _lines(
         neighbours[i, :count] = best_j[:count]
         spread[i] = lam_max - lam_min
         ok[i] = True
-    return normals, centres, ok, neighbours, spread
 
 
 @dataclass(frozen=True, eq=False)
@@ -342,20 +391,28 @@ def target_lines(
     fit_radius_m: float = 0.2,
     max_flatness: float = 0.05,
     seen_from_origin: bool = False,
+    wanted: NDArray[np.bool_] | None = None,
 ) -> TargetLines:
     """Line of each target point from its nearest neighbours (itself included): up to k within
     `fit_radius_m`, at least the two-point line to the nearest within `radius_m`; not ok when it
     has no neighbour or the patch is not line-like (minor/major scatter > max_flatness: corners,
     clutter). Points of one scan `seen_from_origin` reach for that nearest neighbour as far as
     one surface spans at their range (`surface_gap_m`), if that is farther: a far wall's
-    points lie further apart than any fixed radius tuned indoors."""
+    points lie further apart than any fixed radius tuned indoors. With `wanted` (a mask over
+    the points) only those lines are fitted, and the partners of their two-point lines
+    (`unconfirmed_patches` reads them); every other row is not ok."""
     if not k >= 2:
         raise ValueError(f"k must be >= 2, got {k}")
     if not 0.0 < fit_radius_m <= radius_m:
         raise ValueError(f"fit_radius_m must be in (0, radius_m={radius_m}], got {fit_radius_m}")
+    n = len(grid.points)
+    if wanted is None:
+        wanted = np.ones(n, dtype=np.bool_)
+    elif wanted.shape != (n,):
+        raise ValueError(f"wanted must hold one flag per point ({n}), got shape {wanted.shape}")
     gap_base_m, gap_per_range = (GAP_BASE_M, GAP_PER_RANGE) if seen_from_origin else (0.0, 0.0)
     return TargetLines(*_lines(grid.arrays, k, radius_m, fit_radius_m, max_flatness, gap_base_m,
-                               gap_per_range))
+                               gap_per_range, np.ascontiguousarray(wanted, dtype=np.bool_)))
 
 
 def surface_normals(points: NDArray[np.float64]) -> NDArray[np.float64]:

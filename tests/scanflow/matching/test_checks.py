@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
 from scanflow.frontend import default_settings, insert_scan, occupancy_params
@@ -372,6 +372,7 @@ coordinate = st.floats(-5.0, 5.0, allow_nan=False)
 point_lists = st.lists(st.tuples(coordinate, coordinate), max_size=30)
 
 
+@settings(deadline=None)  # the first example loads the compiled grid
 @given(point_lists, point_lists, st.floats(0.0, 3.0))
 def test_a_scans_surface_points_are_its_points_within_twice_the_radius(
     target: list, query: list, radius_m: float
@@ -391,17 +392,16 @@ def test_a_scans_surface_points_are_its_points_within_twice_the_radius(
     assert {tuple(p) for p in points[inside]} <= returned <= {tuple(p) for p in points[maybe]}
 
 
-def test_a_dense_targets_surface_points_come_the_same_a_block_of_queries_at_a_time(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    """Queries asked a few at a time (the memory bound on a dense target) find what all at
-    once do."""
+def test_a_scans_surface_points_asked_from_beyond_its_extent() -> None:
+    """Queries outside the target's bounding box (the grid's clamped edge cells) find the
+    target points within reach and nothing from afar; a dense target is no different."""
     rng = np.random.default_rng(7)
-    points, asked = rng.uniform(-5.0, 5.0, (200, 2)), rng.uniform(-5.0, 5.0, (23, 2))
-    whole = ScanSurfaces(points).hit_means_near(asked, 0.3)
-    monkeypatch.setattr(checks, "NEAR_BLOCK_PAIRS", 1000)  # 5 queries per block
-    np.testing.assert_array_equal(ScanSurfaces(points).hit_means_near(asked, 0.3), whole)
-    assert 0 < len(whole) < len(points)
+    points = rng.uniform(-5.0, 5.0, (2000, 2))
+    asked = np.array([[-5.5, 0.0], [0.0, 6.0], [40.0, -40.0]])
+    near = ScanSurfaces(points).hit_means_near(asked, 0.3)
+    gaps = np.min(np.hypot(*(points[:, None, :] - asked[None, :, :]).transpose(2, 0, 1)), axis=1)
+    np.testing.assert_array_equal(near, points[gaps <= 0.6])
+    assert 0 < len(near) < 100
 
 
 def test_surfaces_of_a_target() -> None:
@@ -460,7 +460,14 @@ def test_rotation_is_scaled_by_the_spread_of_the_points_that_were_matched() -> N
     assert characteristic_length_m(source, matched) == pytest.approx(
         characteristic_length_m(room))
     assert characteristic_length_m(source) > 7.0 * characteristic_length_m(room)
+    centred = room - room.mean(axis=0)
+    assert characteristic_length_m(room) == pytest.approx(
+        math.sqrt(np.mean(np.sum(centred * centred, axis=1))), rel=1e-12)
+    assert characteristic_length_m(np.zeros((0, 2))) == 1.0
+    assert characteristic_length_m(np.ones((5, 2))) == 0.01  # one spot: the 1 cm floor
     assert characteristic_length_m(source, np.zeros(len(source), bool)) == \
         characteristic_length_m(source)  # nothing matched: the whole source
     assert weak_length_m({"length_m": 1.25}, source) == 1.25
     assert weak_length_m({}, source) == characteristic_length_m(source)
+    with pytest.raises(ValueError, match=r"^used has 3 flags for 4 points"):
+        characteristic_length_m(source[:4], np.ones(3, dtype=bool))

@@ -237,6 +237,31 @@ def test_target_lines_equal_an_svd_fit_of_the_brute_force_neighbours(
             assert lines.spread_m2[i] == pytest.approx(major - minor, rel=1e-9, abs=1e-15)
 
 
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31), k=st.sampled_from([2, 5, 16]), share=st.floats(0.0, 1.0))
+def test_wanted_lines_are_the_full_fits_at_those_points_and_their_partners(
+    seed: int, k: int, share: float
+) -> None:
+    """With `wanted`, each wanted point's line, and the partner's of each wanted two-point
+    line, is exactly the full fit's; every other row is an unusable empty line."""
+    pts = _walls_and_clutter(seed)
+    grid = GridIndex.build(pts)
+    full = target_lines(grid, k, 0.5, 0.5, seen_from_origin=True)
+    wanted = np.random.default_rng(seed).uniform(size=len(pts)) < share
+    some = target_lines(grid, k, 0.5, 0.5, seen_from_origin=True, wanted=wanted)
+    two_point = wanted & full.ok & (np.sum(full.neighbours >= 0, axis=1) == 2)
+    fitted = wanted.copy()
+    fitted[full.neighbours[two_point, 1]] = True
+    for name in ("normals", "centres", "ok", "neighbours", "spread_m2"):
+        np.testing.assert_array_equal(getattr(some, name)[fitted], getattr(full, name)[fitted])
+    assert not some.ok[~fitted].any() and np.all(some.neighbours[~fitted] == -1)
+
+
+def test_target_lines_refuse_a_wanted_mask_of_another_length() -> None:
+    with pytest.raises(ValueError, match=r"^wanted must hold one flag per point \(3\)"):
+        target_lines(GridIndex.build(np.zeros((3, 2))), wanted=np.ones(2, dtype=bool))
+
+
 def test_target_lines_leave_points_without_a_neighbour_unusable() -> None:
     pts = np.array([[0.0, 0.0], [0.1, 0.0], [0.2, 0.0], [3.0, 3.0]])
     lines = target_lines(GridIndex.build(pts), radius_m=0.5)
