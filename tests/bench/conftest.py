@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +26,17 @@ def run_bench(
         [sys.executable, "-m", f"bench.{module}", *args],
         cwd=REPO, capture_output=True, text=True, timeout=timeout_s, check=check,
     )
+
+
+def usage_error(
+    main: Callable[[list[str]], None], capsys: pytest.CaptureFixture[str], *args: str
+) -> str:
+    """What a bench's `main(ARGS)` says on stderr as it exits with argparse's usage error
+    (exit code 2): in this process, as a subprocess would spend seconds importing."""
+    with pytest.raises(SystemExit) as stop:
+        main(list(args))
+    assert stop.value.code == 2
+    return capsys.readouterr().err
 
 
 @pytest.fixture

@@ -3,7 +3,11 @@
 import json
 import math
 
-from .conftest import run_bench
+import pytest
+
+from bench.calibration import main
+
+from .conftest import run_bench, usage_error
 
 
 def test_simulated_mounts_come_back_and_not_calibrating_is_the_baseline() -> None:
@@ -19,6 +23,5 @@ def test_simulated_mounts_come_back_and_not_calibrating_is_the_baseline() -> Non
     assert math.isfinite(rear["residual_rms_m"]) and rear["pairs_used"] >= 20
 
 
-def test_bad_arguments_are_named() -> None:
-    out = run_bench("calibration", "--sim", "--step", "0")
-    assert out.returncode == 2 and "--step must be >= 1" in out.stderr
+def test_bad_arguments_are_named(capsys: pytest.CaptureFixture[str]) -> None:
+    assert "--step must be >= 1" in usage_error(main, capsys, "--sim", "--step", "0")

@@ -15,12 +15,13 @@ from bench.matching import (
     Frame,
     closure,
     keyframe_pairs,
+    main,
     odometry_matcher,
     run_matcher,
     sim_frames,
 )
 
-from .conftest import run_bench
+from .conftest import run_bench, usage_error
 
 LOG = corrected_log("intel")
 
@@ -131,9 +132,9 @@ def test_repeats_pass_over_the_pairs_that_often_and_keep_the_first_passes_pose()
         assert same(pose, pair.guess * Pose2D(0.01 * n, 0.0, 0.0))
 
 
-def test_repeats_must_be_positive() -> None:
-    out = run_bench("matching", "--data", str(LOG), "--repeats", "0")
-    assert out.returncode == 2 and "--repeats must be >= 1, got 0" in out.stderr
+def test_repeats_must_be_positive(capsys: pytest.CaptureFixture[str]) -> None:
+    err = usage_error(main, capsys, "--data", str(LOG), "--repeats", "0")
+    assert "--repeats must be >= 1, got 0" in err
 
 
 def test_simulated_keyframes_carry_exact_truth_and_the_wheel_odometry() -> None:
@@ -151,16 +152,14 @@ def test_simulated_keyframes_carry_exact_truth_and_the_wheel_odometry() -> None:
     assert frames[-1].odom_pose.relative_to(frames[-1].true_pose).translation_norm() > 1e-4
 
 
-def test_closure_needs_a_gap_of_two_or_more() -> None:
-    out = run_bench("matching", "--data", str(LOG), "--gap", "1", "--closure")
-    assert out.returncode == 2
-    assert "--closure needs --gap >= 2" in out.stderr
+def test_closure_needs_a_gap_of_two_or_more(capsys: pytest.CaptureFixture[str]) -> None:
+    err = usage_error(main, capsys, "--data", str(LOG), "--gap", "1", "--closure")
+    assert "--closure needs --gap >= 2" in err
 
 
-def test_start_step_must_be_positive() -> None:
-    out = run_bench("matching", "--data", str(LOG), "--gap", "3", "--start-step", "0")
-    assert out.returncode == 2
-    assert "--start-step must be >= 1" in out.stderr
+def test_start_step_must_be_positive(capsys: pytest.CaptureFixture[str]) -> None:
+    err = usage_error(main, capsys, "--data", str(LOG), "--gap", "3", "--start-step", "0")
+    assert "--start-step must be >= 1" in err
 
 
 @pytest.mark.skipif(not LOG.exists(), reason=f"real log {LOG} not available")
@@ -196,10 +195,9 @@ def test_bench_matching_json_on_simulated_campus_pairs() -> None:
     assert plicp["ok_5cm_0.5deg"] == 1.0 and plicp["trans_p95_m"] < 0.02
 
 
-def test_data_and_sim_are_one_or_the_other() -> None:
-    out = run_bench("matching", "--data", str(LOG), "--sim", "rooms")
-    assert out.returncode == 2 and "not allowed with argument" in out.stderr
-    out = run_bench("matching", "--sim", "campus", "--lidar", "181,180,-1")
-    assert out.returncode == 2 and "range_max_m" in out.stderr
-    out = run_bench("matching", "--sim", "campus", "--lidar", "181,180")
-    assert out.returncode == 2 and "BEAMS,FOV_DEG,RANGE_M" in out.stderr
+def test_data_and_sim_are_one_or_the_other(capsys: pytest.CaptureFixture[str]) -> None:
+    err = usage_error(main, capsys, "--data", str(LOG), "--sim", "rooms")
+    assert "not allowed with argument" in err
+    assert "range_max_m" in usage_error(main, capsys, "--sim", "campus", "--lidar", "181,180,-1")
+    err = usage_error(main, capsys, "--sim", "campus", "--lidar", "181,180")
+    assert "BEAMS,FOV_DEG,RANGE_M" in err

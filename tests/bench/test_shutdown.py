@@ -6,7 +6,9 @@ import json
 
 import pytest
 
-from .conftest import run_bench
+from bench.shutdown import main
+
+from .conftest import run_bench, usage_error
 
 # A whole system stopped after 200 scans (about 30 s): `make test` runs it beside the rest
 # (tools/run-tests.sh), with the container tests.
@@ -26,6 +28,5 @@ def test_a_stop_right_after_the_robot_sent_keeps_every_scan() -> None:
     assert run["stop_s"] > 0.0
 
 
-def test_bad_arguments_are_a_usage_error() -> None:
-    done = run_bench("shutdown", "--runs", "0")
-    assert done.returncode == 2 and "--runs and --scans must be >= 1" in done.stderr
+def test_bad_arguments_are_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
+    assert "--runs and --scans must be >= 1" in usage_error(main, capsys, "--runs", "0")
