@@ -106,6 +106,14 @@ class Bus:
         self.session.close()
 
 
+# The kernel services start here without their warm-up run (a short simulated run and every
+# matcher: ~4 s of CPU a stack, ~40 stacks a suite): their first scans load the compiled
+# kernels instead, which no test here times. A test may pass the setting back on; the warm-up
+# itself is checked by tests/scanflow/test_warmup.py, and `scanflow up` and the containers run
+# with it.
+NO_WARM_UP = {f"SCANFLOW_{name}_WARM_UP": "false" for name in ("DESKEW", "MATCHER", "MAPSERVER")}
+
+
 @pytest.fixture
 def launcher(tmp_path: Path) -> Iterator[Launcher]:
     """A router on a free port; services started through it are all stopped at the end."""
@@ -115,6 +123,7 @@ def launcher(tmp_path: Path) -> Iterator[Launcher]:
         SCANFLOW_MAPSERVER_DATA_DIR=str(tmp_path / "data"),
         SCANFLOW_INGEST_RATE="0",
         SCANFLOW_INGEST_DRAIN_TIMEOUT_S="30",
+        **NO_WARM_UP,
     )
     launch.start("router")
     yield launch

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from scanflow import keys
 from scanflow.geometry import Pose2D
+from scanflow.matching import match
 from scanflow.scan import LaserScan
 from scanflow.wire import MapRef, MatchRequest, MatchResponse
 
@@ -204,6 +205,12 @@ def test_an_option_out_of_its_range_is_a_422_naming_it(client, peer, auth, optio
     """Ranges are the method's: the matcher refuses, the gateway passes its reason on."""
     peer.answer(keys.scan_match(), library_matcher)
     room = _room_scan()
+    # The library's plicp once before the gateway's 1 s query timeout runs: on a cold numba
+    # cache (this file alone, a changed kernel) its first call compiles for seconds.
+    bearings = room["angle_min_rad"] + room["angle_increment_rad"] * np.arange(180)
+    points = np.asarray(room["ranges_m"])[:, None] * np.column_stack(
+        (np.cos(bearings), np.sin(bearings)))
+    assert match(points, points, Pose2D(), method="plicp").ok
     ok = client.post("/api/v1/match", json={"method": "plicp", "source": room, "target": room},
                      headers=auth)
     assert ok.status_code == 200 and ok.json()["status"] == "ok", ok.text
