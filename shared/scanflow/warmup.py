@@ -16,10 +16,13 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from scanflow.backend.loops import ScanNode, draw_keyframes
 from scanflow.frontend import occupancy_params
 from scanflow.geometry import Pose2D
 from scanflow.matching import MatchInputError, available_methods, match
+from scanflow.matching.checks import ScanSurfaces, surfaces_agree
 from scanflow.pipeline import Pipeline, PipelineOutput
 from scanflow.sim import SimConfig, simulate
 
@@ -34,8 +37,9 @@ def warm_up(methods: bool = False) -> int:
     """Track a short simulated run (deskew, matching, map updates), draw its last scan as the
     back end draws keyframes (redraws, loop-closure submaps), then relocalise off its last pose
     (the front end's fallback search on the map, refined); with `methods`, match its last scan
-    with every registered method against itself moved and against the run's map. Returns the
-    number of scans tracked."""
+    with every registered method against itself moved and against the run's map, and let a
+    scan target judge two of its lines as it judges isolated pairs. Returns the number of
+    scans tracked."""
     pipeline = Pipeline()
     count = 0
     last: PipelineOutput | None = None
@@ -61,4 +65,8 @@ def warm_up(methods: bool = False) -> int:
                     match(points, goal, guess, method=method)
                 except MatchInputError:  # svd takes no map, global no points
                     continue
+        # A scan target judging a source's isolated two-point lines (`surface_conditioning`):
+        # the simulated room's scans hold none, real far walls and trunks do.
+        surfaces_agree(ScanSurfaces(target), points[:2], np.array([[1.0, 0.0], [0.0, 1.0]]),
+                       unseen_agrees=True)
     return count

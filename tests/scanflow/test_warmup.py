@@ -18,6 +18,7 @@ METHOD_KERNELS = {
     "scanflow.matching.icp": ["_icp_kernel"],
     "scanflow.matching.ndt": ["_ndt_accumulate"],
     "scanflow.matching.csm_search": ["_branch_and_bound", "_exhaustive"],
+    "scanflow.matching.correspondence": ["grid_within_any"],  # a scan target's surfaces
 }
 
 SCRIPT = """
