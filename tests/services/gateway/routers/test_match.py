@@ -207,9 +207,7 @@ def test_an_option_out_of_its_range_is_a_422_naming_it(client, peer, auth, optio
     room = _room_scan()
     # The library's plicp once before the gateway's 1 s query timeout runs: on a cold numba
     # cache (this file alone, a changed kernel) its first call compiles for seconds.
-    bearings = room["angle_min_rad"] + room["angle_increment_rad"] * np.arange(180)
-    points = np.asarray(room["ranges_m"])[:, None] * np.column_stack(
-        (np.cos(bearings), np.sin(bearings)))
+    points = LaserScan(**{**room, "ranges_m": np.asarray(room["ranges_m"])}).robot_points()
     assert match(points, points, Pose2D(), method="plicp").ok
     ok = client.post("/api/v1/match", json={"method": "plicp", "source": room, "target": room},
                      headers=auth)
