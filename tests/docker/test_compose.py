@@ -36,6 +36,10 @@ ROBOT = "robot"
 SERVICES = ("router", "deskew", "matcher", "mapserver", "gateway")
 FAULT_ROBOT = "faults"
 LEASE_S = 10.0  # Zenoh's default transport lease: how long a silent peer is still believed
+# How long the stack's router and services wait on a link whose reader holds messages back
+# (SCANFLOW_ZENOH_BLOCK_CLOSE_S, 60 s by default). A peer cut off the network is such a
+# reader: the router stays blocked on it, and it cannot rejoin, until this has passed.
+BLOCK_CLOSE_S = 15.0
 TESTS = Path(__file__).resolve().parents[1]
 APP_LAYER = 3  # image layers before scanflow's own: base, user, dependency venv
 
@@ -77,6 +81,7 @@ def stack(compose_projects, harness):
         # builds) odometry can come more than the default 50 ms after its scan, which then
         # falls back by design (seen once). Equality needs a budget these runs never reach.
         "SCANFLOW_DESKEW_ODOM_WAIT_S": "3",
+        "SCANFLOW_ZENOH_BLOCK_CLOSE_S": str(BLOCK_CLOSE_S),
     })
     start = time.monotonic()
     project.up()
@@ -319,11 +324,13 @@ def test_deskew_cut_off_the_network_comes_back(fault_run):
     network = project.network("deskew")
     project.disconnect("deskew", network)
     try:
-        poll(lambda: "deskew" in missing(client), 3 * LEASE_S, "health to report deskew gone")
+        poll(lambda: "deskew" in missing(client), BLOCK_CLOSE_S + 2 * LEASE_S,
+             "health to report deskew gone")
         assert health(client)["status"] == "degraded"
     finally:
         project.connect("deskew", network)
-    poll(lambda: "deskew" not in missing(client), 6 * LEASE_S, "deskew to rejoin")
+    poll(lambda: "deskew" not in missing(client), 2 * BLOCK_CLOSE_S + 2 * LEASE_S,
+         "deskew to rejoin")
     project.wait_healthy(["deskew"], timeout_s=120.0)
     poses_advance(project, client, 30.0)
 

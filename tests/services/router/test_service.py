@@ -19,12 +19,22 @@ endpoints = st.lists(
 
 
 @settings(max_examples=30, deadline=None)
-@given(listen=endpoints.filter(bool), connect=endpoints, prefix=st.sampled_from(["scanflow", "b"]))
-def test_a_router_listens_and_joins_where_its_settings_say(listen, connect, prefix) -> None:
-    zenoh_settings = router_zenoh_settings(RouterSettings(listen=listen, connect=connect), prefix)
+@given(
+    listen=endpoints.filter(bool), connect=endpoints, prefix=st.sampled_from(["scanflow", "b"]),
+    block_close_s=st.floats(0.5, 120.0), scouting=st.booleans(),
+)
+def test_a_router_listens_and_joins_where_its_settings_say(
+    listen, connect, prefix, block_close_s, scouting
+) -> None:
+    """Endpoints from SCANFLOW_ROUTER_*, the rest of SCANFLOW_ZENOH_* as given (the router is
+    the one that waits on a cut-off reader: it must wait as long as the services do)."""
+    zenoh = ZenohSettings(prefix=prefix, block_close_s=block_close_s,
+                          multicast_scouting=scouting)
+    zenoh_settings = router_zenoh_settings(RouterSettings(listen=listen, connect=connect), zenoh)
     assert zenoh_settings.mode == "router"
     assert (zenoh_settings.listen, zenoh_settings.connect) == (listen, connect)
-    assert zenoh_settings.prefix == prefix
+    assert zenoh_settings.prefix == prefix and zenoh_settings.block_close_s == block_close_s
+    assert zenoh_settings.multicast_scouting == scouting
 
 
 def test_the_services_zenoh_variables_do_not_make_the_router_a_client(monkeypatch) -> None:
@@ -34,8 +44,9 @@ def test_the_services_zenoh_variables_do_not_make_the_router_a_client(monkeypatc
     monkeypatch.setenv("SCANFLOW_ZENOH_CONNECT", "tcp/127.0.0.1:7447")
     monkeypatch.setenv("SCANFLOW_ROUTER_LISTEN", "tcp/127.0.0.1:7447")
     monkeypatch.delenv("SCANFLOW_ROUTER_CONNECT", raising=False)
-    zenoh_settings = router_zenoh_settings(RouterSettings(), "scanflow")
-    assert zenoh_settings.mode == "router"
+    monkeypatch.setenv("SCANFLOW_ZENOH_BLOCK_CLOSE_S", "15")
+    zenoh_settings = router_zenoh_settings(RouterSettings(), ZenohSettings())
+    assert zenoh_settings.mode == "router" and zenoh_settings.block_close_s == 15.0
     assert zenoh_settings.listen == ["tcp/127.0.0.1:7447"] and zenoh_settings.connect == []
 
 
