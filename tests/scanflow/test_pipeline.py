@@ -130,6 +130,7 @@ def test_deskew_stage_gives_the_measured_odometry_at_its_exact_stamp() -> None:
     assert stage.odometry_pose_at(5.1) is not None and stage.odometry_pose_at(4.0) is None
 
 
+@pytest.mark.second_lane  # 10-18 s: beside the container tests, whose wait on Zenoh leaves a core
 def test_loop_closure_corrects_a_drifting_lap() -> None:
     """A lap of the simulator's ring corridor with poor wheel odometry (3 % scale error, 5 %
     yaw noise): the front end alone drifts; with the back end the closures at the revisit bring
