@@ -52,6 +52,13 @@ def _checked_points(points: NDArray[np.float64], cell_size_m: float) -> NDArray[
     return finite_rows("points", np.asarray(points, dtype=np.float64).reshape(-1, 2))
 
 
+def _read_only(*arrays: NDArray) -> None:
+    """Cells never change once made (a map's are views of its live arrays): every holder of
+    them reads the same read-only arrays, which the compiled scorer then takes in one type."""
+    for a in arrays:
+        a.flags.writeable = False
+
+
 @dataclass(frozen=True, eq=False)
 class NDTCells:
     """Cell grid `spec` (resolution = cell size), `index[row, col]` = cell number or -1."""
@@ -61,6 +68,9 @@ class NDTCells:
     means: NDArray[np.float64]  # (K, 2)
     inv_covs: NDArray[np.float64]  # (K, 2, 2)
     counts: NDArray[np.int64]  # (K,)
+
+    def __post_init__(self) -> None:
+        _read_only(self.index, self.means, self.inv_covs, self.counts)
 
     @staticmethod
     def from_points(
@@ -186,8 +196,6 @@ class _LatticeBlocks(Generic[V]):
                 self._inv_covs[: self._used],
                 self._counts[: self._used],
             )
-            for a in arrays:
-                a.flags.writeable = False
             self._view = self._make_view(self._box or CellBox(0, 0, 0, 0), arrays)
         return self._view
 
@@ -325,6 +333,9 @@ class OverlappingCells:
     means: NDArray[np.float64]  # (K, 2)
     inv_covs: NDArray[np.float64]  # (K, 2, 2)
     counts: NDArray[np.int64]  # (K,)
+
+    def __post_init__(self) -> None:
+        _read_only(self.index, self.means, self.inv_covs, self.counts)
 
     @staticmethod
     def from_points(

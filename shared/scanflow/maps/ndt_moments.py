@@ -75,7 +75,7 @@ def sparse_moments(points, origin_x, origin_y, size, rows, cols, span, min_point
     index = np.full(rows * cols, -1, dtype=np.int64)
     moments = np.zeros((capacity, 6))
     touched = np.empty(capacity, dtype=np.int64)
-    n = 0
+    n = np.int64(0)  # not the literal 0: _add_point and _kept_blocks compile once
     for i in range(points.shape[0]):
         x, y = points[i, 0], points[i, 1]
         n = _add_point(
@@ -100,7 +100,7 @@ def _mask_moments(  # type: ignore[no-untyped-def]
     moments = np.zeros((rows * cols, 6))
     touched = np.empty(rows * cols, dtype=np.int64)
     origin_x, origin_y, scale = block_col0 * size, block_row0 * size, res / size
-    n = 0
+    n = np.int64(0)  # not the literal 0: _add_point and _kept_blocks compile once
     for i in range(mask.shape[0]):
         y = (row0 + i + 0.5) * res
         row = math.floor((row0 + i + 0.5) * scale) - block_row0

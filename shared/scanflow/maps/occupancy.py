@@ -560,10 +560,8 @@ class OccupancyGrid:
             miss_ends - corner,
             *model,
         )
-        # Fresh contiguous columns: numba compiles a strided view apart (a one-hit scan's is
-        # also contiguous, so a view would compile twice).
-        rows, cols = stored_hits[:, 0].copy(), stored_hits[:, 1].copy()
-        accumulate_hits(self._hit_xy, self._hit_n, rows, cols, self._hit_units(hits, hit_cells))
+        accumulate_hits(self._hit_xy, self._hit_n, stored_hits, self._hit_units(hits, hit_cells))
+        rows, cols = stored_hits[:, 0], stored_hits[:, 1]
 
         self._extent = box.union(self._extent)
         self.revision += 1

@@ -55,10 +55,11 @@ def pooled_hit_means(log_odds, observed, hit_xy, hit_n, threshold, boxes, factor
 
 
 @njit(cache=True)
-def accumulate_hits(hit_xy, hit_n, rows, cols, units):  # type: ignore[no-untyped-def]
-    """Add each hit's (x, y) offset units to its cell, halving a full cell's weight first."""
-    for k in range(rows.shape[0]):
-        r, c = rows[k], cols[k]
+def accumulate_hits(hit_xy, hit_n, cells, units):  # type: ignore[no-untyped-def]
+    """Add each hit's (x, y) offset units to its cell ((n, 2) rows and columns), halving a
+    full cell's weight first."""
+    for k in range(cells.shape[0]):
+        r, c = cells[k, 0], cells[k, 1]
         if hit_n[r, c] == HIT_COUNT_MAX:  # keep half the weight, same mean
             half = HIT_COUNT_MAX // 2
             hit_n[r, c] = half
@@ -90,9 +91,11 @@ def update_cells(  # type: ignore[no-untyped-def]
             longest, total = max(longest, length), total + length
     ray = np.empty((longest, 2), dtype=np.int64)
     flipped = np.empty(total, dtype=np.int64)  # no cell is visited more than its rays visit it
-    n = _clear(log_odds, observed, done, row0, col0, origin, hits, 1, ray, miss_lo, lo_min,
-               lo_max, threshold, flipped, 0)
-    n = _clear(log_odds, observed, done, row0, col0, origin, misses, 0, ray, miss_lo, lo_min,
+    # Typed counts, not the literals 1 / 0 / 0: _clear compiles once, not once per call.
+    one, zero = np.int64(1), np.int64(0)
+    n = _clear(log_odds, observed, done, row0, col0, origin, hits, one, ray, miss_lo, lo_min,
+               lo_max, threshold, flipped, zero)
+    n = _clear(log_odds, observed, done, row0, col0, origin, misses, zero, ray, miss_lo, lo_min,
                lo_max, threshold, flipped, n)
     for i in range(hits.shape[0]):
         r, c = hits[i, 0], hits[i, 1]
@@ -165,7 +168,7 @@ def insert_many(  # type: ignore[no-untyped-def]
         box[3] += 1
         update_cells(log_odds, observed, box, origins[s], h, m, miss_lo, hit_lo, lo_min,
                       lo_max, threshold)
-        accumulate_hits(hit_xy, hit_n, h[:, 0], h[:, 1], units[hit_starts[s]:hit_starts[s + 1]])
+        accumulate_hits(hit_xy, hit_n, h, units[hit_starts[s]:hit_starts[s + 1]])
 
 
 @njit(cache=True)

@@ -171,13 +171,14 @@ def _suppressed(k, ix0, ix1, iy0, iy1, picks, n_picks, r_cells, r_steps):  # typ
 def _exhaustive(  # type: ignore[no-untyped-def]
     levels, rows, cols, pad, w, half_steps, picks, n_picks, r_cells, r_steps, floor
 ):
-    best = (floor - 1, 0, 0, 0)
+    finest = np.int64(0)  # not the literal 0: _score and _before compile once per layout
+    best = (floor - 1, finest, finest, finest)
     for k in range(rows.shape[0]):
         for iy in range(-w, w + 1):
             for ix in range(-w, w + 1):
                 if _suppressed(k, ix, ix, iy, iy, picks, n_picks, r_cells, r_steps):
                     continue
-                score = _score(levels, 0, rows[k], cols[k], iy, ix, pad)
+                score = _score(levels, finest, rows[k], cols[k], iy, ix, pad)
                 if score > best[0] or (
                     score == best[0] and _before(k, ix, iy, best[1], best[2], best[3], half_steps)
                 ):
@@ -210,7 +211,8 @@ def _branch_and_bound(  # type: ignore[no-untyped-def]
     nodes[:n_init] = init[np.argsort(init[:, 0], kind="mergesort")]
     size = n_init
     # Scores below `floor` are not wanted: starting the best there prunes them from the start.
-    best = (floor - 1, 0, 0, 0)
+    none = np.int64(0)  # not the literal 0: _before compiles once
+    best = (floor - 1, none, none, none)
     children = np.empty((4, 5), dtype=np.int64)
     while size > 0:
         size -= 1
@@ -312,7 +314,7 @@ def _neighbourhood(levels, rows, cols, pad, k, ix, iy, radius):  # type: ignore[
     """(dx, dy, dk, score) rows for the full-resolution candidates within `radius` of the best."""
     k_lo, k_hi = max(k - radius, 0), min(k + radius, rows.shape[0] - 1)
     out = np.empty(((k_hi - k_lo + 1) * (2 * radius + 1) ** 2, 4), dtype=np.int64)
-    n = 0
+    n, finest = 0, np.int64(0)  # not the literal 0: _score compiles once per layout
     for kk in range(k_lo, k_hi + 1):
         for dy in range(-radius, radius + 1):
             for dx in range(-radius, radius + 1):
@@ -320,7 +322,7 @@ def _neighbourhood(levels, rows, cols, pad, k, ix, iy, radius):  # type: ignore[
                     dx,
                     dy,
                     kk - k,
-                    _score(levels, 0, rows[kk], cols[kk], iy + dy, ix + dx, pad),
+                    _score(levels, finest, rows[kk], cols[kk], iy + dy, ix + dx, pad),
                 )
                 n += 1
     return out

@@ -74,6 +74,17 @@ def test_overlapping_cells_of_nothing_are_empty() -> None:
     assert (cells.lookup(np.array([[0.0, 0.0]])) == -1).all()
 
 
+@pytest.mark.parametrize("build", [NDTCells.from_points, OverlappingCells.from_points])
+def test_cells_built_from_points_are_read_only_like_a_maps(build) -> None:
+    """Cells never change once made; a map's are read-only views, and a scan's must have the
+    same array types so that the compiled scorer is not compiled twice (test_warmup)."""
+    cells = build(np.random.default_rng(1).uniform(0, 3, (300, 2)), 1.0)
+    for a in (cells.index, cells.means, cells.inv_covs, cells.counts):
+        assert not a.flags.writeable
+    with pytest.raises(ValueError, match="read-only"):
+        cells.means[0, 0] = 1.0
+
+
 def test_bad_cell_size_is_rejected() -> None:
     with pytest.raises(ValueError, match="cell_size_m"):
         NDTCells.from_points(np.zeros((5, 2)), 0.0)

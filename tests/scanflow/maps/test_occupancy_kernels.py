@@ -82,10 +82,10 @@ def test_an_occupied_cell_seen_free_again_is_reported_when_it_flips_back() -> No
 def test_hit_sums_fade_past_the_count_limit_keeping_their_mean(unit: int, extra: int) -> None:
     hit_xy = np.zeros((2, 1, 1), dtype=np.uint16)
     hit_n = np.zeros((1, 1), dtype=np.uint8)
-    rows = cols = np.zeros(1, dtype=np.int64)
+    cells = np.zeros((1, 2), dtype=np.int64)
     units = np.array([[unit, 255 - unit]], dtype=np.uint16)
     for _ in range(HIT_COUNT_MAX + extra):
-        accumulate_hits(hit_xy, hit_n, rows, cols, units)
+        accumulate_hits(hit_xy, hit_n, cells, units)
     count = int(hit_n[0, 0])
     assert 0 < count <= HIT_COUNT_MAX
     mean = hit_xy[:, 0, 0] / count
@@ -104,7 +104,7 @@ def test_inserting_many_scans_equals_inserting_them_one_by_one() -> None:
     for o, h, m, u in zip(origins, hits, misses, units, strict=True):
         if len(h) or len(m):
             update_cells(*one, box_of(o, h, m), o, h, m, MISS, HIT, LO_MIN, LO_MAX, THRESHOLD)
-            accumulate_hits(one_xy, one_n, h[:, 0], h[:, 1], u)
+            accumulate_hits(one_xy, one_n, h, u)
 
     many = empty(20, 20)
     many_xy, many_n = np.zeros((2, 20, 20), np.uint16), np.zeros((20, 20), np.uint8)
