@@ -12,6 +12,7 @@ by path for `ring_in_process` and `REDRAW_ENV`, so it takes no relative imports.
 from __future__ import annotations
 
 import functools
+import warnings
 
 import numpy as np
 import pytest
@@ -105,8 +106,14 @@ def test_a_loop_closing_run_equals_the_in_process_pipeline(launcher, bus, start,
     pipeline, expected, expected_redraws = ring_reference(cull_m)
     assert len(expected_redraws) >= 1  # the run must exercise a redraw
     inserts = [m for m in redraws if isinstance(m, MapInsertMessage)]
-    assert [m.seq for m in inserts] == [o.seq for o in expected if o.inserted]
-    assert [m.seq for m in inserts if m.keyframe] == pipeline.mapper.keyframe_seqs
+    # Every insert the matcher made, in order, save those the bus lost on the way to this
+    # recorder (`missed`, checked below: the map server must have had them sent again).
+    made = [o.seq for o in expected if o.inserted]
+    missed = sorted(set(made) - {m.seq for m in inserts})
+    assert len(missed) <= len(made) // 50  # a transport's rare loss, not a matcher's omission
+    assert [m.seq for m in inserts] == [seq for seq in made if seq not in missed]
+    keyframes = [seq for seq in pipeline.mapper.keyframe_seqs if seq not in missed]
+    assert [m.seq for m in inserts if m.keyframe] == keyframes
     assert (len(pipeline.mapper.culled_seqs) > 100) == (cull_m > 0)
     bus.wait_until(lambda: len(poses) >= len(expected), 60.0, "every pose")
 
@@ -133,6 +140,13 @@ def test_a_loop_closing_run_equals_the_in_process_pipeline(launcher, bus, start,
     assert mapserver.counters["redrawn"] == len(expected_redraws)
     assert mapserver.gauges["robot.keyframes"] == len(pipeline.mapper.keyframe_seqs)
     assert "errors.insert" not in mapserver.counters
+    # Zenoh once lost two of the matcher's reliable puts to every subscriber under load (the
+    # thirty-ninth session's entry of BENCHMARKS' Test suite). What scanflow promises is that
+    # the map server has what it missed sent again: so an insert this recorder missed must
+    # have been resent, and the served map above is then whole.
+    if missed:
+        warnings.warn(f"the bus lost inserts {missed} to the test's recorder", stacklevel=1)
+        assert mapserver.counters.get("inserts_resent", 0) >= len(missed), mapserver.counters
 
     # An operator's pose is taken: the keyframe after it hangs from the one before by a weak
     # link only (tests/scanflow/backend: the closures then move it).
