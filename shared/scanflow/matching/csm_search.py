@@ -171,8 +171,9 @@ def _suppressed(k, ix0, ix1, iy0, iy1, picks, n_picks, r_cells, r_steps):  # typ
 def _exhaustive(  # type: ignore[no-untyped-def]
     levels, rows, cols, pad, w, half_steps, picks, n_picks, r_cells, r_steps, floor
 ):
-    finest = np.int64(0)  # not the literal 0: _score and _before compile once per layout
-    best = (floor - 1, finest, finest, finest)
+    # Typed zeros, not the literal 0: _score and _before compile once per layout.
+    finest = zero = np.int64(0)
+    best = (floor - 1, zero, zero, zero)
     for k in range(rows.shape[0]):
         for iy in range(-w, w + 1):
             for ix in range(-w, w + 1):
@@ -211,8 +212,8 @@ def _branch_and_bound(  # type: ignore[no-untyped-def]
     nodes[:n_init] = init[np.argsort(init[:, 0], kind="mergesort")]
     size = n_init
     # Scores below `floor` are not wanted: starting the best there prunes them from the start.
-    none = np.int64(0)  # not the literal 0: _before compiles once
-    best = (floor - 1, none, none, none)
+    zero = np.int64(0)  # typed, not the literal 0: _before compiles once
+    best = (floor - 1, zero, zero, zero)
     children = np.empty((4, 5), dtype=np.int64)
     while size > 0:
         size -= 1
