@@ -15,6 +15,7 @@ from fastapi import APIRouter, Depends, HTTPException, Query
 from fastapi.responses import PlainTextResponse, Response
 from numpy.typing import NDArray
 from scanflow import keys
+from scanflow.frontend.trajectory import tum_text
 from scanflow.wire import InitialPoseMessage, TrajectoryMessage
 from starlette.concurrency import run_in_threadpool
 
@@ -132,7 +133,7 @@ def _written(
     """The trajectory as TUM text, or as TrajectoryOut's JSON (written here, not by FastAPI
     on the event loop)."""
     if format == "tum":
-        return PlainTextResponse(tum_lines(stamps, poses), headers={"X-Scanflow-Source": source})
+        return PlainTextResponse(tum_text(stamps, poses), headers={"X-Scanflow-Source": source})
     out = TrajectoryOut(
         robot_id=robot,
         source=source,
@@ -143,12 +144,3 @@ def _written(
     )
     return Response(out.model_dump_json(), media_type="application/json")
 
-
-def tum_lines(stamps_s: NDArray[np.float64], poses: NDArray[np.float64]) -> str:
-    """TUM format: `stamp x y z qx qy qz qw` per line (planar: z = 0, yaw about z)."""
-    half = poses[:, 2] / 2.0
-    table = np.column_stack((
-        stamps_s, poses[:, 0], poses[:, 1], np.zeros(len(stamps_s)),
-        np.zeros(len(stamps_s)), np.zeros(len(stamps_s)), np.sin(half), np.cos(half),
-    ))
-    return "".join(" ".join(f"{v:.9g}" for v in row) + "\n" for row in table.tolist())

@@ -56,7 +56,8 @@ def test_trajectory_falls_back_to_the_cache_and_filters(client, publish_poses):
 
 
 def test_trajectory_from_the_map_server_in_tum(client, peer):
-    stamps = np.array([1.0, 2.0])
+    # epoch stamps keep their fractions of a second (evo pairs poses by stamp)
+    stamps = np.array([1_700_000_000.125, 1_700_000_000.25])
     poses = np.array([[0.0, 0.0, 0.0], [1.0, 2.0, math.pi / 2]])
     peer.answer(keys.trajectory("r2"), lambda q: TrajectoryMessage("r2", stamps, poses).encode())
     r = client.get("/api/v1/robots/r2/trajectory", params={"format": "tum"})
@@ -64,7 +65,8 @@ def test_trajectory_from_the_map_server_in_tum(client, peer):
     rows = [list(map(float, line.split())) for line in r.text.splitlines()]
     assert len(rows) == 2 and all(len(row) == 8 for row in rows)
     s, x, y, z, qx, qy, qz, qw = rows[1]
-    assert (s, x, y, z, qx, qy) == (2.0, 1.0, 2.0, 0.0, 0.0, 0.0)
+    assert rows[0][0] == 1_700_000_000.125
+    assert (s, x, y, z, qx, qy) == (1_700_000_000.25, 1.0, 2.0, 0.0, 0.0, 0.0)
     assert (qz, qw) == pytest.approx((math.sin(math.pi / 4), math.cos(math.pi / 4)))
 
 
