@@ -64,6 +64,20 @@ class PoseIn(BaseModel):
         return Pose2D(self.x_m, self.y_m, self.theta_rad)
 
 
+class PoseValue(BaseModel):
+    """An SE(2) pose in an answer: as computed, without PoseIn's input limits (a match of two
+    far-away scans may lie beyond them, and an answer must never fail validation)."""
+
+    x_m: float
+    y_m: float
+    theta_rad: float
+
+    @classmethod
+    def of(cls, pose: Pose2D) -> PoseValue:
+        """The pose's fields under their JSON names."""
+        return cls(x_m=pose.x, y_m=pose.y, theta_rad=pose.theta)
+
+
 class ScanIn(BaseModel):
     """A 2D lidar scan (ROS LaserScan conventions; `stamp_s` is the first beam's time)."""
 
@@ -204,7 +218,7 @@ def matrix_out(values: Any) -> Matrix3:
 class MatchOut(BaseModel):
     """The matcher's answer; `pose` maps source points into the target (or map) frame."""
 
-    pose: PoseIn
+    pose: PoseValue
     covariance: Matrix3 = Field(description="3x3 over (x, y, theta); null = no information")
     score: float
     iterations: int
@@ -221,7 +235,7 @@ class MatchOut(BaseModel):
     def from_response(cls, r: MatchResponse, round_trip_s: float) -> MatchOut:
         """The matcher's answer for JSON (non-finite covariance entries null), with the wait."""
         return cls(
-            pose=PoseIn(x_m=r.pose.x, y_m=r.pose.y, theta_rad=r.pose.theta),
+            pose=PoseValue.of(r.pose),
             covariance=matrix_out(r.covariance),
             score=r.score,
             iterations=r.iterations,
@@ -264,7 +278,7 @@ class PoseOut(BaseModel):
     score: float
     message: str
     interpolated: bool = Field(False, description="true when between two estimates")
-    map_correction: PoseIn | None = Field(
+    map_correction: PoseValue | None = Field(
         None, description="set when loop closure redrew the map at this scan: T_new_old, the "
         "map frame's change (this pose is in the new frame; the earlier path moved with it)",
     )
@@ -289,8 +303,8 @@ class PoseOut(BaseModel):
             score=e.score,
             message=e.message,
             interpolated=pose is not None,
-            map_correction=None if e.correction is None or pose is not None else PoseIn(
-                x_m=e.correction.x, y_m=e.correction.y, theta_rad=e.correction.theta
+            map_correction=(
+                None if e.correction is None or pose is not None else PoseValue.of(e.correction)
             ),
         )
 

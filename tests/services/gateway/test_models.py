@@ -168,6 +168,16 @@ def test_a_match_answer_for_json_with_its_wait():
     assert (out.iterations, out.inliers, out.time_s, out.round_trip_s) == (7, 6, 0.002, 0.01)
 
 
+def test_answers_beyond_the_input_limits_still_validate():
+    """An answer is never refused by an input's bounds (it would be a 500 to the client)."""
+    far = Pose2D(3.0 * COORD_LIMIT_M, -2.0 * COORD_LIMIT_M, 0.0)
+    answer = MatchResponse(far, np.eye(3), 0.5, 3, True, "ok", "svd", time_s=0.001, inliers=3)
+    assert MatchOut.from_response(answer, 0.01).pose.x_m == far.x
+    redrawn = estimate("r1", 8, 4.0, 1.0, 2.0)
+    redrawn = type(redrawn)(**{**vars(redrawn), "correction": far})
+    assert PoseOut.from_estimate(redrawn).map_correction.y_m == far.y
+
+
 def test_nan_in_json_is_refused(client, auth):
     """A bare NaN literal in an otherwise valid request (JSON has no NaN; Python's parser takes
     it): the range is refused by name, not read as a missing return."""
