@@ -102,7 +102,7 @@ class MotionPredictor:
             note = (
                 f"odometry jumped {step.translation_norm():.2f} m / "
                 f"{math.degrees(step.theta):.1f} deg in {gap_s:.2f} s (limits {limit_m:.2f} m / "
-                f"{math.degrees(limit_rad):.1f} deg): ignored; "
+                f"{math.degrees(limit_rad):.1f} deg): ignored"
             )
         if self._velocity.coverage_gap(stamp_s, stamp_s) is None:
             x, y, theta = self._velocity.poses_at([stamp_s])
@@ -110,7 +110,8 @@ class MotionPredictor:
             return Prediction(
                 pose, pose.relative_to(last), PredictionSource.CONSTANT_VELOCITY, note
             )
-        return Prediction(last, Pose2D(), PredictionSource.HOLD, note + "no motion prior: held")
+        held = "; ".join(m for m in (note, "no motion prior: held") if m)
+        return Prediction(last, Pose2D(), PredictionSource.HOLD, held)
 
     def update(self, stamp_s: float, pose: Pose2D, odom_pose: Pose2D | None) -> None:
         """Record the pose estimated at `stamp_s` (matched or predicted) and its odometry pose."""

@@ -246,10 +246,15 @@ class Frontend:
             self._initialised = True
             return self._finish(step, FrontendStatus.INITIALISED, None, "map initialised")
         t0 = time.perf_counter()
-        if self._lost or self._search_due():
-            result, status, note = self._localise_globally(points)
-        else:
-            result, status, note = self._match(step)
+        try:
+            if self._lost or self._search_due():
+                result, status, note = self._localise_globally(points)
+            else:
+                result, status, note = self._match(step)
+        except MatchInputError as exc:  # e.g. a search over its caps for these points
+            note = f"the match refused its input: {exc}"
+            result = failed(self.settings.method, MatchStatus.STEP_LIMIT, prediction.pose, note)
+            status = FrontendStatus.REJECTED
         step.match_time_s = time.perf_counter() - t0
         return self._finish(step, status, result, note)
 
@@ -426,7 +431,7 @@ class Frontend:
             method="" if result is None else result.method,
             iterations=0 if result is None else result.iterations,
             score=0.0 if result is None else result.score,
-            message=step.prediction.message + note,
+            message="; ".join(m for m in (step.prediction.message, note) if m),
             inserted=inserted,
             prediction_source=str(step.prediction.source),
             match_time_s=step.match_time_s,

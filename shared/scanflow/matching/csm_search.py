@@ -364,7 +364,9 @@ def default_angular_step_rad(
     """
     far_m = min(float(np.max(np.hypot(source[:, 0], source[:, 1]))), REACH_FACTOR * reach_m)
     far_m = max(far_m, resolution_m)
-    return math.acos(max(1.0 - resolution_m**2 / (2.0 * far_m**2), -1.0))
+    # The chord of one cell at far_m; acos(1 - res^2 / 2 far^2) is the same angle but rounds
+    # to 0 (a division by zero downstream) once far_m exceeds ~1e7 x resolution_m.
+    return 2.0 * math.asin(resolution_m / (2.0 * far_m))
 
 
 def reach_m(spec: GridSpec, centre: Pose2D, half_m: float) -> float:

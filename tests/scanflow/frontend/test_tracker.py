@@ -659,3 +659,23 @@ def test_a_map_too_large_for_the_search_level_is_searched_coarser_or_the_scan_re
         assert out.status is FrontendStatus.REJECTED
         assert "too large even at level 4" in out.message and "over the cap" in out.message
 
+
+
+def test_a_match_that_refuses_its_input_rejects_the_scan_and_keeps_the_map(
+    settings: FrontendSettings,
+) -> None:
+    """A sensor 20 km from the robot's origin (the front end takes any mount; a LaserScan
+    would refuse it) asks the fallback search for 4e5 angles, over its cap: the scan is
+    rejected saying so, nothing raises, the map keeps what it had."""
+    angles = np.linspace(-math.pi, math.pi, 360, endpoint=False)
+    points = np.column_stack((2e4 + 5.0 * np.cos(angles), 5.0 * np.sin(angles)))
+    points[::7, 1] *= 2.0
+    mount = Pose2D(2e4, 0.0, 0.0)
+    frontend = Frontend(settings)
+    assert frontend.process(points, 0.0, mount=mount).status is FrontendStatus.INITIALISED
+    revision = frontend.map.revision
+    out = frontend.process(points, 0.1, seq=1, mount=mount)
+    assert out.status is FrontendStatus.REJECTED and not out.inserted
+    assert out.message.startswith("no motion prior: held; the match refused its input: ")
+    assert "search too large" in out.message
+    assert frontend.map.revision == revision

@@ -4,6 +4,7 @@ window's reach, Olson's covariance floor, and kernels that let other threads run
 import math
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scanflow.geometry import Pose2D
@@ -11,6 +12,7 @@ from scanflow.maps.grid import GridSpec
 from scanflow.maps.maxpool import SCORE_SCALE, MaxPoolStack
 from scanflow.matching.csm_search import (
     build_candidates,
+    default_angular_step_rad,
     olson_covariance,
     reach_m,
     search_top,
@@ -121,3 +123,15 @@ def test_the_search_kernels_let_other_threads_run() -> None:
                maxpool._pool)
     for kernel in kernels:
         assert kernel.targetoptions.get("nogil") is True, kernel.py_func.__name__
+
+
+@given(st.floats(0.01, 0.2), st.floats(-9.0, 9.0))
+def test_the_angular_step_moves_the_farthest_point_one_cell_at_any_distance(
+    resolution_m: float, log10_far: float
+) -> None:
+    """The chord at the farthest point is one cell, even where 1 - cos underflows (a point
+    1e7 cells out once gave a zero step, then a division by zero)."""
+    far_m = max(10.0**log10_far, resolution_m)
+    step = default_angular_step_rad(np.array([[far_m, 0.0]]), resolution_m)
+    assert step > 0.0
+    assert 2.0 * far_m * math.sin(step / 2.0) == pytest.approx(resolution_m, rel=1e-9)
