@@ -15,7 +15,7 @@ from pydantic.config import JsonDict
 from scanflow import keys
 from scanflow.geometry import IDENTITY, Pose2D
 from scanflow.matching import DEFAULT_METHOD
-from scanflow.scan import MAX_BEAMS, LaserScan, Odometry
+from scanflow.scan import MAX_BEAMS, MAX_MOUNT_M, LaserScan, Odometry
 from scanflow.wire import (
     MAX_COUNT,
     MAX_POSITION_M,
@@ -64,6 +64,13 @@ class PoseIn(BaseModel):
         return Pose2D(self.x_m, self.y_m, self.theta_rad)
 
 
+class MountIn(PoseIn):
+    """The lidar's pose on the robot (T_base_laser): within MAX_MOUNT_M of its origin."""
+
+    x_m: Annotated[float, Field(ge=-MAX_MOUNT_M, le=MAX_MOUNT_M)] = 0.0
+    y_m: Annotated[float, Field(ge=-MAX_MOUNT_M, le=MAX_MOUNT_M)] = 0.0
+
+
 class PoseValue(BaseModel):
     """An SE(2) pose in an answer: as computed, without PoseIn's input limits (a match of two
     far-away scans may lie beyond them, and an answer must never fail validation)."""
@@ -97,7 +104,7 @@ class ScanIn(BaseModel):
         None, max_length=MAX_BEAMS
     )
     frame_id: Annotated[str, Field(max_length=128)] = "laser"
-    mount: PoseIn | None = Field(
+    mount: MountIn | None = Field(
         None, description="the lidar's pose on the robot (T_base_laser); omit: at its origin"
     )
     seq: Seq | None = Field(None, description=(

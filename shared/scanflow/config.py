@@ -16,6 +16,7 @@ from pydantic import Field, SecretStr, ValidationError, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from scanflow.geometry import Pose2D
+from scanflow.scan import MAX_MOUNT_M
 from scanflow.sim.run import MAX_DURATION_S as MAX_SIM_DURATION_S
 
 
@@ -86,6 +87,14 @@ def _check_pose(value: list[float]) -> list[float]:
     """A pose setting: empty (unset) or 'x_m,y_m,yaw_deg', all finite."""
     if value and (len(value) != 3 or not all(math.isfinite(v) for v in value)):
         raise ValueError(f"must be 3 finite numbers 'x_m,y_m,yaw_deg', got {value!r}")
+    return value
+
+
+def _check_mount(value: list[float]) -> list[float]:
+    """A mount setting: a pose setting within +-MAX_MOUNT_M of the robot's origin (a scan
+    would refuse one farther)."""
+    if _check_pose(value) and max(abs(value[0]), abs(value[1])) > MAX_MOUNT_M:
+        raise ValueError(f"must lie within +-{MAX_MOUNT_M:g} m of the robot, got {value!r}")
     return value
 
 
@@ -251,7 +260,7 @@ class IngestSettings(ServiceSettings):
     drain_timeout_s: float = Field(60.0, ge=0.0, description="wait for the last pose at the end")
 
     _split = field_validator("mount", mode="before")(_split_csv)
-    _check_mount = field_validator("mount")(_check_pose)
+    _check_mount = field_validator("mount")(_check_mount)
     _check_log = field_validator("log")(_check_log)
 
     def mount_pose(self) -> Pose2D | None:

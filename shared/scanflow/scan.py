@@ -17,7 +17,8 @@ Conventions (the same as ROS sensor_msgs/LaserScan):
 - `mount` is the sensor's pose on the robot, T_base_sensor (ROS: the static transform
   base_link -> the scan's frame_id). Deskewing moves every beam into the robot's frame, so
   odometry, matching, maps and published poses are all the robot's; identity (the default)
-  means the sensor sits at the robot's origin, facing forward.
+  means the sensor sits at the robot's origin, facing forward. It lies within MAX_MOUNT_M of
+  the robot's origin: one farther is a wrong transform or wrong units (millimetres).
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from numpy.typing import ArrayLike, NDArray
 from scanflow.geometry import IDENTITY, Pose2D
 
 MAX_BEAMS = 100_000
+MAX_MOUNT_M = 100.0  # the sensor's distance from the robot's origin, in x and in y
 
 
 class ScanError(ValueError):
@@ -138,6 +140,11 @@ class LaserScan:
         object.__setattr__(self, "seq", _count("seq", self.seq))
         if not isinstance(self.mount, Pose2D):
             raise ScanError(f"mount must be a Pose2D, got {type(self.mount).__name__}")
+        if max(abs(self.mount.x), abs(self.mount.y)) > MAX_MOUNT_M:
+            raise ScanError(
+                f"mount ({self.mount.x}, {self.mount.y}) m is beyond +-{MAX_MOUNT_M:g} m of the "
+                f"robot's origin (a wrong transform, or millimetres?)"
+            )
 
     @property
     def beam_count(self) -> int:

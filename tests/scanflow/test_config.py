@@ -192,7 +192,7 @@ def test_ingest_mount_is_x_y_and_yaw_in_degrees(clean_env) -> None:
     assert config.IngestSettings().mount_pose() is None
     clean_env.setenv("SCANFLOW_INGEST_MOUNT", "0.3,-0.1,90")
     assert config.IngestSettings().mount_pose() == Pose2D(0.3, -0.1, math.pi / 2)
-    for bad in ("0.3,-0.1", "1,2,nan", "[1, 2, 3, 4]"):
+    for bad in ("0.3,-0.1", "1,2,nan", "[1, 2, 3, 4]", "250,0,0"):
         clean_env.setenv("SCANFLOW_INGEST_MOUNT", bad)
         with pytest.raises(ValidationError, match="mount"):
             config.IngestSettings()

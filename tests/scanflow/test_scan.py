@@ -11,7 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from scanflow.geometry import Pose2D
-from scanflow.scan import LaserScan, Odometry, ScanError
+from scanflow.scan import MAX_MOUNT_M, LaserScan, Odometry, ScanError
 
 
 def make_scan(ranges, **fields) -> LaserScan:
@@ -195,3 +195,11 @@ def test_robot_points_apply_the_mount() -> None:
     assert mounted.with_ranges(mounted.ranges_m).mount == mounted.mount
     with pytest.raises(ScanError, match="mount"):
         LaserScan(np.ones(3, np.float32), 0.0, 0.1, mount=(0.5, 0.0, 0.0))
+
+
+@pytest.mark.parametrize("mount", [Pose2D(MAX_MOUNT_M * 1.01, 0.0, 0.0), Pose2D(0.0, -250.0, 0.0)])
+def test_a_mount_far_from_the_robot_is_refused(mount: Pose2D) -> None:
+    """Millimetres for metres, or a wrong transform: refused by name, never searched."""
+    with pytest.raises(ScanError, match=r"mount .* beyond \+-100 m"):
+        LaserScan(np.ones(3, np.float32), 0.0, 0.1, mount=mount)
+    assert LaserScan(np.ones(3, np.float32), 0.0, 0.1, mount=Pose2D(99.0, -99.0, 3.0)).mount.x == 99

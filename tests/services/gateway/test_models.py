@@ -66,6 +66,7 @@ def test_nan_and_infinity_are_refused_naming_the_field(value):
         (ScanIn, {**INGEST_SCAN, "angle_increment_rad": 1.5}, "angle_increment_rad"),
         (ScanIn, {**INGEST_SCAN, "scan_duration_s": 11.0}, "scan_duration_s"),
         (ScanIn, {**INGEST_SCAN, "seq": -1}, "seq"),
+        (ScanIn, {**INGEST_SCAN, "mount": {"y_m": -250.0}}, "mount.y_m"),
         (ScanIn, {**INGEST_SCAN, "intensities": [1.0]}, "intensities has 1 values"),
         (ScanIn, {**INGEST_SCAN, "range_min_m": 5.0, "range_max_m": 5.0}, "must exceed"),
         (OdometryIn, {"stamp_s": -1.0, "pose": {}}, "stamp_s"),
