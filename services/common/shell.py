@@ -464,8 +464,9 @@ class ServiceShell:
         try:
             handle(kind, message)
         except Exception:  # a bad message must not stop the service
-            self.counters.add(f"errors.{kind}")
-            self.log.exception("failed to handle a %s message", kind)
+            n = self.counters.add(f"errors.{kind}")
+            if worth_logging(n):  # one bad source at the scan rate must not flood the log
+                self.log.exception("failed to handle a %s message (%d so far)", kind, n)
         took_s = time.perf_counter() - t0
         self._handle_max_s = max(self._handle_max_s, took_s)
         if took_s > self.slow_message_s:  # everything behind it waited that long too

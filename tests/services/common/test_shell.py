@@ -12,6 +12,7 @@ from scanflow import keys
 from scanflow.config import DeskewSettings, MatcherSettings, ZenohSettings
 from scanflow.wire import RetiredMessage, RetireMessage
 
+from services.common.counters import LOG_EVERY, LOG_FIRST
 from services.common.launch import free_port
 from services.common.retire import Dropped
 from services.common.shell import ServiceShell, robots_only
@@ -140,6 +141,33 @@ def test_failing_idle_work_is_logged_counted_and_the_worker_goes_on(caplog) -> N
         shell.close(flush_s=0.0)
     assert handled == ["scan"] and stats.counters["errors.idle"] == 1
     assert "idle work failed" in caplog.text and "disk full" in caplog.text
+
+
+def test_a_message_that_fails_every_time_is_counted_and_logged_sparingly(caplog) -> None:
+    """A source sending one bad message after another: every failure is counted, the first
+    LOG_FIRST logged with their traceback, then one in LOG_EVERY; the worker goes on."""
+    shell = ServiceShell("deskew", DeskewSettings(), ZenohSettings(mode="peer", connect=[]))
+    total = LOG_EVERY + 5
+    for _ in range(total):
+        shell.inbox.put("scan", None)
+    seen: list[int] = []
+
+    def handle(_kind: str, _message: object) -> None:
+        seen.append(1)
+        if len(seen) == total:
+            shell.stop()
+        raise ValueError("bad ranges")
+
+    try:
+        with caplog.at_level(logging.ERROR, logger="scanflow.deskew"):
+            shell.run(handle, poll_s=0.01)
+        stats = shell.stats()
+    finally:
+        shell.close(flush_s=0.0)
+    assert len(seen) == total and stats.counters["errors.scan"] == total
+    logged = [r for r in caplog.records if "failed to handle a scan message" in r.getMessage()]
+    assert len(logged) == LOG_FIRST + 1 and all(r.exc_info for r in logged)
+    assert f"({LOG_EVERY} so far)" in logged[-1].getMessage()
 
 
 def test_a_full_feedback_lane_drops_the_oldest_hint_but_never_what_it_must_keep() -> None:
