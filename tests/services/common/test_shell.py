@@ -19,6 +19,17 @@ from services.common.shell import ServiceShell, robots_only
 from services.common.zsession import open_session
 
 
+def run_to_stop(shell: ServiceShell, caplog, level: int, handle, idle=None):
+    """Run the deskew shell's worker until a handler stops it, logging at `level` into
+    caplog; close it however that ends; its stats."""
+    try:
+        with caplog.at_level(level, logger="scanflow.deskew"):
+            shell.run(handle, idle, poll_s=0.01)
+        return shell.stats()
+    finally:
+        shell.close(flush_s=0.0)
+
+
 def wait_until_answered(shell: ServiceShell, key: str, payload: bytes) -> None:
     """Query `key` until `payload` comes back: the shell's side session opens at its first
     `get`, and a queryable declared a moment before may not have reached the router yet."""
@@ -57,12 +68,7 @@ def test_a_slow_message_is_logged_counted_and_measured(caplog) -> None:
 
     shell.inbox.put("quick", 0.0)
     shell.inbox.put("scan", 0.2)
-    try:
-        with caplog.at_level(logging.WARNING, logger="scanflow.deskew"):
-            shell.run(handle, poll_s=0.01)
-        stats = shell.stats()
-    finally:
-        shell.close(flush_s=0.0)
+    stats = run_to_stop(shell, caplog, logging.WARNING, handle)
     assert handled == ["quick", "scan"]
     assert stats.counters["slow.scan"] == 1 and "slow.quick" not in stats.counters
     assert stats.gauges["handle_max_s"] >= 0.2
@@ -133,12 +139,7 @@ def test_failing_idle_work_is_logged_counted_and_the_worker_goes_on(caplog) -> N
         handled.append(kind)
         shell.stop()
 
-    try:
-        with caplog.at_level(logging.ERROR, logger="scanflow.deskew"):
-            shell.run(handle, idle, poll_s=0.01)
-        stats = shell.stats()
-    finally:
-        shell.close(flush_s=0.0)
+    stats = run_to_stop(shell, caplog, logging.ERROR, handle, idle)
     assert handled == ["scan"] and stats.counters["errors.idle"] == 1
     assert "idle work failed" in caplog.text and "disk full" in caplog.text
 
@@ -158,12 +159,7 @@ def test_a_message_that_fails_every_time_is_counted_and_logged_sparingly(caplog)
             shell.stop()
         raise ValueError("bad ranges")
 
-    try:
-        with caplog.at_level(logging.ERROR, logger="scanflow.deskew"):
-            shell.run(handle, poll_s=0.01)
-        stats = shell.stats()
-    finally:
-        shell.close(flush_s=0.0)
+    stats = run_to_stop(shell, caplog, logging.ERROR, handle)
     assert len(seen) == total and stats.counters["errors.scan"] == total
     logged = [r for r in caplog.records if "failed to handle a scan message" in r.getMessage()]
     assert len(logged) == LOG_FIRST + 1 and all(r.exc_info for r in logged)
