@@ -25,12 +25,19 @@ from scanflow.wire import MapInsertMessage, MapRedrawMessage, MapStateMessage
 from services.common.keyframes import keyframes_message
 from services.common.resend import FIRST
 
+_BEFORE_RESUME = FIRST - 1  # the unknown insert a resumed run's first followed: never asked for
+
 
 class RecentInserts:
-    """The last `capacity` encoded inserts of one robot's run, with the chain's last seq."""
+    """The last `capacity` encoded inserts of one robot's run, with the chain's last seq.
 
-    def __init__(self, capacity: int) -> None:
+    A run `resumed` from the map server's map starts mid-chain: its first insert names no
+    previous one, yet is not the run's first, so it never answers "from the run's first"
+    (FIRST): that asker gets the keyframes or the whole map, not a map missing the start."""
+
+    def __init__(self, capacity: int, resumed: bool = False) -> None:
         self._kept: deque[tuple[int, int, bytes]] = deque(maxlen=capacity)  # seq, previous
+        self._unlinked = _BEFORE_RESUME if resumed else FIRST  # what a first insert follows
         self._lock = threading.Lock()  # the worker adds while a resend query reads
         self.last_seq: int | None = None  # the run's last insert (None: none yet, or unknown)
         self.scan_seq: int | None = None  # the tracker's last scan
@@ -51,7 +58,8 @@ class RecentInserts:
     def add(self, seq: int, previous_seq: int | None, payload: bytes) -> None:
         """Keep the insert of `seq` (encoded as `payload`) that followed `previous_seq`."""
         with self._lock:
-            self._kept.append((seq, FIRST if previous_seq is None else previous_seq, payload))
+            previous = self._unlinked if previous_seq is None else previous_seq
+            self._kept.append((seq, previous, payload))
             self.last_seq = seq
 
     def kept(self) -> int:

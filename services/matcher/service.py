@@ -239,7 +239,7 @@ class MatcherService:
         with self.lock:
             self.frontends[robot_id] = new
             self.awaiting.pop(robot_id, None)
-            self.recent[robot_id] = RecentInserts(self.settings.resend_inserts)
+            self.recent[robot_id] = RecentInserts(self.settings.resend_inserts, seeded is not None)
             if mapper is None:
                 self.mappers.pop(robot_id, None)
             else:

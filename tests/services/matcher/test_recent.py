@@ -32,6 +32,17 @@ def test_recent_inserts_send_a_chain_again_or_name_what_they_keep() -> None:
         RecentInserts(0).between(-1, 0)
 
 
+def test_a_resumed_runs_first_insert_is_not_the_runs_first() -> None:
+    """A matcher resumed mid-run: asked for everything from the run's first insert (a map
+    server that lost its map), it must not answer with the inserts since it resumed."""
+    recent = RecentInserts(8, resumed=True)
+    for seq, previous in ((100, None), (101, 100), (104, 101)):
+        recent.add(seq, previous, f"insert {seq}".encode())
+    with pytest.raises(LookupError, match="after seq -1 through 104"):
+        recent.between(-1, 104)
+    assert recent.between(100, 104) == [b"insert 101", b"insert 104"]
+
+
 def test_inserts_past_the_recent_ones_come_from_the_back_ends_keyframes() -> None:
     """Without culling, every insert of a robot tracked with loop closure is a keyframe:
     rebuilt at the pose it is drawn at, chained by seq; seqs it does not hold are named."""
