@@ -25,7 +25,7 @@ import numpy as np
 from scanflow.maps.export import grid_from_npz_bytes
 from scanflow.maps.occupancy import OccupancyGrid
 from scanflow.pipeline import Pipeline
-from scanflow.wire import MapInsertMessage, MapStateMessage
+from scanflow.wire import MapInsertMessage, MapStateMessage, new_run
 
 from bench.data import corrected_log, log_keyframes
 from services.mapserver.robot import RobotMap
@@ -39,7 +39,7 @@ def run(path: Path, limit: int | None) -> dict[str, Any]:
     (ms) of each; asserts both end with the front end's map."""
     frames = log_keyframes(path, limit)
     pipeline = Pipeline()
-    recent = RecentInserts(0)
+    recent = RecentInserts(0, new_run())
     inserts: list[MapInsertMessage] = []
     for kf in frames:
         step = pipeline.process(kf.scan, kf.odom_pose)

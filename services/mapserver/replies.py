@@ -79,4 +79,5 @@ def resume(robot: RobotMap) -> ResumeMessage:
     return ResumeMessage(
         robot.robot_id, robot.map.revision, image(robot, "npz").data,
         robot.trajectory.stamps_s, robot.trajectory.poses, kept, robot.odom_at_path_end(),
+        robot.run,
     )

@@ -64,6 +64,10 @@ class RobotMap:
                 self.keyframes = saved
             elif snap is None or snap.last_insert_seq < 0:
                 self.keyframes = Keyframes()
+        # The tracker's run this map is of (its token; 0: not known yet, or a snapshot older
+        # than tokens), and the runs it replaced, whose late messages are dropped.
+        self.run = 0 if snap is None else snap.run
+        self.ended_runs: set[int] = set()
         self.redrawn_seq = -1 if snap is None else snap.redrawn_seq
         self.last_seq = -1 if snap is None else snap.last_seq
         self.last_insert_seq = -1 if snap is None else snap.last_insert_seq
@@ -81,6 +85,20 @@ class RobotMap:
     def state(self) -> tuple[int, int]:
         """(map revision, last pose seq): what a snapshot must capture."""
         return (self.map.revision, self.last_seq)
+
+    def follows(self, run: int) -> bool:
+        """Take the message of tracker run `run` (0: unknown, any run's): False when it is of
+        a run this map replaced (late), else True after starting afresh if it is of a run
+        other than the map's (a new one: a restarted replay, a tracker started anew)."""
+        if not run or run == self.run:
+            return True
+        if run in self.ended_runs:
+            return False
+        if self.run:
+            self.ended_runs.add(self.run)
+            self.reset()
+        self.run = run
+        return True
 
     def reset(self) -> None:
         """The robot's stream restarted (a replay): start its map and trajectory afresh."""
@@ -209,4 +227,5 @@ class RobotMap:
             self.redrawn_seq,
             self.last_insert_seq,
             self.last_odom,
+            self.run,
         )

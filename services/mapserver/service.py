@@ -117,6 +117,8 @@ class MapServer:
             robot = self.robots[robot_id] = RobotMap(
                 robot_id, self.new_grid, keep_keyframes=self.keep_keyframes
             )
+        if not self._of_the_run(robot, message):
+            return
         if self._held(robot, message):  # in the tracker's map taken before
             return
         if isinstance(message, MapRedrawMessage):  # follows the insert of its own scan
@@ -147,6 +149,20 @@ class MapServer:
             self.shell.counters.add("inserted")
         else:
             robot.apply(message)
+
+    def _of_the_run(self, robot: RobotMap, message: Update) -> bool:
+        """Whether to apply the message: of the map's run, or of a new run (the map starts
+        afresh, logged: seqs alone miss a new run whose first scans this server never saw);
+        not when it is of a run the map replaced (late; counted)."""
+        before = robot.run
+        if not robot.follows(message.run):
+            self.shell.counters.add("ended_run_dropped")
+            return False
+        if before and robot.run != before:
+            self.shell.log.info("robot %s: a new run of its tracker at seq %d: its map and path "
+                                "start afresh", robot.robot_id, message.seq)
+            self.shell.counters.add("runs_replaced")
+        return True
 
     def _held(self, robot: RobotMap, message: Update) -> bool:
         """Whether the robot's map holds the insert or redraw already (counted)."""
@@ -187,6 +203,9 @@ class MapServer:
             if len(inserts) != len(messages):
                 raise SchemaError(f"the answers are {sorted({m.TYPE for m in messages})}")
             inserts.sort(key=lambda m: m.seq)
+            other = {m.run for m in inserts} - {0, robot.run}
+            if other:  # the tracker started another run meanwhile: its messages will say so
+                raise LookupError("the matcher's inserts are of another run of its tracker")
             chained = [m.previous_seq for m in inserts] == [
                 None if after == FIRST else after, *(m.seq for m in inserts[:-1])
             ]
@@ -211,6 +230,8 @@ class MapServer:
     ) -> None:
         """The matcher's whole map and path in place of the inserts after seq `after` through
         `through`; ValueError, changing nothing, when it is not that robot's or ends short."""
+        if state.run not in (0, robot.run):
+            raise ValueError(f"the matcher's map of {robot.robot_id} is of another run")
         if state.robot_id != robot.robot_id or state.insert_seq < through:
             raise ValueError(
                 f"a map of robot {state.robot_id!r} through insert {state.insert_seq} came, "

@@ -27,7 +27,7 @@ from scanflow.config import MapServerSettings
 from scanflow.geometry import Pose2D
 from scanflow.maps.export import grid_from_npz, npz_arrays, write_npz
 from scanflow.maps.occupancy import OccupancyGrid
-from scanflow.wire import KeyframesMessage
+from scanflow.wire import MAX_COUNT, KeyframesMessage
 
 from services.common.keyframes import scan_nodes
 from services.mapserver.keyframes import FIELDS, Keyframes
@@ -58,6 +58,7 @@ class Snapshot:
     redrawn_seq: int = -1  # the scan of the last redraw (its path already holds up to it)
     last_insert_seq: int = -1  # the last insert in the map (the next names the one before it)
     last_odom: tuple[float, Pose2D] | None = None  # (stamp, odometry pose) of the last estimate
+    run: int = 0  # the tracker's run the map is of (0: unknown)
 
 
 def snapshot_path(data_dir: Path, robot_id: str) -> Path:
@@ -74,6 +75,7 @@ def save_snapshot(data_dir: Path, snap: Snapshot, per_file: int = PER_FILE) -> N
     arrays.update(
         stamps_s=snap.stamps_s, poses=snap.poses, last_seq=np.int64(snap.last_seq),
         redrawn_seq=np.int64(snap.redrawn_seq), last_insert_seq=np.int64(snap.last_insert_seq),
+        run=np.int64(snap.run),
     )
     if snap.last_odom is not None:
         stamp_s, odom = snap.last_odom
@@ -169,6 +171,9 @@ def load_snapshots(data_dir: Path) -> tuple[list[Snapshot], list[str]]:
                 # Older files: the inserts up to the last pose are likely in.
                 last_insert_seq = int(data.get("last_insert_seq", last_seq))
                 last_odom = _last_odom(data)
+                run = int(data.get("run", 0))  # older files: unknown, the next run's taken on
+                if not 0 <= run <= MAX_COUNT:
+                    raise ValueError(f"run must be a count, got {run}")
                 keyframes = _keyframes(data_dir, robot_id, data, skipped)
         except UNREADABLE as exc:
             skipped.append(
@@ -178,7 +183,7 @@ def load_snapshots(data_dir: Path) -> tuple[list[Snapshot], list[str]]:
             continue
         snaps.append(Snapshot(
             robot_id, grid, stamps_s, poses, last_seq, keyframes, redrawn_seq, last_insert_seq,
-            last_odom,
+            last_odom, run,
         ))
     return snaps, skipped
 

@@ -29,13 +29,15 @@ _BEFORE_RESUME = FIRST - 1  # the unknown insert a resumed run's first followed:
 
 
 class RecentInserts:
-    """The last `capacity` encoded inserts of one robot's run, with the chain's last seq.
+    """The last `capacity` encoded inserts of one robot's run `run` (its token, which the
+    run's every insert, redraw, map state and estimate carries), with the chain's last seq.
 
     A run `resumed` from the map server's map starts mid-chain: its first insert names no
     previous one, yet is not the run's first, so it never answers "from the run's first"
     (FIRST): that asker gets the keyframes or the whole map, not a map missing the start."""
 
-    def __init__(self, capacity: int, resumed: bool = False) -> None:
+    def __init__(self, capacity: int, run: int, resumed: bool = False) -> None:
+        self.run = run
         self._kept: deque[tuple[int, int, bytes]] = deque(maxlen=capacity)  # seq, previous
         self._unlinked = _BEFORE_RESUME if resumed else FIRST  # what a first insert follows
         self._lock = threading.Lock()  # the worker adds while a resend query reads
@@ -103,18 +105,18 @@ def map_state(
     )
     return MapStateMessage(
         robot_id, recent.scan_seq, recent.map_seq, npz_bytes(npz_arrays(frontend.map.grid)),
-        stamps, poses, kept,
+        stamps, poses, kept, recent.run,
     )
 
 
 def keyframe_inserts(
-    mapper: Mapper, robot_id: str, after: int, through: int
+    mapper: Mapper, robot_id: str, run: int, after: int, through: int
 ) -> tuple[list[MapInsertMessage], int]:
-    """The inserts after seq `after` (-1: from the first) through seq `through`, rebuilt from
-    the back end's keyframes at the poses they are drawn at now: the pose each went in at, or
-    where the last redraw put it. Inserts the back end culled as keyframes (`cull_m`) are not
-    kept: they are left out, the chain linking the keyframes around them, and how many it knows
-    of is returned beside (`culled_between`)."""
+    """The inserts of run `run` after seq `after` (-1: from the first) through seq `through`,
+    rebuilt from the back end's keyframes at the poses they are drawn at now: the pose each went
+    in at, or where the last redraw put it. Inserts the back end culled as keyframes (`cull_m`)
+    are not kept: they are left out, the chain linking the keyframes around them, and how many
+    it knows of is returned beside (`culled_between`)."""
     culled = culled_between(mapper, after, through)
     seqs = mapper.keyframe_seqs
     inserts, previous = [], None if after == FIRST else after
@@ -122,7 +124,7 @@ def keyframe_inserts(
         node = mapper.nodes[k]
         inserts.append(MapInsertMessage(
             robot_id, seqs[k], node.stamp_s, mapper.drawn_pose(k), node.points, node.no_return,
-            node.mount, previous,
+            node.mount, previous, run=run,
         ))
         previous = seqs[k]
     return inserts, culled

@@ -62,6 +62,7 @@ from scanflow.wire import (
     MessageError,
     PoseEstimateMessage,
     ResumeMessage,
+    new_run,
 )
 
 from services.common.keyframes import scan_nodes
@@ -172,7 +173,7 @@ class MatcherService:
         self.shell.counters.add("backend.redraws")
         return MapRedrawMessage(
             robot_id, seq, step.correction, np.asarray(mapper.keyframe_seqs, dtype=np.int64),
-            mapper.graph.poses, mapper.stamps_s(), mapper.trajectory(),
+            mapper.graph.poses, mapper.stamps_s(), mapper.trajectory(), self.recent[robot_id].run,
         )
 
     def _publish(
@@ -187,7 +188,7 @@ class MatcherService:
             recent = self.recent[robot_id]
             insert = MapInsertMessage(
                 robot_id, out.seq, out.stamp_s, out.pose, scan.points, scan.no_return_points,
-                scan.mount, recent.last_seq, keyframe,
+                scan.mount, recent.last_seq, keyframe, recent.run,
             )
             payload = insert.encode()
             recent.add(insert.seq, insert.previous_seq, payload)
@@ -197,7 +198,8 @@ class MatcherService:
             self._put_redraw(redraw)
             out = out.in_frame(redraw.correction)
         estimate = PoseEstimateMessage.from_result(
-            out, robot_id, out.seq, out.stamp_s, correction, scan.odom_pose
+            out, robot_id, out.seq, out.stamp_s, correction, scan.odom_pose,
+            self.recent[robot_id].run,
         )
         self.shell.put(keys.pose(robot_id, prefix), estimate.encode())
         self.shell.counters.add(f"status.{out.status}")
@@ -239,7 +241,9 @@ class MatcherService:
         with self.lock:
             self.frontends[robot_id] = new
             self.awaiting.pop(robot_id, None)
-            self.recent[robot_id] = RecentInserts(self.settings.resend_inserts, seeded is not None)
+            # A resumed run goes on as the map server's (a new token when it knows none).
+            run = seeded[1].run if seeded is not None and seeded[1].run else new_run()
+            self.recent[robot_id] = RecentInserts(self.settings.resend_inserts, run, bool(seeded))
             if mapper is None:
                 self.mappers.pop(robot_id, None)
             else:
@@ -362,7 +366,7 @@ class MatcherService:
             if frontend is None:  # retired meanwhile
                 raise LookupError(f"robot {robot_id}: this matcher tracks it no more")
             if mapper is not None and not culled:
-                inserts, _ = keyframe_inserts(mapper, robot_id, after, through)
+                inserts, _ = keyframe_inserts(mapper, robot_id, recent.run, after, through)
             else:
                 state = map_state(robot_id, frontend, recent, mapper)
         if mapper is not None and not culled:

@@ -20,12 +20,21 @@ Changing any message's fields bumps SCHEMA_VERSION (2: `DeskewedScanMessage.no_r
 7: `MapStateMessage`, a matcher's whole map for a map server that missed more inserts than
 the matcher keeps; 8: `PoseEstimateMessage.odom_pose` and `ResumeMessage.odom_pose`, so a
 restarted matcher predicts the robot's next pose from the odometry since the last one;
-9: `RetireMessage` and `RetiredMessage`, a robot retired from every service):
+9: `RetireMessage` and `RetiredMessage`, a robot retired from every service; 10: `run`, the
+tracker's run token, on inserts, redraws, map states, resumes and estimates, so that a map
+server tells a new run from a gap in the old one):
 readers refuse other versions with a VersionError, so services of two versions fail loudly
 instead of dropping or missing a field.
 """
 
-from scanflow.wire.base import MAX_COUNT, MAX_POSITION_M, Message, decode_any, message_types
+from scanflow.wire.base import (
+    MAX_COUNT,
+    MAX_POSITION_M,
+    Message,
+    decode_any,
+    message_types,
+    new_run,
+)
 from scanflow.wire.codec import (
     ALLOWED_DTYPES,
     MAX_BULK_BYTES,
@@ -100,4 +109,5 @@ __all__ = [
     "VersionError",
     "decode_any",
     "message_types",
+    "new_run",
 ]

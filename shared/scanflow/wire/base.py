@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import operator
+import secrets
 from typing import Any, ClassVar, Self
 
 import numpy as np
@@ -107,6 +108,14 @@ def check_finite(name: str, value: float) -> float:
 
 MAX_POSITION_M = 1e6  # an operator's pose, odometry: no map is larger (the gateway bounds the same)
 MAX_COUNT = 2**62  # seqs and counts: int64 with room to add one (snapshots, numpy arrays)
+
+
+def new_run() -> int:
+    """A fresh run token: random, non-zero, a count on the wire. A tracker draws one when it
+    starts a robot afresh; its inserts, redraws, map states and estimates carry it, so that a
+    map server tells a new run from a gap in the old one (seqs alone cannot: a server that
+    missed a run's first scans sees its seqs go on past the old run's)."""
+    return secrets.randbelow(MAX_COUNT) + 1
 
 
 def check_count(name: str, value: int) -> int:

@@ -26,9 +26,10 @@ from scanflow.wire.errors import (
     VersionError,
 )
 
-SCHEMA_VERSION = 9  # 2: no-return points; 3: the sensor `mount`; 4: map redraws; 5: resume;
+SCHEMA_VERSION = 10  # 2: no-return points; 3: the sensor `mount`; 4: map redraws; 5: resume;
 # 6: an insert says whether it is a keyframe; 7: a matcher's map state; 8: the odometry pose
-# of an estimate, and of a resume's last pose; 9: retiring a robot
+# of an estimate, and of a resume's last pose; 9: retiring a robot; 10: the tracker's `run`
+# on inserts, redraws, map states, resumes and estimates
 MAX_PAYLOAD_BYTES = 16 * 1024 * 1024  # any message
 # A bulk message (a map, a path, keyframes: it grows with the run) may be this big; it stays
 # under Zenoh's own 1 GiB (`transport/link/rx/max_message_size`), so ours is the error seen.

@@ -77,6 +77,7 @@ class PoseEstimateMessage(Message):
         "message": TEXT,
         "correction": optional(POSE),
         "odom_pose": optional(POSE),
+        "run": INT,
     }
     robot_id: str
     seq: int
@@ -94,10 +95,12 @@ class PoseEstimateMessage(Message):
     # The odometry pose the tracker had for this scan (None: none): a restarted tracker goes on
     # from the map server's last pose with the odometry since it (schema version 8).
     odom_pose: Pose2D | None = None
+    run: int = 0  # the tracker's run (MapInsertMessage.run; 0: unknown)
 
     def __post_init__(self) -> None:
         check_robot_id(self.robot_id)
         object.__setattr__(self, "seq", check_count("seq", self.seq))
+        object.__setattr__(self, "run", check_count("run", self.run))
         object.__setattr__(self, "stamp_s", check_finite("stamp_s", self.stamp_s))
         check_pose("pose", self.pose)
         object.__setattr__(self, "covariance", _check_covariance("covariance", self.covariance))
@@ -114,11 +117,12 @@ class PoseEstimateMessage(Message):
     @classmethod
     def from_result(
         cls, result: MatchResult | FrontendOutput, robot_id: str, seq: int, stamp_s: float,
-        correction: Pose2D | None = None, odom_pose: Pose2D | None = None,
+        correction: Pose2D | None = None, odom_pose: Pose2D | None = None, run: int = 0,
     ) -> Self:
         """The estimate a tracker publishes: a match result's or a front-end output's pose,
         covariance, status, method, iterations, score and message (and the map frame's
-        `correction` when the map was redrawn at this scan, the scan's `odom_pose`)."""
+        `correction` when the map was redrawn at this scan, the scan's `odom_pose`, the
+        tracker's `run`)."""
         return cls(
             robot_id=robot_id,
             seq=seq,
@@ -132,6 +136,7 @@ class PoseEstimateMessage(Message):
             message=result.message,
             correction=correction,
             odom_pose=odom_pose,
+            run=run,
         )
 
 

@@ -62,7 +62,9 @@ class MapInsertMessage(Message):
     the tracker does not know it: a restarted matcher): a map server that holds another last
     insert missed some, and asks the matcher to send them again (`keys.map_key(r, "resend")`).
     `keyframe` is false when the tracker's back end (loop closure, `cull_m`) did not make the
-    scan a keyframe: map redraws leave it out, so a map server need not keep it.
+    scan a keyframe: map redraws leave it out, so a map server need not keep it. `run` is the
+    tracker's run token (`new_run`; 0: unknown), on its redraws, map states and estimates too:
+    a map server holding another run's map starts the robot afresh.
     """
 
     TYPE = "map_insert"
@@ -76,6 +78,7 @@ class MapInsertMessage(Message):
         "mount": POSE,
         "previous_seq": optional(INT),
         "keyframe": FLAG,
+        "run": INT,
     }
     robot_id: str
     seq: int
@@ -86,10 +89,12 @@ class MapInsertMessage(Message):
     mount: Pose2D = IDENTITY
     previous_seq: int | None = None
     keyframe: bool = True
+    run: int = 0
 
     def __post_init__(self) -> None:
         check_robot_id(self.robot_id)
         object.__setattr__(self, "seq", check_count("seq", self.seq))
+        object.__setattr__(self, "run", check_count("run", self.run))
         object.__setattr__(self, "keyframe", bool(self.keyframe))
         if self.previous_seq is not None:
             previous = check_count("previous_seq", self.previous_seq)
@@ -123,6 +128,7 @@ class MapRedrawMessage(Message):
         "keyframe_seqs": array("<i8"),
         "keyframe_poses": array("<f8"),
         **PATH,
+        "run": INT,
     }
     robot_id: str
     seq: int
@@ -131,10 +137,12 @@ class MapRedrawMessage(Message):
     keyframe_poses: NDArray[np.float64]
     stamps_s: NDArray[np.float64]
     poses: NDArray[np.float64]
+    run: int = 0  # the tracker's run (MapInsertMessage.run)
 
     def __post_init__(self) -> None:
         check_robot_id(self.robot_id)
         object.__setattr__(self, "seq", check_count("seq", self.seq))
+        object.__setattr__(self, "run", check_count("run", self.run))
         check_pose("correction", self.correction)
         seqs = check_seqs("keyframe_seqs", self.keyframe_seqs)
         object.__setattr__(self, "keyframe_seqs", seqs)
@@ -234,6 +242,7 @@ class ResumeMessage(Message):
     `keyframes`. One answer rather than three queries: a redraw cannot fall between the map and
     the keyframes and leave them in two frames. `odom_pose` (schema version 8) is the odometry
     pose of the path's last pose (None: unknown): the next scan is predicted from there.
+    `run` is the run the map holds (MapInsertMessage.run): the resumed tracker carries it on.
     """
 
     TYPE = "resume"
@@ -245,6 +254,7 @@ class ResumeMessage(Message):
         **PATH,
         "keyframes": KEPT_KEYFRAMES,
         "odom_pose": optional(POSE),
+        "run": INT,
     }
     robot_id: str
     revision: int
@@ -253,10 +263,12 @@ class ResumeMessage(Message):
     poses: NDArray[np.float64]
     keyframes: KeyframesMessage | None = None
     odom_pose: Pose2D | None = None
+    run: int = 0
 
     def __post_init__(self) -> None:
         check_robot_id(self.robot_id)
         object.__setattr__(self, "revision", check_count("revision", self.revision))
+        object.__setattr__(self, "run", check_count("run", self.run))
         _check_map_path_kept(self)
         if self.odom_pose is not None:
             check_pose("odom_pose", self.odom_pose)
@@ -286,6 +298,7 @@ class MapStateMessage(Message):
         "map_npz": BLOB,
         **PATH,
         "keyframes": KEPT_KEYFRAMES,
+        "run": INT,
     }
     robot_id: str
     seq: int
@@ -294,10 +307,12 @@ class MapStateMessage(Message):
     stamps_s: NDArray[np.float64]
     poses: NDArray[np.float64]
     keyframes: KeyframesMessage | None = None
+    run: int = 0  # the tracker's run (MapInsertMessage.run)
 
     def __post_init__(self) -> None:
         check_robot_id(self.robot_id)
         object.__setattr__(self, "seq", check_count("seq", self.seq))
+        object.__setattr__(self, "run", check_count("run", self.run))
         insert_seq = check_count("insert_seq", self.insert_seq)
         if insert_seq > self.seq:
             raise MessageError(f"insert_seq must be at most seq {self.seq}, got {insert_seq}")

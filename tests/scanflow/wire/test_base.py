@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 from scanflow import keys, wire
 from scanflow.geometry import Pose2D
-from scanflow.scan import LaserScan, Odometry
+from scanflow.scan import MAX_MOUNT_M, LaserScan, Odometry
 
 FAST = settings.get_profile("wire_fast")  # registered in conftest.py
 
@@ -31,6 +31,8 @@ ids = st.from_regex(r"\A[A-Za-z0-9_.-]{1,12}\Z").filter(
 texts = st.text(max_size=20)
 counts = st.integers(0, wire.MAX_COUNT)
 poses = st.builds(Pose2D, finite, finite, st.floats(-10, 10))
+near = st.floats(-MAX_MOUNT_M, MAX_MOUNT_M, allow_nan=False)
+mounts = st.builds(Pose2D, near, near, st.floats(-10, 10))  # a LaserScan's are bounded
 small_n = st.integers(0, 40)
 
 
@@ -68,7 +70,7 @@ def scans(draw: st.DrawFn) -> LaserScan:
         frame_id=draw(texts),
         intensities=draw(st.none() | f32_any_bits(n)),
         seq=draw(counts),
-        mount=draw(poses),
+        mount=draw(mounts),
     )
 
 
@@ -121,6 +123,7 @@ pose_messages = st.builds(
     message=texts,
     correction=st.none() | poses,
     odom_pose=st.none() | poses,
+    run=counts,
 )
 scalars = st.booleans() | st.integers(-(2**63), 2**64 - 1) | st.floats(allow_nan=False) | texts
 points_f64 = small_n.flatmap(lambda n: f64_arrays((n, 2)))
@@ -219,6 +222,7 @@ def map_inserts(draw: st.DrawFn) -> wire.MapInsertMessage:
         mount=draw(poses),
         previous_seq=draw(st.none() | st.integers(0, seq - 1)) if seq > 0 else None,
         keyframe=draw(st.booleans()),
+        run=draw(counts),
     )
 
 
@@ -234,6 +238,7 @@ def map_redraws(draw: st.DrawFn) -> wire.MapRedrawMessage:
         keyframe_poses=draw(f64_arrays((len(seqs), 3))),
         stamps_s=draw(f64_arrays(n)),
         poses=draw(f64_arrays((n, 3))),
+        run=draw(counts),
     )
 
 
@@ -258,7 +263,7 @@ def resumes(draw: st.DrawFn) -> wire.ResumeMessage:
         kept = dataclasses.replace(kept, robot_id=robot_id)
     return wire.ResumeMessage(
         robot_id, draw(counts), draw(st.binary()), draw(f64_arrays(n)),
-        draw(f64_arrays((n, 3))), kept, draw(st.none() | poses),
+        draw(f64_arrays((n, 3))), kept, draw(st.none() | poses), draw(counts),
     )
 
 
@@ -270,7 +275,7 @@ def map_states(draw: st.DrawFn) -> wire.MapStateMessage:
         kept = dataclasses.replace(kept, robot_id=robot_id)
     return wire.MapStateMessage(
         robot_id, seq, draw(st.integers(0, seq)), draw(st.binary()), draw(f64_arrays(n)),
-        draw(f64_arrays((n, 3))), kept,
+        draw(f64_arrays((n, 3))), kept, draw(counts),
     )
 
 

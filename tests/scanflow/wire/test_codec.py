@@ -39,7 +39,7 @@ def test_decoded_arrays_are_read_only() -> None:
 def test_every_payload_carries_type_and_version() -> None:
     data = wire.MapImageMessage("r", 1, "png", b"x").encode()
     assert msgpack.unpackb(data)["type"] == "map_image"
-    assert msgpack.unpackb(data)["v"] == wire.SCHEMA_VERSION == 9
+    assert msgpack.unpackb(data)["v"] == wire.SCHEMA_VERSION == 10
 
 
 # ---------------------------------------------------------------- clear errors
@@ -50,8 +50,9 @@ def test_wrong_version_is_a_version_error(
 ) -> None:
     # 1: before no_return_points, 2: before the sensor mount, 3: before map redraws,
     # 4: before the resume message, 5: before the inserts' keyframe flag, 6: before the map
-    # state message, 7: before the estimates' odometry pose, 8: before retiring a robot
-    for version in (1, 2, 3, 4, 5, 6, 7, 8, 10):
+    # state message, 7: before the estimates' odometry pose, 8: before retiring a robot,
+    # 9: before the tracker's run token
+    for version in (1, 2, 3, 4, 5, 6, 7, 8, 9, 11):
         with pytest.raises(wire.VersionError, match=rf"\.v: schema version {version}"):
             wire.decode_any(payload(scan_message, v=version))
 

@@ -199,3 +199,29 @@ def test_a_map_resumed_without_its_keyframes_gives_no_keyframes_to_resume_from(
     robot.reset()  # a new run starts its map afresh: its keyframes are all of it
     robot.insert(insert(0))
     assert replies.resume(robot).keyframes.seqs.tolist() == [0]
+
+
+def test_the_run_a_map_is_of_survives_a_snapshot_and_a_new_one_starts_it_afresh(
+    tmp_path, new_robot, insert, pose
+):
+    """The map takes on the first run it sees (or an unknown one, 0, as any); another run
+    starts it afresh, and the replaced run's late messages are refused. The run goes into the
+    snapshot and the resume answer (a restarted matcher carries it on); older snapshots
+    without one load as unknown."""
+    robot = new_robot()
+    assert robot.follows(0) and robot.follows(7) and robot.run == 7
+    robot.insert(insert(0))
+    robot.apply(pose(0))
+    assert robot.follows(0) and robot.follows(7) and robot.map.revision == 1
+    save_snapshot(tmp_path, robot.snapshot())
+    (snap,), _ = load_snapshots(tmp_path)
+    again = new_robot(snap)
+    assert again.run == 7 and replies.resume(again).run == 7
+    assert again.follows(8) and again.run == 8 and again.map.revision == 0
+    assert len(again.trajectory.poses) == 0 and again.last_insert_seq == -1
+    assert not again.follows(7) and again.run == 8  # late, of the run replaced
+    with np.load(tmp_path / "r.snapshot.npz") as data:
+        older = {k: data[k] for k in data.files if k != "run"}
+    np.savez(tmp_path / "r.snapshot.npz", **older)
+    (snap,), skipped = load_snapshots(tmp_path)
+    assert snap.run == 0 and skipped == []

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import threading
 import time
@@ -79,6 +80,55 @@ def test_a_replay_after_a_restart_from_the_snapshot_replaces_the_resumed_run(
         server.shell.close(flush_s=0.0)
 
 
+@pytest.mark.parametrize("first", ["insert", "pose"])
+def test_a_new_run_first_seen_past_its_start_replaces_the_resumed_run(
+    tmp_path, caplog, first, insert, pose, tracker_map
+):
+    """Restarted from the snapshot of run A (seqs 0..2), the map server first sees the robot's
+    new run B at seq 5, past A's seqs: the run token says it is a new run (seqs alone merged
+    A's map and path with B's, asking the matcher for B's "inserts 3 and 4" after A's 2).
+    B's earlier inserts are asked for from its first; a late message of A is dropped."""
+    caplog.set_level(logging.INFO)
+    settings = (MapServerSettings(data_dir=str(tmp_path)), ZenohSettings(mode="peer", connect=[]))
+    server = MapServer(*settings)
+    try:
+        for seq in range(3):
+            at = Pose2D(5.0 + seq, 0.0, 0.0)
+            server.handle("insert", replace(insert(seq, at), run=11))
+            server.handle("pose", replace(pose(seq, at), run=11))
+        server.snapshot()
+    finally:
+        server.shell.close(flush_s=0.0)
+    server = MapServer(*settings)
+    run_b = [replace(insert(seq, Pose2D(0.1 * seq, 0.0, 0.0)), run=22,
+                     previous_seq=seq - 1 if seq else None) for seq in range(6)]
+    asked = []
+
+    def matcher(selector: str, timeout_s: float):  # the matcher's RecentInserts.between
+        asked.append(selector.split("?")[1])
+        return [m.encode() for m in run_b[:5]], []
+
+    server.shell.get = matcher
+    try:
+        assert server.robots["r"].run == 11
+        updates = {"insert": run_b[5], "pose": replace(pose(5, Pose2D(0.5, 0.0, 0.0)), run=22)}
+        second = "pose" if first == "insert" else "insert"
+        server.handle(first, updates[first])
+        server.handle(second, updates[second])
+        server.handle("pose", replace(pose(3, Pose2D(8.0, 0.0, 0.0)), run=11))  # late, of A
+        robot = server.robots["r"]
+        assert asked == ["after=-1;through=4"] and robot.run == 22
+        assert robot.trajectory.poses.tolist() == [[0.5, 0.0, 0.0]]
+        assert robot.last_seq == 5 and robot.last_insert_seq == 5
+        np.testing.assert_array_equal(robot.map.grid.log_odds, tracker_map(range(6)).log_odds)
+        counters = server.shell.counters
+        assert counters.get("runs_replaced") == 1 and counters.get("ended_run_dropped") == 1
+        assert "inserts_lost" not in counters.snapshot()
+        assert "robot r: a new run of its tracker at seq 5" in caplog.text
+    finally:
+        server.shell.close(flush_s=0.0)
+
+
 def test_inserts_missed_that_no_matcher_sends_again_are_counted_and_named(tmp_path, caplog, insert):
     """No matcher answers the resend query (an isolated session): the gap is logged with its
     seqs and counted, and the insert that showed it still goes in."""
@@ -119,16 +169,26 @@ def test_a_resend_query_that_fails_loses_the_gap_not_the_insert(tmp_path, caplog
         server.shell.close(flush_s=0.0)
 
 
-def test_a_resend_that_stops_short_is_a_loss_counted(tmp_path, caplog, insert) -> None:
-    """A chain of inserts that stops short of the gap's end is not taken: a matcher whose
-    back end culled some of the missing inserts sends its whole map instead."""
+@pytest.mark.parametrize(
+    ("answer", "why"),
+    [
+        ([(3, 0, 0)], "1 came, not the chain"),  # (seq, previous_seq, run)
+        ([(3, 0, 9), (4, 3, 9)], "of another run of its tracker"),  # it started anew meanwhile
+    ],
+)
+def test_a_resend_that_stops_short_or_is_of_another_run_is_a_loss_counted(
+    tmp_path, caplog, insert, answer, why
+) -> None:
+    """A chain of inserts that stops short of the gap's end is not taken (a matcher whose
+    back end culled some of the missing inserts sends its whole map instead), nor one of
+    another run."""
     server = MapServer(MapServerSettings(data_dir=str(tmp_path)),
                        ZenohSettings(mode="peer", connect=[]))
     asked = []
 
     def matcher(selector: str, timeout_s: float):
         asked.append(selector)
-        return [replace(insert(3), previous_seq=0).encode()], []
+        return [replace(insert(s), previous_seq=p, run=r).encode() for s, p, r in answer], []
 
     server.shell.get = matcher
     try:
@@ -138,7 +198,7 @@ def test_a_resend_that_stops_short_is_a_loss_counted(tmp_path, caplog, insert) -
         assert len(asked) == 1 and asked[0].endswith("r/map/resend?after=0;through=4")
         assert robot.last_insert_seq == 5 and robot.map.revision == 2
         assert server.shell.counters.get("inserts_lost") == 1
-        assert "1 came, not the chain" in caplog.text
+        assert why in caplog.text
     finally:
         server.shell.close(flush_s=0.0)
 
@@ -210,9 +270,11 @@ def test_a_matchers_whole_map_stands_in_for_the_inserts_it_no_longer_keeps(
          "a map of robot 'q' through insert 9 came"),
         (MapStateMessage("r", 9, 9, b"junk", np.zeros(0), np.zeros((0, 3))).encode(),
          "the matcher's map of r: not a readable .npz"),
+        (MapStateMessage("r", 9, 9, b"", np.zeros(0), np.zeros((0, 3)), run=4).encode(),
+         "the matcher's map of r is of another run"),
         (b"\x93not a message", "not valid msgpack"),
     ],
-    ids=["short", "another robot", "broken map", "junk"],
+    ids=["short", "another robot", "broken map", "another run", "junk"],
 )
 def test_a_map_state_that_does_not_fit_is_a_loss_named_not_taken(
     tmp_path, caplog, answer: bytes, reason: str, insert

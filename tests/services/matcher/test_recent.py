@@ -14,10 +14,11 @@ from scanflow.wire import MapRedrawMessage
 from services.matcher.recent import RecentInserts, keyframe_inserts, map_state
 
 LOOP_CLOSURE = BackendSettings.model_construct(loop_closure=True)
+RUN = 77  # the tracker's run token
 
 
 def test_recent_inserts_send_a_chain_again_or_name_what_they_keep() -> None:
-    recent = RecentInserts(3)
+    recent = RecentInserts(3, RUN)
     assert recent.last_seq is None
     for seq, previous in ((0, None), (3, 0), (5, 3), (9, 5)):
         recent.add(seq, previous, f"insert {seq}".encode())
@@ -29,13 +30,13 @@ def test_recent_inserts_send_a_chain_again_or_name_what_they_keep() -> None:
     with pytest.raises(LookupError, match="through 7"):
         recent.between(5, 7)  # no insert of seq 7
     with pytest.raises(LookupError, match="the last 0 inserts: none"):
-        RecentInserts(0).between(-1, 0)
+        RecentInserts(0, RUN).between(-1, 0)
 
 
 def test_a_resumed_runs_first_insert_is_not_the_runs_first() -> None:
     """A matcher resumed mid-run: asked for everything from the run's first insert (a map
     server that lost its map), it must not answer with the inserts since it resumed."""
-    recent = RecentInserts(8, resumed=True)
+    recent = RecentInserts(8, RUN, resumed=True)
     for seq, previous in ((100, None), (101, 100), (104, 101)):
         recent.add(seq, previous, f"insert {seq}".encode())
     with pytest.raises(LookupError, match="after seq -1 through 104"):
@@ -51,15 +52,15 @@ def test_inserts_past_the_recent_ones_come_from_the_back_ends_keyframes() -> Non
              for s in seqs]
     saved = SavedRun(nodes, seqs, poses, np.array([0.2, 0.5, 0.9]), poses)
     mapper = Mapper(Frontend(FrontendSettings()), LOOP_CLOSURE, saved)
-    inserts, culled = keyframe_inserts(mapper, "r", 2, 9)
+    inserts, culled = keyframe_inserts(mapper, "r", RUN, 2, 9)
     assert [(m.seq, m.previous_seq) for m in inserts] == [(5, 2), (9, 5)] and culled == 0
     assert [m.pose for m in inserts] == [Pose2D.from_array(p) for p in poses[1:]]
-    assert all(m.keyframe for m in inserts)
+    assert all(m.keyframe and m.run == RUN for m in inserts)
     np.testing.assert_array_equal(inserts[1].points, nodes[2].points)
     assert inserts[0].mount == Pose2D(0.1, 0, 0) and inserts[0].stamp_s == 0.5
-    assert [m.previous_seq for m in keyframe_inserts(mapper, "r", -1, 2)[0]] == [None]
+    assert [m.previous_seq for m in keyframe_inserts(mapper, "r", RUN, -1, 2)[0]] == [None]
     with pytest.raises(LookupError, match=r"keyframes \(3: seqs 2\.\.9\) .* seq 10 \(through\)"):
-        keyframe_inserts(mapper, "r", 2, 10)
+        keyframe_inserts(mapper, "r", RUN, 2, 10)
 
 
 @pytest.mark.parametrize("culled_first", [True, False], ids=["culled first", "keyframe first"])
@@ -76,20 +77,20 @@ def test_a_resumed_back_end_takes_an_unknown_seq_from_before_its_restart(
     saved = SavedRun(nodes, seqs, poses, np.array([0.2, 0.5, 0.9]), poses)
     mapper = Mapper(Frontend(FrontendSettings()), CULLING, saved)
     assert mapper.resumed_keyframes == 3
-    assert keyframe_inserts(mapper, "r", 7, 9)[0][0].previous_seq == 7  # none since: any
+    assert keyframe_inserts(mapper, "r", RUN, 7, 9)[0][0].previous_seq == 7  # none since: any
     far = [5.0, 0.0, 0.0]
     for seq, pose in ((12, poses[2]), (14, far)) if culled_first else ((12, far), (14, far)):
         mapper.add(_tracked(seq, Pose2D.from_array(pose)), nodes[0].points)
     new, culled_seq = (14, 12) if culled_first else (12, 14)
     assert mapper.keyframe_seqs == [2, 5, 9, new] and list(mapper.culled_seqs) == [culled_seq]
-    inserts, culled = keyframe_inserts(mapper, "r", 11, 14)
+    inserts, culled = keyframe_inserts(mapper, "r", RUN, 11, 14)
     assert [(m.seq, m.previous_seq) for m in inserts] == [(new, 11)] and culled == 1
     with pytest.raises(LookupError, match=r"seq 13 \(after\)"):
-        keyframe_inserts(mapper, "r", 13, 14)
+        keyframe_inserts(mapper, "r", RUN, 13, 14)
     fresh = Mapper(Frontend(FrontendSettings()), CULLING)  # not resumed: every seq is known
     fresh.add(_tracked(0, IDENTITY), nodes[0].points)
     with pytest.raises(LookupError, match=r"seq -3 \(after\)"):
-        keyframe_inserts(fresh, "r", -3, 0)
+        keyframe_inserts(fresh, "r", RUN, -3, 0)
 
 
 def test_inserts_culled_as_keyframes_are_left_out_and_counted() -> None:
@@ -101,15 +102,15 @@ def test_inserts_culled_as_keyframes_are_left_out_and_counted() -> None:
     for seq, x in enumerate((0.0, 0.0, 0.0, 1.0, 1.0)):
         mapper.add(_tracked(seq, Pose2D(x, 0.0, 0.0)), points)
     assert mapper.keyframe_seqs == [0, 3] and list(mapper.culled_seqs) == [1, 2, 4]
-    inserts, culled = keyframe_inserts(mapper, "r", 0, 4)
+    inserts, culled = keyframe_inserts(mapper, "r", RUN, 0, 4)
     assert [(m.seq, m.previous_seq) for m in inserts] == [(3, 0)] and culled == 3
-    inserts, culled = keyframe_inserts(mapper, "r", 1, 3)
+    inserts, culled = keyframe_inserts(mapper, "r", RUN, 1, 3)
     assert [(m.seq, m.previous_seq) for m in inserts] == [(3, 1)] and culled == 1
-    inserts, culled = keyframe_inserts(mapper, "r", -1, 2)
+    inserts, culled = keyframe_inserts(mapper, "r", RUN, -1, 2)
     assert [(m.seq, m.previous_seq) for m in inserts] == [(0, None)] and culled == 2
-    assert keyframe_inserts(mapper, "r", 1, 2) == ([], 1)
+    assert keyframe_inserts(mapper, "r", RUN, 1, 2) == ([], 1)
     with pytest.raises(LookupError, match=r"culled inserts \(3\) do not hold seq 5"):
-        keyframe_inserts(mapper, "r", 0, 5)
+        keyframe_inserts(mapper, "r", RUN, 0, 5)
 
 
 CULLING = LOOP_CLOSURE.model_copy(update={"cull_m": 0.3, "cull_deg": 10.0})
@@ -130,16 +131,17 @@ def test_the_whole_maps_path_is_the_last_redraws_then_the_front_ends() -> None:
     frontend = Frontend(FrontendSettings())
     for k in range(5):
         frontend.trajectory.append(float(k), Pose2D(float(k), 0.0, 0.0))
-    recent = RecentInserts(2)
+    recent = RecentInserts(2, RUN)
     redrawn = np.array([[0.0, 1.0, 0.0], [1.0, 1.0, 0.0], [2.0, 1.0, 0.0]])
     redraw = MapRedrawMessage("r", 2, Pose2D(), np.zeros(0, np.int64), np.zeros((0, 3)),
                               np.arange(3.0), redrawn)
     recent.tracked(2, True, redraw)
     recent.tracked(4, False)
     state = map_state("r", frontend, recent)
+    assert state.run == RUN
     np.testing.assert_array_equal(state.stamps_s, np.arange(5.0))
     np.testing.assert_array_equal(state.poses[:3], redrawn)
     np.testing.assert_array_equal(state.poses[3:], [[3.0, 0.0, 0.0], [4.0, 0.0, 0.0]])
     assert (state.seq, state.insert_seq, state.keyframes) == (4, 2, None)
     with pytest.raises(LookupError, match="has put no scan into its map"):
-        map_state("r", frontend, RecentInserts(2))
+        map_state("r", frontend, RecentInserts(2, RUN))

@@ -185,6 +185,42 @@ def feed(service: MatcherService, duration_s: float, robot: str = "r") -> None:
         ))
 
 
+def test_every_message_of_a_run_carries_its_token_and_a_resumed_run_the_map_servers(
+    tmp_path,
+) -> None:
+    """Inserts and estimates of one run carry one token; a replay (seqs back to 0) draws a new
+    one; a robot resumed from the map server carries on the token of the run its map is of
+    (a new one when the map server knows none)."""
+    service = MatcherService(MatcherSettings(), FrontendSettings(),
+                             ZenohSettings(mode="peer", connect=[]))
+    sent: list = []
+    service.shell.put = lambda key, payload: sent.append(decode_any(payload))
+    grid = OccupancyGrid(OccupancyParams())
+    grid.insert_scan(np.array([[2.0, 0.0], [2.0, 0.5]]), np.zeros(2))
+    npz = write_npz(tmp_path / "map.npz", npz_arrays(grid)).read_bytes()
+    path = np.array([[0.0, 0.0, 0.0], [0.4, 0.1, 0.2]])
+    answers = {robot: ResumeMessage(robot, grid.revision, npz, np.array([1.0, 2.0]), path,
+                                    run=run).encode() for robot, run in (("a", 5), ("b", 0))}
+    service.shell.serve(
+        "scanflow/*/map/resume",
+        lambda q: q.reply(q.key_expr, answers[str(q.key_expr).split("/")[1]]), side=True,
+    )
+    try:
+        runs = []
+        for _ in range(2):
+            feed(service, 1.0)
+            assert {type(m).__name__ for m in sent} == {"MapInsertMessage", "PoseEstimateMessage"}
+            runs.append({m.run for m in sent})
+            sent.clear()
+        assert [len(r) for r in runs] == [1, 1] and runs[0] != runs[1] and 0 not in runs[0]
+        service._frontend("a", 7)
+        service._frontend("b", 7)
+        assert service.recent["a"].run == 5
+        assert service.recent["b"].run not in (0, 5, *runs[1])
+    finally:
+        service.shell.close(flush_s=0.0)
+
+
 def test_past_its_recent_inserts_a_matcher_without_a_back_end_sends_its_whole_map() -> None:
     """Inserts older than the last `resend_inserts` are gone, and without loop closure there
     are no keyframes to rebuild them from: the answer is the front end's whole map, the seq of
