@@ -273,7 +273,9 @@ class PoseOut(BaseModel):
     }]})
 
     robot_id: str
-    seq: int
+    seq: int | None = Field(description=(
+        "the scan's seq (interpolated: the estimate's before `stamp_s`); null for a pose from "
+        "the map server's trajectory, which keeps no seqs"))
     stamp_s: float
     x_m: float
     y_m: float
@@ -316,11 +318,11 @@ class PoseOut(BaseModel):
         )
 
     @classmethod
-    def from_trajectory(cls, robot_id: str, pose: Pose2D, stamp_s: float, index: int) -> PoseOut:
-        """A pose from the map server's trajectory, which keeps no covariance or status."""
+    def from_trajectory(cls, robot_id: str, pose: Pose2D, stamp_s: float) -> PoseOut:
+        """A pose from the map server's trajectory, which keeps no seq, covariance or status."""
         return cls(
             robot_id=robot_id,
-            seq=index,
+            seq=None,
             stamp_s=stamp_s,
             x_m=pose.x,
             y_m=pose.y,

@@ -67,7 +67,7 @@ async def get_pose(robot: Robot, backend: Backend, t: TimeParam = None) -> PoseO
     if found is None:
         span = f"{stamps[0]}..{stamps[-1]}" if len(stamps) else "empty"
         raise HTTPException(404, f"t={t} is outside the trajectory of {robot!r} ({span})")
-    return PoseOut.from_trajectory(robot, found[0], t, found[1])
+    return PoseOut.from_trajectory(robot, found[0], t)
 
 
 @router.put(

@@ -148,8 +148,8 @@ def test_a_pose_out_of_an_estimate_keeps_its_correction_unless_interpolated():
 
 
 def test_a_pose_from_the_trajectory_says_it_has_no_covariance():
-    out = PoseOut.from_trajectory("r1", Pose2D(1.0, 2.0, 0.3), 5.0, 4)
-    assert (out.seq, out.stamp_s, out.status, out.interpolated) == (4, 5.0, "trajectory", True)
+    out = PoseOut.from_trajectory("r1", Pose2D(1.0, 2.0, 0.3), 5.0)
+    assert (out.seq, out.stamp_s, out.status, out.interpolated) == (None, 5.0, "trajectory", True)
     assert out.covariance == [[None] * 3] * 3 and "no covariance" in out.message
 
 
