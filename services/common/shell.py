@@ -44,7 +44,7 @@ from services.common.outbox import Outbox
 from services.common.process import io_threads
 from services.common.retire import Dropped, QueryReply, retire_request
 from services.common.robots import Known, RobotLimit
-from services.common.zsession import open_session
+from services.common.zsession import open_session, sorted_replies
 
 QueryHandler = Callable[[zenoh.Query], None]
 _WAKE = "_wake"  # an inbox item that only wakes the worker to take feedback
@@ -200,20 +200,12 @@ class ServiceShell:
         Zenoh's default does to replies on one key), and the error replies' texts (both empty
         when no queryable matched; a queryable that did not finish within `timeout_s` gives
         the error TIMED_OUT)."""
-        payloads: list[bytes] = []
-        errors: list[str] = []
         t0 = time.perf_counter()
-        replies = self._side_session().get(
+        answers, errors = sorted_replies(self._side_session().get(
             selector, timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE
-        )
-        for reply in replies:
-            result = reply.result  # a Sample, or the ReplyError of a failed reply
-            if isinstance(result, zenoh.ReplyError):
-                errors.append(result.payload.to_string())
-            else:
-                payloads.append(result.payload.to_bytes())
+        ))
         self._get_s += time.perf_counter() - t0
-        return payloads, errors
+        return [payload for _, payload in answers], errors
 
     def _feed(self, kind: str, message: Any) -> None:
         with self._feedback_lock:

@@ -1,8 +1,10 @@
-"""Open a Zenoh session from `ZenohSettings`: the one place services turn settings into config."""
+"""Open a Zenoh session from `ZenohSettings`: the one place services turn settings into config;
+and sort a query's replies into answers and errors."""
 
 from __future__ import annotations
 
 import json
+from collections.abc import Iterable
 
 import zenoh
 from scanflow.config import ZenohSettings
@@ -34,3 +36,17 @@ def open_session(settings: ZenohSettings) -> zenoh.Session:
             f"cannot open a Zenoh session (mode={settings.mode!r}, "
             f"connect={settings.connect!r}, listen={settings.listen!r}): {exc}"
         ) from exc
+
+
+def sorted_replies(replies: Iterable[zenoh.Reply]) -> tuple[list[tuple[str, bytes]], list[str]]:
+    """A query's replies, in order: (key, payload) of each answer, and the text of each error
+    reply (a queryable that refused or failed; Zenoh's own for one that did not finish)."""
+    answers: list[tuple[str, bytes]] = []
+    errors: list[str] = []
+    for reply in replies:
+        result = reply.result  # a Sample, or the ReplyError of a failed reply
+        if isinstance(result, zenoh.ReplyError):
+            errors.append(result.payload.to_string())
+        else:
+            answers.append((str(result.key_expr), result.payload.to_bytes()))
+    return answers, errors

@@ -31,7 +31,7 @@ from scanflow.wire import (
 from services.common.counters import worth_logging
 from services.common.retire import RETIRING
 from services.common.robots import RobotLimit
-from services.common.zsession import open_session
+from services.common.zsession import open_session, sorted_replies
 from services.gateway.events import EventHub
 from services.gateway.metrics import Metrics
 from services.gateway.models import PoseOut
@@ -238,19 +238,12 @@ class ZenohBackend:
         timeout_s = self.settings.query_timeout_s if timeout_s is None else timeout_s
         if self._closed:
             raise BackendError(503, "the gateway's Zenoh session is closed")
-        ok: list[Reply] = []
-        errors: list[str] = []
         consolidation = zenoh.ConsolidationMode.NONE if every_reply else None
-        for reply in self.session.get(
+        answers, errors = sorted_replies(self.session.get(
             selector, payload=payload, timeout=timeout_s, consolidation=consolidation
-        ):
-            result = reply.result  # a Sample, or the ReplyError of a failed reply
-            if isinstance(result, zenoh.ReplyError):
-                errors.append(result.payload.to_string())
-            else:
-                ok.append(Reply(str(result.key_expr), result.payload.to_bytes()))
-        if ok:
-            return ok
+        ))
+        if answers:
+            return [Reply(key, data) for key, data in answers]
         if errors:
             status = max(error_status(e) for e in errors)
             reason = "; ".join(sorted(set(errors)))

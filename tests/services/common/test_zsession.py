@@ -11,13 +11,14 @@ import time
 
 import numpy as np
 import pytest
+import zenoh
 from scanflow.config import MapServerSettings, MatcherSettings, ZenohSettings
 from scanflow.wire import MAX_PAYLOAD_BYTES, KeyframesMessage, ResumeMessage, decode_any
 
 from bench.link_stall import run
 from services.common.launch import free_port
 from services.common.shell import ServiceShell
-from services.common.zsession import open_session, zenoh_config
+from services.common.zsession import open_session, sorted_replies, zenoh_config
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -29,6 +30,27 @@ def test_the_block_close_setting_reaches_the_zenoh_config() -> None:
     config = zenoh_config(ZenohSettings(block_close_s=12.5))
     key = "transport/link/tx/queue/congestion_control/block/wait_before_close"
     assert config.get_json(key) == "12500000"
+
+
+def test_a_querys_replies_are_sorted_into_answers_and_errors() -> None:
+    """Each answer with its key, each error reply's text, none merged away."""
+    session = open_session(ZenohSettings(mode="peer", connect=[]))
+
+    def answer(query: zenoh.Query) -> None:
+        query.reply("scanflow-test/sorted/a", b"one")
+        query.reply("scanflow-test/sorted/a", b"two")
+        query.reply_err("refused: busy")
+
+    queryable = session.declare_queryable("scanflow-test/sorted/*", answer)
+    try:
+        replies = session.get("scanflow-test/sorted/a", timeout=5.0,
+                              consolidation=zenoh.ConsolidationMode.NONE)
+        answers, errors = sorted_replies(replies)
+    finally:
+        queryable.undeclare()
+        session.close()
+    assert answers == [("scanflow-test/sorted/a", b"one"), ("scanflow-test/sorted/a", b"two")]
+    assert errors == ["refused: busy"]
 
 
 def test_a_reader_that_stalls_longer_than_zenohs_default_loses_nothing() -> None:
