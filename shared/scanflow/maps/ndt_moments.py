@@ -60,7 +60,10 @@ def _kept_blocks(index, moments, touched, n, min_points):  # type: ignore[no-unt
 
 
 @njit(cache=True)
-def sparse_moments(points, origin_x, origin_y, size, rows, cols, span, min_points):  # type: ignore[no-untyped-def]
+def sparse_moments(
+    points: NDArray[np.float64], origin_x: float, origin_y: float, size: float,
+    rows: int, cols: int, span: int, min_points: int,
+) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64]]:
     """(flat index of kept block numbers or -1, (K, 6) moments of the kept blocks, (K,) flat
     position of each kept block).
 
@@ -115,7 +118,11 @@ def _mask_moments(  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def boxes_moments(masks, starts, fine, blocks, res, size, span, min_points):  # type: ignore[no-untyped-def]
+def boxes_moments(
+    masks: NDArray[np.bool_], starts: NDArray[np.int64],
+    fine: NDArray[np.int64], blocks: NDArray[np.int64],
+    res: float, size: float, span: int, min_points: int,
+) -> tuple[NDArray[np.int64], NDArray[np.bool_], NDArray[np.float64], NDArray[np.float64]]:
     """_mask_moments of several boxes of blocks at once: box k covers blocks[k] (by first
     cell, on the lattice of `size` cells from the anchor), its occupied mask is the window
     fine[k] of fine cells, stored row-major at masks[starts[k]:]. Returns the (row, col) of

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
+from numpy.typing import NDArray
 
 from scanflow.maps.raycast import ray_length, trace_ray
 
@@ -14,7 +15,11 @@ HIT_COUNT_MAX = 255
 
 
 @njit(cache=True)
-def pooled_hit_means(log_odds, observed, hit_xy, hit_n, threshold, boxes, factor, row0, col0):  # type: ignore[no-untyped-def]
+def pooled_hit_means(
+    log_odds: NDArray[np.float32], observed: NDArray[np.bool_],
+    hit_xy: NDArray[np.uint16], hit_n: NDArray[np.uint8],
+    threshold: np.float32, boxes: NDArray[np.int64], factor: int, row0: int, col0: int,
+) -> NDArray[np.float64]:
     """See OccupancyGrid.occupied_hit_means_in: `boxes` (n, 4) of the coarse lattice counted
     from the frame's first cell, (row0, col0) the frame's first fine cell in storage indices
     (boxes may reach outside the storage: those cells are empty)."""
@@ -55,7 +60,10 @@ def pooled_hit_means(log_odds, observed, hit_xy, hit_n, threshold, boxes, factor
 
 
 @njit(cache=True)
-def accumulate_hits(hit_xy, hit_n, cells, units):  # type: ignore[no-untyped-def]
+def accumulate_hits(
+    hit_xy: NDArray[np.uint16], hit_n: NDArray[np.uint8],
+    cells: NDArray[np.int64], units: NDArray[np.uint16],
+) -> None:
     """Add each hit's (x, y) offset units to its cell ((n, 2) rows and columns), halving a
     full cell's weight first."""
     for k in range(cells.shape[0]):
@@ -71,9 +79,12 @@ def accumulate_hits(hit_xy, hit_n, cells, units):  # type: ignore[no-untyped-def
 
 
 @njit(cache=True, nogil=True)
-def update_cells(  # type: ignore[no-untyped-def]
-    log_odds, observed, box, origin, hits, misses, miss_lo, hit_lo, lo_min, lo_max, threshold
-):
+def update_cells(
+    log_odds: NDArray[np.float32], observed: NDArray[np.bool_], box: NDArray[np.int64],
+    origin: NDArray[np.int64], hits: NDArray[np.int64], misses: NDArray[np.int64],
+    miss_lo: np.float32, hit_lo: np.float32, lo_min: np.float32, lo_max: np.float32,
+    threshold: np.float32,
+) -> NDArray[np.int64]:
     """One scan's update, in storage cells: every cell a beam to a hit passes (the hit
     excluded) or a no-return beam reaches (its end included) gets `miss_lo` once, every hit
     cell `hit_lo` once (and no miss), each clamped to [lo_min, lo_max] and marked observed.
@@ -146,10 +157,14 @@ def _visit(  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
-def insert_many(  # type: ignore[no-untyped-def]
-    log_odds, observed, hit_xy, hit_n, origins, hits, hit_starts, misses, miss_starts, units,
-    miss_lo, hit_lo, lo_min, lo_max, threshold,
-):
+def insert_many(
+    log_odds: NDArray[np.float32], observed: NDArray[np.bool_],
+    hit_xy: NDArray[np.uint16], hit_n: NDArray[np.uint8],
+    origins: NDArray[np.int64], hits: NDArray[np.int64], hit_starts: NDArray[np.int64],
+    misses: NDArray[np.int64], miss_starts: NDArray[np.int64], units: NDArray[np.uint16],
+    miss_lo: np.float32, hit_lo: np.float32, lo_min: np.float32, lo_max: np.float32,
+    threshold: np.float32,
+) -> None:
     """`update_cells` then `accumulate_hits` for each scan in turn, in storage cells: scan
     s has origins[s], hits[hit_starts[s]:hit_starts[s + 1]] and likewise misses."""
     box = np.empty(4, dtype=np.int64)
@@ -172,7 +187,10 @@ def insert_many(  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def occupied_windows(log_odds, observed, threshold, boxes, row0, col0):  # type: ignore[no-untyped-def]
+def occupied_windows(
+    log_odds: NDArray[np.float32], observed: NDArray[np.bool_], threshold: np.float32,
+    boxes: NDArray[np.int64], row0: int, col0: int,
+) -> tuple[NDArray[np.bool_], NDArray[np.int64]]:
     """See OccupancyGrid.occupied_in_boxes; (row0, col0) is the storage's first cell."""
     sizes = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
     starts = np.zeros(len(boxes) + 1, dtype=np.int64)

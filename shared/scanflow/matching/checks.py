@@ -107,7 +107,9 @@ def analyse_hessian(hessian: NDArray[np.float64], length_m: float) -> Conditioni
 
 
 @njit(cache=True)
-def scaled_eigh(h, length_m):  # type: ignore[no-untyped-def]
+def scaled_eigh(
+    h: NDArray[np.float64], length_m: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """(eigenvalues, eigenvectors, scale) of the symmetric part of H with theta scaled by
     1 / `length_m` (scale: that diagonal), compiled for the kernels that analyse or solve
     with it."""

@@ -56,7 +56,7 @@ def least_squares_covariance(
 
 
 @njit(cache=True)
-def pose_parameter_jacobian(pose_xy):  # type: ignore[no-untyped-def]
+def pose_parameter_jacobian(pose_xy: NDArray[np.float64]) -> NDArray[np.float64]:
     """d(x, y, theta) / d(left increment): maps a covariance of T <- Exp(d) T to the pose's own
     parameters, the convention of every `MatchResult.covariance`. Compiled: `_sandwich` uses
     it on every match."""
