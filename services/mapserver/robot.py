@@ -4,6 +4,7 @@ closure on) the keyframes to redraw it from."""
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Callable
 
 import numpy as np
@@ -25,6 +26,9 @@ from scanflow.wire import (
 
 from services.mapserver.keyframes import Keyframes
 from services.mapserver.snapshot import Snapshot
+
+MAX_ENDED_RUNS = 16  # the last runs a map replaced: their late messages are dropped
+MAX_HELD_POSES = 64  # poses of a run the map is not of yet, held until its first insert
 
 
 class RobotMap:
@@ -65,9 +69,11 @@ class RobotMap:
             elif snap is None or snap.last_insert_seq < 0:
                 self.keyframes = Keyframes()
         # The tracker's run this map is of (its token; 0: not known yet, or a snapshot older
-        # than tokens), and the runs it replaced, whose late messages are dropped.
+        # than tokens), the runs it replaced, whose late messages are dropped, and the poses
+        # of another run that came before any insert of it (see `start_run`).
         self.run = 0 if snap is None else snap.run
-        self.ended_runs: set[int] = set()
+        self.ended_runs: list[int] = [] if snap is None else list(snap.ended_runs)
+        self.held_poses: deque[PoseEstimateMessage] = deque()
         self.redrawn_seq = -1 if snap is None else snap.redrawn_seq
         self.last_seq = -1 if snap is None else snap.last_seq
         self.last_insert_seq = -1 if snap is None else snap.last_insert_seq
@@ -86,19 +92,29 @@ class RobotMap:
         """(map revision, last pose seq): what a snapshot must capture."""
         return (self.map.revision, self.last_seq)
 
-    def follows(self, run: int) -> bool:
-        """Take the message of tracker run `run` (0: unknown, any run's): False when it is of
-        a run this map replaced (late), else True after starting afresh if it is of a run
-        other than the map's (a new one: a restarted replay, a tracker started anew)."""
-        if not run or run == self.run:
-            return True
-        if run in self.ended_runs:
-            return False
+    def start_run(self, run: int) -> list[PoseEstimateMessage]:
+        """Start afresh as the map of the tracker's run `run`, which an insert or redraw of it
+        showed (their stream is in order, so a run's first one follows every one of the run
+        before); the run replaced is ended. Returns the poses of `run` held so far, to apply."""
         if self.run:
-            self.ended_runs.add(self.run)
-            self.reset()
+            self.ended_runs = [*self.ended_runs, self.run][-MAX_ENDED_RUNS:]
+        self.reset()
         self.run = run
-        return True
+        mine = [pose for pose in self.held_poses if pose.run == run]
+        self.held_poses = deque(
+            pose for pose in self.held_poses if pose.run != run and pose.run not in self.ended_runs
+        )
+        return mine
+
+    def hold(self, pose: PoseEstimateMessage) -> bool:
+        """Keep a pose of a run other than the map's (not one it replaced): poses travel apart
+        from the inserts, so it may come before its run's first insert, or be a late one of a
+        run this map never was. False when the oldest held pose made room for it."""
+        full = len(self.held_poses) >= MAX_HELD_POSES
+        if full:
+            self.held_poses.popleft()
+        self.held_poses.append(pose)
+        return not full
 
     def reset(self) -> None:
         """The robot's stream restarted (a replay): start its map and trajectory afresh."""
@@ -228,4 +244,5 @@ class RobotMap:
             self.last_insert_seq,
             self.last_odom,
             self.run,
+            tuple(self.ended_runs),
         )

@@ -151,17 +151,30 @@ class MapServer:
             robot.apply(message)
 
     def _of_the_run(self, robot: RobotMap, message: Update) -> bool:
-        """Whether to apply the message: of the map's run, or of a new run (the map starts
-        afresh, logged: seqs alone miss a new run whose first scans this server never saw);
-        not when it is of a run the map replaced (late; counted)."""
-        before = robot.run
-        if not robot.follows(message.run):
+        """Whether to apply the message now, by its tracker run (0: any). Of the map's run (or
+        the first run a map hears of): yes. Of a run it replaced: no (late; counted). An
+        insert or redraw of another run starts a new run: the map and path start afresh
+        (logged; seqs alone miss a new run whose first scans this server never saw) and that
+        run's poses held so far go in. A pose of another run is held (`RobotMap.hold`)."""
+        run = message.run
+        if not run or run == robot.run:
+            return True
+        if run in robot.ended_runs:
             self.shell.counters.add("ended_run_dropped")
             return False
-        if before and robot.run != before:
-            self.shell.log.info("robot %s: a new run of its tracker at seq %d: its map and path "
-                                "start afresh", robot.robot_id, message.seq)
-            self.shell.counters.add("runs_replaced")
+        if not robot.run:  # a new robot, or a snapshot older than run tokens
+            robot.run = run
+            return True
+        if isinstance(message, PoseEstimateMessage):
+            self.shell.counters.add("poses_held")
+            if not robot.hold(message):
+                self.shell.counters.add("held_poses_dropped")
+            return False
+        self.shell.log.info("robot %s: a new run of its tracker at seq %d: its map and path "
+                            "start afresh", robot.robot_id, message.seq)
+        self.shell.counters.add("runs_replaced")
+        for pose in robot.start_run(run):
+            self._apply("pose", pose)
         return True
 
     def _held(self, robot: RobotMap, message: Update) -> bool:

@@ -59,6 +59,7 @@ class Snapshot:
     last_insert_seq: int = -1  # the last insert in the map (the next names the one before it)
     last_odom: tuple[float, Pose2D] | None = None  # (stamp, odometry pose) of the last estimate
     run: int = 0  # the tracker's run the map is of (0: unknown)
+    ended_runs: tuple[int, ...] = ()  # the runs it replaced (their late messages are dropped)
 
 
 def snapshot_path(data_dir: Path, robot_id: str) -> Path:
@@ -75,7 +76,7 @@ def save_snapshot(data_dir: Path, snap: Snapshot, per_file: int = PER_FILE) -> N
     arrays.update(
         stamps_s=snap.stamps_s, poses=snap.poses, last_seq=np.int64(snap.last_seq),
         redrawn_seq=np.int64(snap.redrawn_seq), last_insert_seq=np.int64(snap.last_insert_seq),
-        run=np.int64(snap.run),
+        run=np.int64(snap.run), ended_runs=np.array(snap.ended_runs, dtype=np.int64),
     )
     if snap.last_odom is not None:
         stamp_s, odom = snap.last_odom
@@ -172,8 +173,9 @@ def load_snapshots(data_dir: Path) -> tuple[list[Snapshot], list[str]]:
                 last_insert_seq = int(data.get("last_insert_seq", last_seq))
                 last_odom = _last_odom(data)
                 run = int(data.get("run", 0))  # older files: unknown, the next run's taken on
-                if not 0 <= run <= MAX_COUNT:
-                    raise ValueError(f"run must be a count, got {run}")
+                ended = tuple(int(r) for r in data.get("ended_runs", np.zeros(0, np.int64)))
+                if not all(0 <= r <= MAX_COUNT for r in (run, *ended)):
+                    raise ValueError(f"runs must be counts, got {run} and ended {ended}")
                 keyframes = _keyframes(data_dir, robot_id, data, skipped)
         except UNREADABLE as exc:
             skipped.append(
@@ -183,7 +185,7 @@ def load_snapshots(data_dir: Path) -> tuple[list[Snapshot], list[str]]:
             continue
         snaps.append(Snapshot(
             robot_id, grid, stamps_s, poses, last_seq, keyframes, redrawn_seq, last_insert_seq,
-            last_odom, run,
+            last_odom, run, ended,
         ))
     return snaps, skipped
 

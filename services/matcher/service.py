@@ -224,7 +224,8 @@ class MatcherService:
         frontend = self.frontends.get(robot_id)
         if frontend is not None and not fresh:
             return frontend
-        seeded = self._seeded(robot_id) if frontend is None and seq > 0 else None
+        resuming = frontend is None and seq > 0  # met mid-stream: the map server's run goes on
+        seeded = self._seeded(robot_id) if resuming else None
         mapper = None
         if seeded is None:
             new = Frontend(self.frontend_settings, self.start.pose, self.start.grid())
@@ -241,9 +242,9 @@ class MatcherService:
         with self.lock:
             self.frontends[robot_id] = new
             self.awaiting.pop(robot_id, None)
-            # A resumed run goes on as the map server's (a new token when it knows none).
-            run = seeded[1].run if seeded is not None and seeded[1].run else new_run()
-            self.recent[robot_id] = RecentInserts(self.settings.resend_inserts, run, bool(seeded))
+            self.recent[robot_id] = RecentInserts(
+                self.settings.resend_inserts, _run_token(resuming, seeded), bool(seeded)
+            )
             if mapper is None:
                 self.mappers.pop(robot_id, None)
             else:
@@ -357,6 +358,8 @@ class MatcherService:
         """What stands in for inserts no longer kept: the back end's keyframes when they are
         all of them, else the whole map."""
         with self.lock:  # the worker inserts, adds keyframes and redraws
+            if self.recent.get(robot_id) is not recent:  # map, back end and run: one run's
+                raise LookupError(f"robot {robot_id}: its tracker started another run meanwhile")
             mapper = self.mappers.get(robot_id)
             try:
                 culled = 0 if mapper is None else culled_between(mapper, after, through)
@@ -476,6 +479,16 @@ class MatcherService:
                 warm_up(methods=True)
             self.shell.start()
             self.shell.run(self.handle)
+
+
+def _run_token(resuming: bool, seeded: tuple[Frontend, ResumeMessage] | None) -> int:
+    """The token of a robot's run as its front end starts: the map server's for a resumed
+    run (a new one when it knows none); none (0) for one met mid-stream that could not
+    resume, since whether it goes on with the map server's run is not known and a new token
+    would make the map server drop that map; else (a first scan, a replay) a new one."""
+    if seeded is not None:
+        return seeded[1].run or new_run()
+    return 0 if resuming else new_run()
 
 
 class _NoMapServerYetError(Exception):

@@ -13,7 +13,7 @@ from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
 from scanflow.wire import MapStateMessage
 
 from services.mapserver import replies
-from services.mapserver.robot import RobotMap
+from services.mapserver.robot import MAX_HELD_POSES, RobotMap
 from services.mapserver.snapshot import load_snapshots, save_snapshot
 
 
@@ -201,27 +201,33 @@ def test_a_map_resumed_without_its_keyframes_gives_no_keyframes_to_resume_from(
     assert replies.resume(robot).keyframes.seqs.tolist() == [0]
 
 
-def test_the_run_a_map_is_of_survives_a_snapshot_and_a_new_one_starts_it_afresh(
+def test_a_new_run_starts_the_map_afresh_with_its_held_poses_and_survives_a_snapshot(
     tmp_path, new_robot, insert, pose
 ):
-    """The map takes on the first run it sees (or an unknown one, 0, as any); another run
-    starts it afresh, and the replaced run's late messages are refused. The run goes into the
-    snapshot and the resume answer (a restarted matcher carries it on); older snapshots
-    without one load as unknown."""
+    """A run's first insert starts the map afresh for it (the run replaced is ended) and
+    hands back the poses of that run held so far; the run and the ended ones go into the
+    snapshot and the resume answer (a restarted matcher carries the run on); older snapshots
+    without them load as unknown."""
     robot = new_robot()
-    assert robot.follows(0) and robot.follows(7) and robot.run == 7
+    assert robot.run == 0 and robot.start_run(7) == [] and robot.run == 7
     robot.insert(insert(0))
     robot.apply(pose(0))
-    assert robot.follows(0) and robot.follows(7) and robot.map.revision == 1
+    early, late = replace(pose(5), run=9), replace(pose(40), run=3)
+    assert robot.hold(early) and robot.hold(late)
+    assert robot.start_run(9) == [early] and robot.run == 9 and robot.ended_runs == [7]
+    assert robot.map.revision == 0 and len(robot.trajectory.poses) == 0
+    assert list(robot.held_poses) == [late]  # a run never shown by an insert stays held
+    for _ in range(MAX_HELD_POSES):
+        robot.hold(late)
+    assert not robot.hold(late) and len(robot.held_poses) == MAX_HELD_POSES
+    robot.insert(insert(1))
+    robot.apply(pose(1))
     save_snapshot(tmp_path, robot.snapshot())
     (snap,), _ = load_snapshots(tmp_path)
     again = new_robot(snap)
-    assert again.run == 7 and replies.resume(again).run == 7
-    assert again.follows(8) and again.run == 8 and again.map.revision == 0
-    assert len(again.trajectory.poses) == 0 and again.last_insert_seq == -1
-    assert not again.follows(7) and again.run == 8  # late, of the run replaced
+    assert (again.run, again.ended_runs) == (9, [7]) and replies.resume(again).run == 9
     with np.load(tmp_path / "r.snapshot.npz") as data:
-        older = {k: data[k] for k in data.files if k != "run"}
+        older = {k: data[k] for k in data.files if k not in ("run", "ended_runs")}
     np.savez(tmp_path / "r.snapshot.npz", **older)
     (snap,), skipped = load_snapshots(tmp_path)
-    assert snap.run == 0 and skipped == []
+    assert (snap.run, snap.ended_runs) == (0, ()) and skipped == []

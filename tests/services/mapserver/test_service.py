@@ -169,6 +169,43 @@ def test_a_resend_query_that_fails_loses_the_gap_not_the_insert(tmp_path, caplog
         server.shell.close(flush_s=0.0)
 
 
+def test_a_late_pose_of_a_run_never_seen_does_not_replace_the_live_run(
+    tmp_path, insert, pose
+) -> None:
+    """Poses travel apart from the inserts: a map server that first hears of the robot at a
+    run change sees run B's first insert, then a late pose of run A, which it never knew.
+    That pose is held, not taken for a new run (B would have been dropped from then on); a
+    restart keeps the runs it replaced, so their late messages stay dropped."""
+    settings = (MapServerSettings(data_dir=str(tmp_path)), ZenohSettings(mode="peer", connect=[]))
+    server = MapServer(*settings)
+    try:
+        server.handle("insert", replace(insert(0), run=22))
+        server.handle("pose", replace(pose(40, Pose2D(9.0, 0.0, 0.0)), run=11))  # late, of A
+        for seq in range(5):
+            at = Pose2D(0.1 * seq, 0.0, 0.0)
+            server.handle("pose", replace(pose(seq, at), run=22))
+            if seq:
+                server.handle("insert", replace(insert(seq, at), run=22, previous_seq=seq - 1))
+        robot = server.robots["r"]
+        assert robot.run == 22 and robot.last_insert_seq == 4 and robot.last_seq == 4
+        np.testing.assert_allclose(robot.trajectory.poses[:, 0], 0.1 * np.arange(5))
+        assert server.shell.counters.get("poses_held") == 1
+        server.handle("insert", replace(insert(0), run=33))  # a replay: run C
+        server.handle("pose", replace(pose(0), run=33))
+        assert robot.ended_runs == [22] and server.robots["r"].run == 33
+        server.snapshot()
+    finally:
+        server.shell.close(flush_s=0.0)
+    server = MapServer(*settings)
+    try:
+        server.handle("pose", replace(pose(5, Pose2D(8.0, 0.0, 0.0)), run=22))  # late, of B
+        robot = server.robots["r"]
+        assert robot.run == 33 and server.shell.counters.get("ended_run_dropped") == 1
+        assert robot.trajectory.poses.tolist() == [[0.0, 0.0, 0.0]]
+    finally:
+        server.shell.close(flush_s=0.0)
+
+
 @pytest.mark.parametrize(
     ("answer", "why"),
     [

@@ -190,7 +190,8 @@ def test_every_message_of_a_run_carries_its_token_and_a_resumed_run_the_map_serv
 ) -> None:
     """Inserts and estimates of one run carry one token; a replay (seqs back to 0) draws a new
     one; a robot resumed from the map server carries on the token of the run its map is of
-    (a new one when the map server knows none)."""
+    (a new one when the map server knows none); one that could not resume has none (0), so
+    that a map server holding its map keeps it."""
     service = MatcherService(MatcherSettings(), FrontendSettings(),
                              ZenohSettings(mode="peer", connect=[]))
     sent: list = []
@@ -215,8 +216,14 @@ def test_every_message_of_a_run_carries_its_token_and_a_resumed_run_the_map_serv
         assert [len(r) for r in runs] == [1, 1] and runs[0] != runs[1] and 0 not in runs[0]
         service._frontend("a", 7)
         service._frontend("b", 7)
+        service._frontend("c", 7)  # the map server fails: a run not known to go on, or not
         assert service.recent["a"].run == 5
         assert service.recent["b"].run not in (0, 5, *runs[1])
+        assert service.recent["c"].run == 0 and "c" in service.frontends
+        # A resend answered from a run that ended while it was asked for: refused, not sent
+        # with the new run's map under the old token.
+        with pytest.raises(LookupError, match="r: its tracker started another run meanwhile"):
+            service._older("r", RecentInserts(4, runs[0].pop()), -1, 5, LookupError("not kept"))
     finally:
         service.shell.close(flush_s=0.0)
 
