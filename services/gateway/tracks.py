@@ -49,6 +49,7 @@ class RobotTrack:
     scans_seen: int = 0
     map_revision: int | None = None
     restarts: int = 0
+    run: int = 0  # the tracker's run of the last estimate that named one (0: none yet)
     seqs: dict[str, int] = field(default_factory=dict)  # input stream -> its last seq
 
     def __post_init__(self) -> None:
@@ -60,11 +61,14 @@ class RobotTrack:
         return self.estimates[-1] if self.estimates else None
 
     def add(self, estimate: PoseEstimateMessage, received_s: float) -> None:
-        """Append; a seq that does not move forward (a replay) starts the cache afresh, and
+        """Append; a seq that does not move forward (a replay) or another run of the tracker
+        (its token: one whose first poses this gateway missed) starts the cache afresh, and
         so does a map redraw (the earlier poses are in the old frame: the map server's
         corrected path answers for them)."""
         latest = self.latest
-        if latest is not None and estimate.seq <= latest.seq:
+        another_run = bool(estimate.run and self.run and estimate.run != self.run)
+        self.run = estimate.run or self.run
+        if latest is not None and (estimate.seq <= latest.seq or another_run):
             self.estimates.clear()
             self.restarts += 1
         elif estimate.correction is not None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
@@ -80,6 +82,16 @@ def test_replayed_stream_restarts_the_cache(client, publish_poses):
     robots = client.get("/api/v1/robots").json()["robots"]
     (r1,) = [r for r in robots if r["robot_id"] == "r1"]
     assert r1["restarts"] == 1 and r1["poses_cached"] == 1 and r1["last_pose"]["x_m"] == 9.0
+
+
+def test_another_run_of_the_tracker_restarts_the_cache_even_with_seqs_going_on():
+    """The gateway missed the first poses of a new run (it restarted): the run token says so,
+    where the seqs do not; an unknown run (0) keeps the cache."""
+    store = TrackStore(10)
+    for seq, run in ((1, 11), (2, 11), (3, 0), (7, 22), (8, 22), (9, 0)):
+        store.add_pose(replace(estimate("r", seq, 0.1 * seq, float(seq), 0.0), run=run))
+    assert [e.seq for e in store.estimates("r")] == [7, 8, 9]
+    assert [r.restarts for r in store.robots()] == [1]
 
 
 def test_a_retired_robots_track_goes_and_frees_its_place():
