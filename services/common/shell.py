@@ -82,6 +82,7 @@ class ServiceShell:
         self._zenoh_settings = zenoh_settings
         self.session = self._open_session()
         self._side: zenoh.Session | None = None
+        self._side_lock = threading.Lock()  # the worker and a helper thread may both open it
         self._feedback: deque[tuple[str, Any]] = deque()
         self._feedback_lock = threading.Lock()
         self._wake_posted = False  # one _WAKE in the inbox at a time: it takes the whole lane
@@ -191,20 +192,28 @@ class ServiceShell:
 
     def _side_session(self) -> zenoh.Session:
         """The second session (opened on first use) whose callbacks never block."""
-        if self._side is None:
-            self._side = self._open_session()
-        return self._side
+        with self._side_lock:
+            if self._side is None:
+                self._side = self._open_session()
+            return self._side
 
     def get(self, selector: str, timeout_s: float) -> tuple[list[bytes], list[str]]:
-        """Query `selector` on the side session: every reply's payload (none merged away, as
-        Zenoh's default does to replies on one key), and the error replies' texts (both empty
-        when no queryable matched; a queryable that did not finish within `timeout_s` gives
-        the error TIMED_OUT)."""
+        """`query`, by the worker: the time it waits counts as the worker's waiting on queries
+        (a slow message's log says so)."""
         t0 = time.perf_counter()
+        try:
+            return self.query(selector, timeout_s)
+        finally:
+            self._get_s += time.perf_counter() - t0
+
+    def query(self, selector: str, timeout_s: float) -> tuple[list[bytes], list[str]]:
+        """Query `selector` on the side session (from any thread): every reply's payload (none
+        merged away, as Zenoh's default does to replies on one key), and the error replies'
+        texts (both empty when no queryable matched; a queryable that did not finish within
+        `timeout_s` gives the error TIMED_OUT)."""
         answers, errors = sorted_replies(self._side_session().get(
             selector, timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE
         ))
-        self._get_s += time.perf_counter() - t0
         return [payload for _, payload in answers], errors
 
     def _feed(self, kind: str, message: Any) -> None:

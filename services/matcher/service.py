@@ -9,7 +9,9 @@ publishes that scan (no-return beams included) with the pose it went in at on `m
 the map server inserts exactly the same scans at the same poses. A new robot starts on the
 prior map when SCANFLOW_FRONTEND_PRIOR_MAP names one (the map server starts from the same
 file). A robot first seen mid-stream (this matcher restarted) resumes from the map server's
-one answer on `map/resume` (ResumeMessage): its map and last pose seed the front end. An
+one answer on `map/resume` (ResumeMessage): its map and last pose seed the front end. The
+query goes out on a thread of its own, so the other robots are tracked meanwhile; the robot's
+scans wait for the answer and are then tracked in order. An
 operator's pose on `<prefix>/<robot>/initial_pose` (InitialPoseMessage, echoed once taken)
 puts the robot there: its next scan is matched from it, or, for a robot not seen yet, its
 first scan. Match requests are answered on `<prefix>/match` (any scans) and
@@ -39,6 +41,8 @@ from __future__ import annotations
 import copy
 import threading
 import time
+from collections import deque
+from dataclasses import dataclass
 
 import numpy as np
 import zenoh
@@ -80,6 +84,8 @@ from services.matcher.recent import (
 from services.matcher.requests import answer
 from services.matcher.shard import owns
 
+MAX_SCANS_WAITING = 1024  # per robot waiting for the map server's answer (~6 MB at 360 beams)
+
 # Scan-to-map methods that read the live map under the lock: quick, and bounded by their
 # max_iterations. Any other (csm, its exhaustive form, csm+plicp, global: searches) reads a copy.
 LOCAL_METHODS = frozenset({"gn", "lm", "ndt", "gn+plicp", "icp", "plicp"})
@@ -107,6 +113,8 @@ class MatcherService:
         self.initial_poses: dict[str, Pose2D] = {}  # operators' poses for robots not seen yet
         self.recent: dict[str, RecentInserts] = {}  # per robot: its run's last inserts
         self.awaiting: dict[str, float] = {}  # robots met mid-stream waiting for the map server
+        # Robots whose resume query is out: their scans since, in order, for when it answers.
+        self.resuming: dict[str, deque[DeskewedScanMessage]] = {}
         self.match_queryables: dict[str, zenoh.Queryable] = {}  # per robot: `<robot>/match`
         self.lock = threading.Lock()  # the worker updates maps that match requests read
         prefix = self.shell.prefix
@@ -123,9 +131,14 @@ class MatcherService:
         """Whether this instance tracks `robot_id`: in its `robots` list, else by CRC-32 shard."""
         return owns(robot_id, self.settings.shard, self.settings.robots)
 
-    def handle(self, kind: str, message: DeskewedScanMessage) -> None:
+    def handle(self, kind: str, message: DeskewedScanMessage | _ResumeAnswer) -> None:
         """Track a scan of an owned, admitted robot (front end, then back end, under the lock) and
-        publish its insert, redraw and pose; dropped while the robot waits for the map server."""
+        publish its insert, redraw and pose. A robot met mid-stream (this matcher restarted)
+        asks the map server for its map on a thread of its own, so the other robots go on
+        meanwhile; its scans wait for the answer (`_on_resume_answer`), in order."""
+        if isinstance(message, _ResumeAnswer):
+            self._on_resume_answer(message)
+            return
         robot_id = message.robot_id
         if not self.owns(robot_id):
             self.shell.counters.add(f"other_shard.{kind}")
@@ -135,11 +148,22 @@ class MatcherService:
         stream = f"{robot_id}/{kind}"
         restarted = self.shell.seqs.is_restart(stream, message.seq)
         self.shell.seqs.observe(stream, message.seq)
-        try:
-            frontend = self._frontend(robot_id, message.seq, fresh=restarted)
-        except _NoMapServerYetError:
-            self.shell.counters.add("scans_awaiting_resume")
+        waiting = self.resuming.get(robot_id)
+        if waiting is not None and not restarted:
+            self._hold(waiting, message)
             return
+        if waiting is not None:  # a new run: the old one's scans cannot be tracked any more
+            self.shell.counters.add("scans_awaiting_resume", len(self.resuming.pop(robot_id)))
+        frontend = self.frontends.get(robot_id)
+        if frontend is None and message.seq > 0:  # met mid-stream: ask for the map server's map
+            self._ask_for_resume(robot_id, message)
+            return
+        if frontend is None or restarted:
+            frontend = self._install(robot_id, None, resuming=False)
+        self._track(robot_id, frontend, message)
+
+    def _track(self, robot_id: str, frontend: Frontend, message: DeskewedScanMessage) -> None:
+        """One scan through the robot's front end and back end, then its messages out."""
         with self.lock:  # a redraw replaces the map that match requests read
             out = frontend.process(
                 message.points,
@@ -216,16 +240,13 @@ class MatcherService:
         self.shell.put(keys.map_key(redraw.robot_id, "insert", self.shell.prefix), payload)
 
     # -- robots ---------------------------------------------------------------------------
-    def _frontend(self, robot_id: str, seq: int, fresh: bool = False) -> Frontend:
-        """The robot's front end; created on first sight (seeded from the map server when the
-        stream is already under way), replaced by a fresh one when the stream restarts. An
-        operator's pose sent before it existed is applied as it is stored (one lock: a pose
-        arriving meanwhile finds it)."""
-        frontend = self.frontends.get(robot_id)
-        if frontend is not None and not fresh:
-            return frontend
-        resuming = frontend is None and seq > 0  # met mid-stream: the map server's run goes on
-        seeded = self._seeded(robot_id) if resuming else None
+    def _install(
+        self, robot_id: str, seeded: tuple[Frontend, ResumeMessage] | None, resuming: bool
+    ) -> Frontend:
+        """The robot's new front end (and back end): `seeded` from the map server's map, or
+        afresh (on first sight, when the stream restarts, or `resuming` but the map server had
+        no map to give). An operator's pose sent before it existed is applied as it is stored
+        (one lock: a pose arriving meanwhile finds it)."""
         mapper = None
         if seeded is None:
             new = Frontend(self.frontend_settings, self.start.pose, self.start.grid())
@@ -235,7 +256,7 @@ class MatcherService:
             new, resumed = seeded
             if self.backend.loop_closure:
                 mapper = self._resumed_back_end(robot_id, new, resumed)
-        if frontend is None:
+        if robot_id not in self.match_queryables:
             self.match_queryables[robot_id] = self.shell.serve(
                 keys.robot_match(robot_id, self.shell.prefix), self._on_match
             )
@@ -278,15 +299,62 @@ class MatcherService:
                             len(kept.seqs))
         return Mapper(frontend, self.backend, saved, self.start.grid())
 
-    def _seeded(self, robot_id: str) -> tuple[Frontend, ResumeMessage] | None:
-        """A front end continuing the map server's map and last pose of `robot_id`, and all
-        it answered (the path, the keyframes), if it knows the robot. While no map server
-        answers at all (it is restarting too, or too busy to answer in time),
-        _NoMapServerYetError, for up to resume_timeout_s: a front end started afresh meanwhile
-        would replace the map server's map with its own (the robot's scans meanwhile are
-        dropped, counted)."""
+    def _ask_for_resume(self, robot_id: str, first: DeskewedScanMessage) -> None:
+        """Ask the map server for the robot's map on a thread of its own (the answer comes
+        back through the inbox); `first` and the robot's later scans wait for it."""
+        self.resuming[robot_id] = deque([first])
+        threading.Thread(
+            target=self._resume_in_inbox, args=(robot_id,), name=f"resume-{robot_id}", daemon=True
+        ).start()
+
+    def _resume_in_inbox(self, robot_id: str) -> None:
+        """(Its own thread.) The map server's answer for `robot_id`, into the worker's inbox."""
+        payloads, errors = self._resume_query(robot_id)
+        self.shell.inbox.put("resume", _ResumeAnswer(robot_id, payloads, errors))
+
+    def _resume_query(self, robot_id: str) -> tuple[list[bytes], list[str]]:
+        """The map server's answers to the resume query for `robot_id` (up to
+        resume_timeout_s) and its errors: one failing to be asked is an error too."""
         selector = keys.map_key(robot_id, "resume", self.shell.prefix)
-        payloads, errors = self.shell.get(selector, self.settings.resume_timeout_s)
+        try:
+            return self.shell.query(selector, self.settings.resume_timeout_s)
+        except (zenoh.ZError, RuntimeError) as exc:  # no side session, a refused query
+            return [], [f"the query failed: {exc}"]
+
+    def _hold(self, waiting: deque[DeskewedScanMessage], message: DeskewedScanMessage) -> None:
+        """Keep a scan of a robot waiting for the map server's map; past MAX_SCANS_WAITING
+        the oldest goes (counted: the tracker bridges the gap with the odometry)."""
+        if len(waiting) >= MAX_SCANS_WAITING:
+            waiting.popleft()
+            self.shell.counters.add("scans_awaiting_resume")
+        waiting.append(message)
+
+    def _on_resume_answer(self, answer: _ResumeAnswer) -> None:
+        """The map server answered (or not) for a robot met mid-stream: its front end starts
+        from the answer and its scans that waited are tracked, in order. While no map server
+        answers at all, they are dropped (counted) and the robot's next scan asks again."""
+        robot_id = answer.robot_id
+        waiting = self.resuming.pop(robot_id, None)
+        if waiting is None:  # retired, or its stream restarted, meanwhile
+            return
+        try:
+            seeded = self._seeded(robot_id, answer.payloads, answer.errors)
+        except _NoMapServerYetError:
+            self.shell.counters.add("scans_awaiting_resume", len(waiting))
+            return
+        frontend = self._install(robot_id, seeded, resuming=True)
+        for message in waiting:
+            self._track(robot_id, frontend, message)
+
+    def _seeded(
+        self, robot_id: str, payloads: list[bytes], errors: list[str]
+    ) -> tuple[Frontend, ResumeMessage] | None:
+        """A front end continuing the map server's map and last pose of `robot_id`, and all
+        it answered (the path, the keyframes), from its answer to the resume query (`payloads`,
+        `errors`), if it knows the robot. While no map server answers at all (it is restarting
+        too, or too busy to answer in time), _NoMapServerYetError, for up to resume_timeout_s:
+        a front end started afresh meanwhile would replace the map server's map with its own
+        (the robot's scans meanwhile are dropped, counted)."""
         # A map server there but too slow to answer (busy, its reply held up) has not answered
         # yet either: a front end started afresh would replace its map all the same.
         errors = [e for e in errors if e != TIMED_OUT]
@@ -431,6 +499,9 @@ class MatcherService:
             recent = self.recent.pop(robot_id, None)
             told = self.initial_poses.pop(robot_id, None)
             waited = self.awaiting.pop(robot_id, None)
+            waiting = self.resuming.pop(robot_id, ())  # its answer, when it comes, is dropped
+        if waiting:
+            self.shell.counters.add("scans_awaiting_resume", len(waiting))
         queryable = self.match_queryables.pop(robot_id, None)
         if queryable is not None:
             self.shell.undeclare(queryable)
@@ -491,25 +562,35 @@ def _run_token(resuming: bool, seeded: tuple[Frontend, ResumeMessage] | None) ->
     return 0 if resuming else new_run()
 
 
+@dataclass(frozen=True)
+class _ResumeAnswer:
+    """The map server's answers to a resume query, and its errors: an inbox item."""
+
+    robot_id: str
+    payloads: list[bytes]
+    errors: list[str]
+
+
 class _NoMapServerYetError(Exception):
     """A robot met mid-stream waits for the map server's map: no map server answers yet."""
 
 
 class _Held:
     """The robots a matcher holds a place for: those it tracks, those whose operator's pose
-    waits for their first scan, and those waiting for the map server's map (none overlap but
-    the last two)."""
+    waits for their first scan, and those waiting for the map server's map or asking for it
+    (none overlap but the last three)."""
 
     def __init__(self, service: MatcherService) -> None:
         self._service = service
 
     def __contains__(self, robot_id: object) -> bool:
         s = self._service
-        return robot_id in s.frontends or robot_id in s.initial_poses or robot_id in s.awaiting
+        return robot_id in s.frontends or robot_id in s.initial_poses or robot_id in s.awaiting \
+            or robot_id in s.resuming
 
     def __len__(self) -> int:
         s = self._service
-        return len(s.frontends) + len(set(s.initial_poses) | set(s.awaiting))
+        return len(s.frontends) + len(set(s.initial_poses) | set(s.awaiting) | set(s.resuming))
 
 
 def main() -> None:

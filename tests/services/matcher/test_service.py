@@ -26,6 +26,7 @@ from scanflow.wire import (
     MapRef,
     MapStateMessage,
     MatchRequest,
+    PoseEstimateMessage,
     ResumeMessage,
     codec,
     decode_any,
@@ -39,6 +40,35 @@ from services.matcher.recent import RecentInserts
 from services.matcher.service import MatcherService, _NoMapServerYetError
 
 LOOP_CLOSURE = BackendSettings.model_construct(loop_closure=True)
+
+
+def asked(service: MatcherService, robot_id: str):
+    """What the robot's front end would start from, the resume query asked here and now."""
+    return service._seeded(robot_id, *service._resume_query(robot_id))
+
+
+def answered(service: MatcherService, timeout_s: float = 10.0) -> None:
+    """Handle what comes into the inbox (a resume query's answer) until it stays empty."""
+    while (item := service.shell.inbox.get(timeout_s)) is not None:
+        service.handle(*item)
+        timeout_s = 0.2
+
+
+def recording(service: MatcherService) -> list:
+    """The messages the service puts from now on, decoded, instead of putting them."""
+    sent: list = []
+    service.shell.put = lambda key, payload: sent.append(decode_any(payload))
+    return sent
+
+
+def resume_answer(tmp_path, robot_id: str, **fields) -> bytes:
+    """A map server's resume answer for `robot_id`: a two-hit map and a path of two poses."""
+    grid = OccupancyGrid(OccupancyParams())
+    grid.insert_scan(np.array([[2.0, 0.0], [2.0, 0.5]]), np.zeros(2))
+    npz = write_npz(tmp_path / "map.npz", npz_arrays(grid)).read_bytes()
+    path = np.array([[0.0, 0.0, 0.0], [0.4, 0.1, 0.2]])
+    return ResumeMessage(robot_id, grid.revision, npz, np.array([0.1, 0.2]), path,
+                         **fields).encode()
 
 
 def matcher() -> MatcherService:
@@ -86,9 +116,8 @@ def test_an_operators_pose_before_a_resumed_robots_first_scan_is_a_weak_link() -
             frontend_of[robot_id] = frontend
             return frontend, ResumeMessage(robot_id, 0, b"", np.zeros(0), np.zeros((0, 3)))
 
-        service._seeded = seeded
         service._resumed_back_end = lambda robot_id, frontend, resumed: Spy(frontend, LOOP_CLOSURE)
-        frontend = service._frontend("r", seq=12)
+        frontend = service._install("r", seeded("r"), resuming=True)
         assert frontend is frontend_of["r"] and relocated == [True]
         assert "r" not in service.initial_poses
     finally:
@@ -112,7 +141,7 @@ def test_operators_poses_for_robots_not_seen_yet_take_places_among_max_robots() 
         assert service.shell.counters.get("robots_refused") == 1
         service.place("a", Pose2D(3.0, 0.0, 0.0))  # a robot with a place keeps it
         assert service.initial_poses["a"] == Pose2D(3.0, 0.0, 0.0)
-        frontend = service._frontend("a", seq=0)
+        frontend = service._install("a", None, resuming=False)
         assert frontend.initial_pose == Pose2D(3.0, 0.0, 0.0) and "a" not in service.initial_poses
         with pytest.raises(RobotLimitError):
             service.place("c", Pose2D())  # a and b still hold the two places
@@ -144,7 +173,7 @@ def test_a_robot_resumes_from_the_map_servers_one_answer_or_says_why_not(
         lambda q: q.reply(q.key_expr, answers[str(q.key_expr).split("/")[1]]), side=True,
     )
     try:
-        seeded = service._seeded("a")
+        seeded = asked(service, "a")
         assert seeded is not None
         frontend, resumed = seeded
         assert frontend.initial_pose == Pose2D.from_array(path[-1])
@@ -152,17 +181,17 @@ def test_a_robot_resumes_from_the_map_servers_one_answer_or_says_why_not(
         assert service._resumed_back_end("a", frontend, resumed) is None
         assert service.shell.counters.get("backend.resumed_without") == 1
         assert "keeps no keyframes of it (SCANFLOW_BACKEND_LOOP_CLOSURE is off there" in caplog.text
-        assert service._seeded("b") is None
+        assert asked(service, "b") is None
         assert "robot b: no map to resume from, starting fresh (its answer is unreadable" in (
             caplog.text
         )
-        assert service._seeded("c") is None  # a broken map: named, and the robot starts afresh
+        assert asked(service, "c") is None  # a broken map: named, and the robot starts afresh
         assert ("robot c: no map to resume from, starting fresh (its answer is unreadable: the "
                 "map server's map of c: not a readable .npz (BadZipFile") in caplog.text
         # With the odometry pose of the path's end, the first scan after a long outage is
         # predicted by the odometry since then (without it: held at the path's end).
         for robot, source in (("a", "initial"), ("d", "odometry")):
-            frontend, _ = service._seeded(robot)
+            frontend, _ = asked(service, robot)
             out = frontend.process(np.zeros((3, 2)), 30.0, Pose2D(13.0, 0.0, 0.0))
             assert out.prediction_source == source, robot
         assert out.pose == Pose2D.from_array(path[-1]) * Pose2D(3.0, 0.0, 0.0)
@@ -194,14 +223,9 @@ def test_every_message_of_a_run_carries_its_token_and_a_resumed_run_the_map_serv
     that a map server holding its map keeps it."""
     service = MatcherService(MatcherSettings(), FrontendSettings(),
                              ZenohSettings(mode="peer", connect=[]))
-    sent: list = []
-    service.shell.put = lambda key, payload: sent.append(decode_any(payload))
-    grid = OccupancyGrid(OccupancyParams())
-    grid.insert_scan(np.array([[2.0, 0.0], [2.0, 0.5]]), np.zeros(2))
-    npz = write_npz(tmp_path / "map.npz", npz_arrays(grid)).read_bytes()
-    path = np.array([[0.0, 0.0, 0.0], [0.4, 0.1, 0.2]])
-    answers = {robot: ResumeMessage(robot, grid.revision, npz, np.array([1.0, 2.0]), path,
-                                    run=run).encode() for robot, run in (("a", 5), ("b", 0))}
+    sent = recording(service)
+    answers = {robot: resume_answer(tmp_path, robot, run=run)
+               for robot, run in (("a", 5), ("b", 0))}
     service.shell.serve(
         "scanflow/*/map/resume",
         lambda q: q.reply(q.key_expr, answers[str(q.key_expr).split("/")[1]]), side=True,
@@ -214,9 +238,8 @@ def test_every_message_of_a_run_carries_its_token_and_a_resumed_run_the_map_serv
             runs.append({m.run for m in sent})
             sent.clear()
         assert [len(r) for r in runs] == [1, 1] and runs[0] != runs[1] and 0 not in runs[0]
-        service._frontend("a", 7)
-        service._frontend("b", 7)
-        service._frontend("c", 7)  # the map server fails: a run not known to go on, or not
+        for robot in "abc":  # c: the map server fails; a run not known to go on, or not
+            service._install(robot, asked(service, robot), resuming=True)
         assert service.recent["a"].run == 5
         assert service.recent["b"].run not in (0, 5, *runs[1])
         assert service.recent["c"].run == 0 and "c" in service.frontends
@@ -351,9 +374,10 @@ def test_a_search_request_runs_on_a_copy_of_the_map_without_the_lock(
     try:
         frames = list(simulate(SimConfig(beams=180, duration_s=0.6, seed=2)))
         stage = DeskewStage()
+        frontend = service._install("r", None, resuming=False)
         for frame in frames[:-1]:
             deskewed = stage.process(frame.scan)
-            service._frontend("r", 0).process(deskewed.points, frame.scan.stamp_s, None, 0)
+            frontend.process(deskewed.points, frame.scan.stamp_s, None, 0)
         source = DeskewStage().process(frames[-1].scan).points
         request = MatchRequest(method, source, MapRef("r"), frames[-1].true_pose)
         seen: list[bool] = []
@@ -389,9 +413,62 @@ def test_a_map_server_too_busy_to_answer_in_time_is_waited_for_not_started_over(
     busy = service.shell._side_session().declare_queryable("scanflow/*/map/resume", held.append)
     try:
         with pytest.raises(_NoMapServerYetError):
-            service._seeded("r")
+            asked(service, "r")
         assert held and "r" in service.awaiting and "r" not in service.frontends
         assert "starting fresh" not in caplog.text
+    finally:
+        busy.undeclare()
+        service.shell.close(flush_s=0.0)
+
+
+def test_a_robot_waiting_for_its_map_holds_up_no_other_robot(tmp_path) -> None:
+    """The resume query goes out on a thread of its own: while the map server sits on it, the
+    other robots' scans are tracked; the answer then starts the robot from the map server's
+    map and its scans that waited are tracked in order. A replay while it waits, or a retire,
+    drops the wait (and the answer when it comes)."""
+    service = MatcherService(MatcherSettings(), FrontendSettings(),
+                             ZenohSettings(mode="peer", connect=[]))
+    sent = recording(service)
+    held: list = []  # the map server is busy: it answers when the test says
+    busy = service.shell._side_session().declare_queryable("scanflow/*/map/resume", held.append)
+    ring = np.column_stack((3 * np.cos(np.linspace(0, 6, 60)), 3 * np.sin(np.linspace(0, 6, 60))))
+
+    def scan(robot: str, seq: int) -> DeskewedScanMessage:
+        return DeskewedScanMessage(robot, seq, 0.1 * seq, ring, "odometry", False, 60, 0)
+
+    def poses_of(robot: str) -> list[int]:
+        return [m.seq for m in sent if isinstance(m, PoseEstimateMessage) and m.robot_id == robot]
+
+    try:
+        for seq in (5, 6, 7):
+            service.handle("scan", scan("slow", seq))
+        for seq in range(3):
+            service.handle("scan", scan("other", seq))
+        assert poses_of("other") == [0, 1, 2] and poses_of("slow") == []
+        deadline = time.monotonic() + 10.0
+        while not held:
+            assert time.monotonic() < deadline, "the resume query never reached the map server"
+            time.sleep(0.01)
+        (query,) = held
+        query.reply(query.key_expr, resume_answer(tmp_path, "slow"))
+        query.drop()
+        answered(service)
+        assert poses_of("slow") == [5, 6, 7] and service.shell.counters.get("resumed_robots") == 1
+        assert "slow" not in service.resuming and "slow" not in service.awaiting
+        for robot in ("replayed", "retired"):
+            service.handle("scan", scan(robot, 9))
+        service.handle("scan", scan("replayed", 0))  # a new run while it waited
+        service.retire("retired")
+        assert poses_of("replayed") == [0] and "retired" not in service.frontends
+        deadline = time.monotonic() + 10.0
+        while len(held) < 3:
+            assert time.monotonic() < deadline, "the resume queries never reached the map server"
+            time.sleep(0.01)
+        for query in held[1:]:
+            query.drop()  # no answer: as if the map server knew neither
+        answered(service)
+        assert "retired" not in service.frontends and poses_of("replayed") == [0]
+        assert service.shell.counters.get("scans_awaiting_resume") == 2  # the two 9s
     finally:
         busy.undeclare()
         service.shell.close(flush_s=0.0)
@@ -408,7 +485,7 @@ def test_a_robot_met_mid_stream_waits_for_a_map_server_not_up_yet(tmp_path, capl
     grid.insert_scan(np.array([[2.0, 0.0], [2.0, 0.5]]), np.zeros(2))
     npz = write_npz(tmp_path / "map.npz", npz_arrays(grid)).read_bytes()
     answers: list[bytes] = []  # the resume query's answers: none while the map server is down
-    service.shell.get = lambda selector, timeout_s: (list(answers), [])
+    service.shell.query = lambda selector, timeout_s: (list(answers), [])
     ring = np.column_stack((3 * np.cos(np.linspace(0, 6, 60)), 3 * np.sin(np.linspace(0, 6, 60))))
 
     def scan(robot: str, seq: int) -> DeskewedScanMessage:
@@ -416,7 +493,9 @@ def test_a_robot_met_mid_stream_waits_for_a_map_server_not_up_yet(tmp_path, capl
 
     try:
         service.handle("scan", scan("r", 5))
+        answered(service)
         service.handle("scan", scan("r", 6))
+        answered(service)
         assert "r" not in service.frontends and "r" in service.awaiting
         assert service.shell.counters.get("scans_awaiting_resume") == 2
         assert "robot r met mid-stream and no map server answers: waiting up to 30 s" in (
@@ -425,11 +504,13 @@ def test_a_robot_met_mid_stream_waits_for_a_map_server_not_up_yet(tmp_path, capl
         path = np.array([[0.0, 0.0, 0.0], [0.4, 0.1, 0.2]])
         answers.append(ResumeMessage("r", grid.revision, npz, np.array([0.1, 0.2]), path).encode())
         service.handle("scan", scan("r", 7))
+        answered(service)
         assert service.frontends["r"].initial_pose == Pose2D.from_array(path[-1])
         assert service.shell.counters.get("resumed_robots") == 1 and "r" not in service.awaiting
         answers.clear()
         service.awaiting["q"] = time.monotonic() - 31.0  # waited past resume_timeout_s
         service.handle("scan", scan("q", 9))
+        answered(service)
         assert "q" in service.frontends and "q" not in service.awaiting
         assert "robot q: no map to resume from, starting fresh (no map server answered in 30 s)" \
             in caplog.text
