@@ -550,6 +550,18 @@ class MatcherService:
                 warm_up(methods=True)
             self.shell.start()
             self.shell.run(self.handle)
+            self._count_waiting_at_stop()
+
+    def _count_waiting_at_stop(self) -> None:
+        """Scans still waiting for a map server's answer when the service stops are lost, as
+        scans left in the inbox are: counted and logged."""
+        waiting = sum(len(scans) for scans in self.resuming.values())
+        if waiting:
+            self.shell.counters.add("inbox.dropped_at_stop", waiting)
+            self.shell.log.warning(
+                "stopping: %d scans of %d robots were still waiting for the map server's map",
+                waiting, len(self.resuming),
+            )
 
 
 def _run_token(resuming: bool, seeded: tuple[Frontend, ResumeMessage] | None) -> int:

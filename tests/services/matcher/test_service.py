@@ -6,6 +6,7 @@ import itertools
 import logging
 import re
 import time
+from collections import deque
 
 import numpy as np
 import pytest
@@ -471,6 +472,22 @@ def test_a_robot_waiting_for_its_map_holds_up_no_other_robot(tmp_path) -> None:
         assert service.shell.counters.get("scans_awaiting_resume") == 2  # the two 9s
     finally:
         busy.undeclare()
+        service.shell.close(flush_s=0.0)
+
+
+def test_scans_still_waiting_for_the_map_server_at_a_stop_are_counted(caplog) -> None:
+    service = matcher()
+    service._ask_for_resume = lambda robot_id, first: service.resuming.setdefault(
+        robot_id, deque([first]))  # a query that never comes back
+    ring = np.full((20, 2), 2.0)
+    try:
+        for seq in (5, 6):
+            service.handle("scan", DeskewedScanMessage("r", seq, 0.1 * seq, ring, "odometry",
+                                                       False, 20, 0))
+        service._count_waiting_at_stop()
+        assert service.shell.counters.get("inbox.dropped_at_stop") == 2
+        assert "stopping: 2 scans of 1 robots were still waiting" in caplog.text
+    finally:
         service.shell.close(flush_s=0.0)
 
 
