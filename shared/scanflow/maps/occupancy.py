@@ -119,11 +119,6 @@ class InsertResult:
         """Bounding box of the cells whose occupied mask flipped (None: none did)."""
         return CellBox.around(self.occupied_cells) if len(self.occupied_cells) else None
 
-    @property
-    def means_changed(self) -> CellBox | None:
-        """Bounding box of the occupied cells that got new hits (None: none did)."""
-        return CellBox.around(self.means_cells) if len(self.means_cells) else None
-
 
 class ScanRays(NamedTuple):
     """One scan's beams in world coordinates: the sensor's position (2,), the (N, 2) points
