@@ -383,9 +383,11 @@ class ServiceShell:
         handle: Callable[[str, Any], None],
         idle: Callable[[], None] | None = None,
         poll_s: float = 0.1,
+        pending: Callable[[], bool] | None = None,
     ) -> None:
         """Feed inbox items to `handle` until stopped, then `drain`; `idle()` runs after
-        `poll_s` of quiet."""
+        `poll_s` of quiet; `pending()`: whether work of the service's own threads is still on
+        its way into the inbox (the drain waits for it)."""
         while not self.stop_event.is_set():
             item = self.inbox.get(poll_s)
             t0 = time.perf_counter()
@@ -397,7 +399,7 @@ class ServiceShell:
             elif item[0] != _WAKE:
                 self._handle(handle, *item)
             self._busy_s += time.perf_counter() - t0
-        self.drain(handle)
+        self.drain(handle, pending)
 
     def stop_deadline(self) -> float:
         """When a stop's drain ends (time.monotonic): math.inf while running, else
@@ -410,18 +412,23 @@ class ServiceShell:
                 self._stop_deadline = time.monotonic() + self.inbox_drain_s
             return self._stop_deadline
 
-    def drain(self, handle: Callable[[str, Any], None]) -> None:
+    def drain(
+        self, handle: Callable[[str, Any], None], pending: Callable[[], bool] | None = None
+    ) -> None:
         """Once stopped, handle what the inbox holds and what still arrives, until nothing has
-        come for DRAIN_QUIET_S or `stop_deadline` passes: a message accepted off the bus is not
-        lost on a clean stop, nor one an upstream service flushed at its own stop (they stop
-        in data-flow order) that is still on the wire. Then the inbox closes: what it held is
-        counted as inbox.dropped_at_stop and logged, later samples as refused_at_stop.<kind>."""
+        come for DRAIN_QUIET_S (and `pending()`, if given, says nothing more is on its way) or
+        `stop_deadline` passes: a message accepted off the bus is not lost on a clean stop,
+        nor one an upstream service flushed at its own stop (they stop in data-flow order)
+        that is still on the wire. Then the inbox closes: what it held is counted as
+        inbox.dropped_at_stop and logged, later samples as refused_at_stop.<kind>."""
         deadline = self.stop_deadline()
         handled, quiet = 0, self.inbox_drain_s <= 0.0  # no drain: nothing to report
         while (left_s := deadline - time.monotonic()) > 0.0:
             for kind, message in self._take_feedback():
                 self._handle(handle, kind, message)
             item = self.inbox.get(min(DRAIN_QUIET_S, left_s))
+            if item is None and pending is not None and pending():
+                continue
             if item is None:
                 quiet = left_s > DRAIN_QUIET_S
                 break

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 from scanflow.geometry import Pose2D
-from scanflow.wire import PoseEstimateMessage
+from scanflow.wire import ENDED_RUNS_KEPT, PoseEstimateMessage
 
 from services.common.robots import RobotLimit
 
@@ -50,6 +50,7 @@ class RobotTrack:
     map_revision: int | None = None
     restarts: int = 0
     run: int = 0  # the tracker's run of the last estimate that named one (0: none yet)
+    ended_runs: deque[int] = field(default_factory=lambda: deque(maxlen=ENDED_RUNS_KEPT))
     seqs: dict[str, int] = field(default_factory=dict)  # input stream -> its last seq
 
     def __post_init__(self) -> None:
@@ -65,8 +66,12 @@ class RobotTrack:
         (its token: one whose first poses this gateway missed) starts the cache afresh, and
         so does a map redraw (the earlier poses are in the old frame: the map server's
         corrected path answers for them)."""
+        if estimate.run and estimate.run in self.ended_runs:  # late, of a run replaced
+            return
         latest = self.latest
         another_run = bool(estimate.run and self.run and estimate.run != self.run)
+        if another_run:
+            self.ended_runs.append(self.run)
         self.run = estimate.run or self.run
         if latest is not None and (estimate.seq <= latest.seq or another_run):
             self.estimates.clear()

@@ -17,6 +17,7 @@ from scanflow.maps.grid import CellBox
 from scanflow.maps.matching_map import MatchingMap
 from scanflow.maps.occupancy import OccupancyGrid, OccupancyParams
 from scanflow.wire import (
+    ENDED_RUNS_KEPT,
     MapChangedMessage,
     MapInsertMessage,
     MapRedrawMessage,
@@ -27,7 +28,6 @@ from scanflow.wire import (
 from services.mapserver.keyframes import Keyframes
 from services.mapserver.snapshot import Snapshot
 
-MAX_ENDED_RUNS = 16  # the last runs a map replaced: their late messages are dropped
 MAX_HELD_POSES = 64  # poses of a run the map is not of yet, held until its first insert
 
 
@@ -97,7 +97,7 @@ class RobotMap:
         showed (their stream is in order, so a run's first one follows every one of the run
         before); the run replaced is ended. Returns the poses of `run` held so far, to apply."""
         if self.run:
-            self.ended_runs = [*self.ended_runs, self.run][-MAX_ENDED_RUNS:]
+            self.ended_runs = [*self.ended_runs, self.run][-ENDED_RUNS_KEPT:]
         self.reset()
         self.run = run
         mine = [pose for pose in self.held_poses if pose.run == run]

@@ -40,7 +40,12 @@ from services.common.retire import Dropped
 from services.common.shell import ServiceShell
 from services.mapserver import replies
 from services.mapserver.robot import RobotMap
-from services.mapserver.snapshot import load_snapshots, remove_snapshot, save_snapshot
+from services.mapserver.snapshot import (
+    keep_previous,
+    load_snapshots,
+    remove_snapshot,
+    save_snapshot,
+)
 
 Builder = Callable[[RobotMap, zenoh.Parameters], Message]
 Update = MapInsertMessage | MapRedrawMessage | PoseEstimateMessage
@@ -138,6 +143,7 @@ class MapServer:
             # A replay: start afresh. The other stream's restart, seen later, finds this run
             # without it and keeps it.
             self.shell.log.info("robot %s: %ss restarted at seq %d", robot_id, kind, message.seq)
+            self._keep_previous(robot)
             robot.reset()
         robot.streams.add(kind)
         if isinstance(message, MapInsertMessage):
@@ -165,17 +171,34 @@ class MapServer:
         if not robot.run:  # a new robot, or a snapshot older than run tokens
             robot.run = run
             return True
-        if isinstance(message, PoseEstimateMessage):
+        if isinstance(message, PoseEstimateMessage) and robot.last_insert_seq >= 0:
             self.shell.counters.add("poses_held")
             if not robot.hold(message):
                 self.shell.counters.add("held_poses_dropped")
             return False
+        # An insert or redraw of another run, or a pose where the map's run put nothing in
+        # the map (a robot localising on a prior map): a new run.
         self.shell.log.info("robot %s: a new run of its tracker at seq %d: its map and path "
                             "start afresh", robot.robot_id, message.seq)
         self.shell.counters.add("runs_replaced")
+        self._keep_previous(robot)
         for pose in robot.start_run(run):
             self._apply("pose", pose)
         return True
+
+    def _keep_previous(self, robot: RobotMap) -> None:
+        """Before a new run replaces the robot's map: its snapshot is kept aside (logged), or,
+        failing that, the failure is logged and counted; the new run goes on either way."""
+        try:
+            kept = keep_previous(self.data_dir, robot.robot_id)
+        except OSError as exc:
+            self.shell.counters.add("snapshots_failed")
+            self.shell.log.error("robot %s: the replaced run's snapshot not kept aside: %s",
+                                 robot.robot_id, exc)
+            return
+        if kept is not None:
+            self.shell.log.info("robot %s: the replaced run's map and path kept as %s",
+                                robot.robot_id, kept.name)
 
     def _held(self, robot: RobotMap, message: Update) -> bool:
         """Whether the robot's map holds the insert or redraw already (counted)."""

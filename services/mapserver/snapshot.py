@@ -41,6 +41,7 @@ UNREADABLE = (
 )
 
 SUFFIX = ".snapshot.npz"
+PREVIOUS = ".previous"  # after SUFFIX: the map of the run the robot's current one replaced
 _PER_FILE = "keyframes_per_file"
 PER_FILE: int = MapServerSettings.model_fields["keyframes_per_file"].default
 
@@ -93,6 +94,19 @@ def save_snapshot(data_dir: Path, snap: Snapshot, per_file: int = PER_FILE) -> N
             path.unlink(missing_ok=True)
 
 
+def keep_previous(data_dir: Path, robot_id: str) -> Path | None:
+    """Move the robot's snapshot aside as `<robot>.snapshot.npz.previous` (replacing an older
+    one), when a new run replaces its map: a run replaced by mistake (a matcher that could not
+    resume in time starts a map of its own) can still be loaded as a map. Where it went; None
+    when there was none. The keyframes' files are the new run's to replace."""
+    path = snapshot_path(data_dir, robot_id)
+    if not path.exists():
+        return None
+    kept = path.with_name(f"{path.name}{PREVIOUS}")
+    path.replace(kept)
+    return kept
+
+
 def remove_snapshot(data_dir: Path, robot_id: str) -> int:
     """Delete the robot's snapshot, then its keyframes' files (a retired robot: a restart must
     not bring it back); how many files went. A snapshot set aside as unreadable stays: no
@@ -101,6 +115,10 @@ def remove_snapshot(data_dir: Path, robot_id: str) -> int:
     path = snapshot_path(data_dir, robot_id)
     if path.exists():  # first: without it no start loads the robot, whatever is left below
         path.unlink()
+        removed += 1
+    previous = path.with_name(f"{path.name}{PREVIOUS}")
+    if previous.exists():
+        previous.unlink()
         removed += 1
     folder = _chunk_dir(data_dir, robot_id)
     if folder.is_dir():

@@ -39,6 +39,7 @@ map to resume it from).
 from __future__ import annotations
 
 import copy
+import itertools
 import threading
 import time
 from collections import deque
@@ -113,8 +114,9 @@ class MatcherService:
         self.initial_poses: dict[str, Pose2D] = {}  # operators' poses for robots not seen yet
         self.recent: dict[str, RecentInserts] = {}  # per robot: its run's last inserts
         self.awaiting: dict[str, float] = {}  # robots met mid-stream waiting for the map server
-        # Robots whose resume query is out: their scans since, in order, for when it answers.
-        self.resuming: dict[str, deque[DeskewedScanMessage]] = {}
+        # Robots whose resume query is out: its number and their scans since, in order.
+        self.resuming: dict[str, _Waiting] = {}
+        self._asks = itertools.count(1)  # resume queries' numbers: an answer names its own
         self.match_queryables: dict[str, zenoh.Queryable] = {}  # per robot: `<robot>/match`
         self.lock = threading.Lock()  # the worker updates maps that match requests read
         prefix = self.shell.prefix
@@ -153,13 +155,13 @@ class MatcherService:
             self._hold(waiting, message)
             return
         if waiting is not None:  # a new run: the old one's scans cannot be tracked any more
-            self.shell.counters.add("scans_awaiting_resume", len(self.resuming.pop(robot_id)))
+            self.shell.counters.add("scans_awaiting_resume", len(self.resuming.pop(robot_id).scans))
         frontend = self.frontends.get(robot_id)
         if frontend is None and message.seq > 0:  # met mid-stream: ask for the map server's map
             self._ask_for_resume(robot_id, message)
             return
         if frontend is None or restarted:
-            frontend = self._install(robot_id, None, resuming=False)
+            frontend = self._install(robot_id, None)
         self._track(robot_id, frontend, message)
 
     def _track(self, robot_id: str, frontend: Frontend, message: DeskewedScanMessage) -> None:
@@ -240,12 +242,10 @@ class MatcherService:
         self.shell.put(keys.map_key(redraw.robot_id, "insert", self.shell.prefix), payload)
 
     # -- robots ---------------------------------------------------------------------------
-    def _install(
-        self, robot_id: str, seeded: tuple[Frontend, ResumeMessage] | None, resuming: bool
-    ) -> Frontend:
+    def _install(self, robot_id: str, seeded: tuple[Frontend, ResumeMessage] | None) -> Frontend:
         """The robot's new front end (and back end): `seeded` from the map server's map, or
-        afresh (on first sight, when the stream restarts, or `resuming` but the map server had
-        no map to give). An operator's pose sent before it existed is applied as it is stored
+        afresh (on first sight, when the stream restarts, or when the map server had no map
+        to resume it from). An operator's pose sent before it existed is applied as it is stored
         (one lock: a pose arriving meanwhile finds it)."""
         mapper = None
         if seeded is None:
@@ -264,7 +264,7 @@ class MatcherService:
             self.frontends[robot_id] = new
             self.awaiting.pop(robot_id, None)
             self.recent[robot_id] = RecentInserts(
-                self.settings.resend_inserts, _run_token(resuming, seeded), bool(seeded)
+                self.settings.resend_inserts, _run_token(seeded), bool(seeded)
             )
             if mapper is None:
                 self.mappers.pop(robot_id, None)
@@ -302,15 +302,18 @@ class MatcherService:
     def _ask_for_resume(self, robot_id: str, first: DeskewedScanMessage) -> None:
         """Ask the map server for the robot's map on a thread of its own (the answer comes
         back through the inbox); `first` and the robot's later scans wait for it."""
-        self.resuming[robot_id] = deque([first])
+        ask = next(self._asks)
+        self.resuming[robot_id] = _Waiting(ask, deque([first]))
         threading.Thread(
-            target=self._resume_in_inbox, args=(robot_id,), name=f"resume-{robot_id}", daemon=True
+            target=self._resume_in_inbox, args=(robot_id, ask), name=f"resume-{robot_id}",
+            daemon=True,
         ).start()
 
-    def _resume_in_inbox(self, robot_id: str) -> None:
-        """(Its own thread.) The map server's answer for `robot_id`, into the worker's inbox."""
+    def _resume_in_inbox(self, robot_id: str, ask: int) -> None:
+        """(Its own thread.) The map server's answer to query `ask` for `robot_id`, into the
+        worker's inbox."""
         payloads, errors = self._resume_query(robot_id)
-        self.shell.inbox.put("resume", _ResumeAnswer(robot_id, payloads, errors))
+        self.shell.inbox.put("resume", _ResumeAnswer(robot_id, ask, payloads, errors))
 
     def _resume_query(self, robot_id: str) -> tuple[list[bytes], list[str]]:
         """The map server's answers to the resume query for `robot_id` (up to
@@ -321,29 +324,30 @@ class MatcherService:
         except (zenoh.ZError, RuntimeError) as exc:  # no side session, a refused query
             return [], [f"the query failed: {exc}"]
 
-    def _hold(self, waiting: deque[DeskewedScanMessage], message: DeskewedScanMessage) -> None:
+    def _hold(self, waiting: _Waiting, message: DeskewedScanMessage) -> None:
         """Keep a scan of a robot waiting for the map server's map; past MAX_SCANS_WAITING
         the oldest goes (counted: the tracker bridges the gap with the odometry)."""
-        if len(waiting) >= MAX_SCANS_WAITING:
-            waiting.popleft()
+        if len(waiting.scans) >= MAX_SCANS_WAITING:
+            waiting.scans.popleft()
             self.shell.counters.add("scans_awaiting_resume")
-        waiting.append(message)
+        waiting.scans.append(message)
 
     def _on_resume_answer(self, answer: _ResumeAnswer) -> None:
         """The map server answered (or not) for a robot met mid-stream: its front end starts
         from the answer and its scans that waited are tracked, in order. While no map server
         answers at all, they are dropped (counted) and the robot's next scan asks again."""
         robot_id = answer.robot_id
-        waiting = self.resuming.pop(robot_id, None)
-        if waiting is None:  # retired, or its stream restarted, meanwhile
+        waiting = self.resuming.get(robot_id)
+        if waiting is None or waiting.ask != answer.ask:  # retired or restarted meanwhile
             return
+        del self.resuming[robot_id]
         try:
             seeded = self._seeded(robot_id, answer.payloads, answer.errors)
         except _NoMapServerYetError:
-            self.shell.counters.add("scans_awaiting_resume", len(waiting))
+            self.shell.counters.add("scans_awaiting_resume", len(waiting.scans))
             return
-        frontend = self._install(robot_id, seeded, resuming=True)
-        for message in waiting:
+        frontend = self._install(robot_id, seeded)
+        for message in waiting.scans:
             self._track(robot_id, frontend, message)
 
     def _seeded(
@@ -499,9 +503,9 @@ class MatcherService:
             recent = self.recent.pop(robot_id, None)
             told = self.initial_poses.pop(robot_id, None)
             waited = self.awaiting.pop(robot_id, None)
-            waiting = self.resuming.pop(robot_id, ())  # its answer, when it comes, is dropped
-        if waiting:
-            self.shell.counters.add("scans_awaiting_resume", len(waiting))
+            waiting = self.resuming.pop(robot_id, None)  # its answer, when it comes, is dropped
+        if waiting is not None:
+            self.shell.counters.add("scans_awaiting_resume", len(waiting.scans))
         queryable = self.match_queryables.pop(robot_id, None)
         if queryable is not None:
             self.shell.undeclare(queryable)
@@ -549,38 +553,46 @@ class MatcherService:
             if self.settings.warm_up:  # before the health token: the first scan at full speed
                 warm_up(methods=True)
             self.shell.start()
-            self.shell.run(self.handle)
+            # A stop's drain waits for resume answers on their way (up to inbox_drain_s).
+            self.shell.run(self.handle, pending=lambda: bool(self.resuming))
             self._count_waiting_at_stop()
 
     def _count_waiting_at_stop(self) -> None:
         """Scans still waiting for a map server's answer when the service stops are lost, as
-        scans left in the inbox are: counted and logged."""
-        waiting = sum(len(scans) for scans in self.resuming.values())
+        scans left in the inbox are: counted (`scans_awaiting_resume`) and logged."""
+        waiting = sum(len(w.scans) for w in self.resuming.values())
         if waiting:
-            self.shell.counters.add("inbox.dropped_at_stop", waiting)
+            self.shell.counters.add("scans_awaiting_resume", waiting)
             self.shell.log.warning(
                 "stopping: %d scans of %d robots were still waiting for the map server's map",
                 waiting, len(self.resuming),
             )
 
 
-def _run_token(resuming: bool, seeded: tuple[Frontend, ResumeMessage] | None) -> int:
+def _run_token(seeded: tuple[Frontend, ResumeMessage] | None) -> int:
     """The token of a robot's run as its front end starts: the map server's for a resumed
-    run (a new one when it knows none); none (0) for one met mid-stream that could not
-    resume, since whether it goes on with the map server's run is not known and a new token
-    would make the map server drop that map; else (a first scan, a replay) a new one."""
-    if seeded is not None:
-        return seeded[1].run or new_run()
-    return 0 if resuming else new_run()
+    run, else (a first scan, a replay, a resume the map server could not give: the front
+    end starts a map of its own, in its own frame) a new one. The map server keeps the map
+    of a run it replaces beside the new one's (`<robot>.snapshot.npz.previous`)."""
+    return (seeded[1].run if seeded is not None else 0) or new_run()
 
 
 @dataclass(frozen=True)
 class _ResumeAnswer:
-    """The map server's answers to a resume query, and its errors: an inbox item."""
+    """The map server's answers to resume query number `ask`, and its errors: an inbox item."""
 
     robot_id: str
+    ask: int
     payloads: list[bytes]
     errors: list[str]
+
+
+@dataclass
+class _Waiting:
+    """A robot's resume query out (number `ask`) and the robot's scans since, in order."""
+
+    ask: int
+    scans: deque[DeskewedScanMessage]
 
 
 class _NoMapServerYetError(Exception):

@@ -28,6 +28,7 @@ instead of dropping or missing a field.
 """
 
 from scanflow.wire.base import (
+    ENDED_RUNS_KEPT,
     MAX_COUNT,
     MAX_POSITION_M,
     Message,
@@ -74,6 +75,7 @@ from scanflow.wire.stats import ServiceStatsMessage
 
 __all__ = [
     "ALLOWED_DTYPES",
+    "ENDED_RUNS_KEPT",
     "MAP_IMAGE_FORMATS",
     "MAX_BULK_BYTES",
     "MAX_COUNT",

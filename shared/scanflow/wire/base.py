@@ -110,6 +110,9 @@ MAX_POSITION_M = 1e6  # an operator's pose, odometry: no map is larger (the gate
 MAX_COUNT = 2**62  # seqs and counts: int64 with room to add one (snapshots, numpy arrays)
 
 
+ENDED_RUNS_KEPT = 16  # a reader of estimates or inserts drops late ones of its last replaced runs
+
+
 def new_run() -> int:
     """A fresh run token: random, non-zero, a count on the wire. A tracker draws one when it
     starts a robot afresh; its inserts, redraws, map states and estimates carry it, so that a

@@ -15,7 +15,7 @@ from scanflow.wire import RetiredMessage, RetireMessage
 from services.common.counters import LOG_EVERY, LOG_FIRST
 from services.common.launch import free_port
 from services.common.retire import Dropped
-from services.common.shell import ServiceShell, robots_only
+from services.common.shell import DRAIN_QUIET_S, ServiceShell, robots_only
 from services.common.zsession import open_session
 
 
@@ -350,6 +350,30 @@ def test_what_arrives_during_the_drain_is_handled_and_after_it_refused() -> None
     assert handled == [b"before", b"on the wire"]
     assert shell.counters.get("received.raw") == 3
     assert shell.counters.get("refused_at_stop.raw") == 1
+
+
+def test_a_drain_waits_for_work_its_service_says_is_on_its_way() -> None:
+    """A service thread's answer (the matcher's resume query) comes after the drain's quiet
+    spell: while `pending()` says so the drain goes on, up to its deadline."""
+    shell = ServiceShell("deskew", DeskewSettings(inbox_drain_s=5.0),
+                         ZenohSettings(mode="peer", connect=[]))
+    handled: list[str] = []
+    answer = threading.Timer(4 * DRAIN_QUIET_S, shell.inbox.put, ("answer", None))
+
+    def handle(kind: str, _message: object) -> None:
+        handled.append(kind)
+        if kind == "scan":
+            shell.stop()
+            answer.start()
+
+    shell.inbox.put("scan", None)
+    try:
+        shell.run(handle, pending=lambda: "answer" not in handled)
+    finally:
+        answer.join()
+        shell.close(flush_s=0.0)
+    assert handled == ["scan", "answer"]
+    assert "inbox.dropped_at_stop" not in shell.counters.snapshot()
 
 
 def test_feedback_keeps_one_wake_in_the_inbox_and_a_drain_it_keeps_busy_ends_at_its_deadline(

@@ -86,11 +86,12 @@ def test_replayed_stream_restarts_the_cache(client, publish_poses):
 
 def test_another_run_of_the_tracker_restarts_the_cache_even_with_seqs_going_on():
     """The gateway missed the first poses of a new run (it restarted): the run token says so,
-    where the seqs do not; an unknown run (0) keeps the cache."""
+    where the seqs do not; an unknown run (0) keeps the cache, and a late pose of the run
+    replaced is dropped."""
     store = TrackStore(10)
-    for seq, run in ((1, 11), (2, 11), (3, 0), (7, 22), (8, 22), (9, 0)):
+    for seq, run in ((1, 11), (2, 11), (3, 0), (7, 22), (8, 22), (4, 11), (9, 0)):
         store.add_pose(replace(estimate("r", seq, 0.1 * seq, float(seq), 0.0), run=run))
-    assert [e.seq for e in store.estimates("r")] == [7, 8, 9]
+    assert [e.seq for e in store.estimates("r")] == [7, 8, 9]  # 4: late, of the run replaced
     assert [r.restarts for r in store.robots()] == [1]
 
 

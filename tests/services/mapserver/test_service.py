@@ -21,6 +21,7 @@ from services.common.zsession import open_session
 from services.mapserver.keyframes import Keyframes
 from services.mapserver.robot import RobotMap
 from services.mapserver.service import MapServer
+from services.mapserver.snapshot import load_snapshots
 
 from ..conftest import stats_failures_while
 
@@ -125,6 +126,12 @@ def test_a_new_run_first_seen_past_its_start_replaces_the_resumed_run(
         assert counters.get("runs_replaced") == 1 and counters.get("ended_run_dropped") == 1
         assert "inserts_lost" not in counters.snapshot()
         assert "robot r: a new run of its tracker at seq 5" in caplog.text
+        # The run replaced is kept aside, a map file with its path (a run replaced by mistake:
+        # a matcher that could not resume in time and started a map of its own).
+        with np.load(tmp_path / "r.snapshot.npz.previous") as kept:
+            assert kept["poses"][:, 0].tolist() == [5.0, 6.0, 7.0] and int(kept["run"]) == 11
+        server.snapshot()
+        assert [s.run for s in load_snapshots(tmp_path)[0]] == [22]
     finally:
         server.shell.close(flush_s=0.0)
 
@@ -202,6 +209,29 @@ def test_a_late_pose_of_a_run_never_seen_does_not_replace_the_live_run(
         robot = server.robots["r"]
         assert robot.run == 33 and server.shell.counters.get("ended_run_dropped") == 1
         assert robot.trajectory.poses.tolist() == [[0.0, 0.0, 0.0]]
+    finally:
+        server.shell.close(flush_s=0.0)
+
+
+def test_a_robot_localising_on_a_prior_map_starts_a_new_run_with_its_poses(
+    tmp_path, pose
+) -> None:
+    """A tracker that puts nothing in the map (SCANFLOW_FRONTEND_UPDATE_MAP=false) sends only
+    poses: where the map's run put nothing in it, a pose of another run starts that run (held
+    for an insert, it would never go in)."""
+    server = MapServer(MapServerSettings(data_dir=str(tmp_path)),
+                       ZenohSettings(mode="peer", connect=[]))
+    try:
+        for seq in range(3):
+            server.handle("pose", replace(pose(seq, Pose2D(5.0 + seq, 0.0, 0.0)), run=11))
+        for seq in range(2):
+            server.handle("pose", replace(pose(seq, Pose2D(0.1 * seq, 0.0, 0.0)), run=22))
+        server.handle("pose", replace(pose(3, Pose2D(8.0, 0.0, 0.0)), run=11))  # late
+        robot = server.robots["r"]
+        assert robot.run == 22 and robot.trajectory.poses[:, 0].tolist() == [0.0, 0.1]
+        counters = server.shell.counters
+        assert counters.get("runs_replaced") == 1 and counters.get("ended_run_dropped") == 1
+        assert "poses_held" not in counters.snapshot()
     finally:
         server.shell.close(flush_s=0.0)
 

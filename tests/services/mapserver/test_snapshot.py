@@ -286,7 +286,8 @@ def test_a_skipped_snapshot_is_set_aside_not_overwritten_by_the_fresh_run(
 def test_a_retired_robots_snapshot_and_keyframe_files_go_and_no_start_loads_it(
     tmp_path, kept_robot
 ):
-    """Another robot's files stay, and so does a snapshot set aside as unreadable (no start
+    """The robot's snapshot, the one of the run it replaced and its keyframes' files go;
+    another robot's files stay, and so does a snapshot set aside as unreadable (no start
     loads it; it may be all of a map a newer version can read)."""
     robot = kept_robot(range(5))
     save_snapshot(tmp_path, robot.snapshot(), 2)  # the snapshot and two files of keyframes
@@ -295,7 +296,8 @@ def test_a_retired_robots_snapshot_and_keyframe_files_go_and_no_start_loads_it(
     other.last_seq = 0
     save_snapshot(tmp_path, other.snapshot(), 1)
     (tmp_path / "r.snapshot.npz.unreadable").write_bytes(b"a newer version's")
-    assert remove_snapshot(tmp_path, "r") == 3
+    (tmp_path / "r.snapshot.npz.previous").write_bytes(b"the run it replaced")
+    assert remove_snapshot(tmp_path, "r") == 4
     assert sorted(p.name for p in tmp_path.iterdir()) == [
         "r.snapshot.npz.unreadable", "r2.keyframes", "r2.snapshot.npz"]
     assert [s.robot_id for s in load_snapshots(tmp_path)[0]] == ["r2"]
