@@ -161,7 +161,8 @@ class MapServer:
         the first run a map hears of): yes. Of a run it replaced: no (late; counted). An
         insert or redraw of another run starts a new run: the map and path start afresh
         (logged; seqs alone miss a new run whose first scans this server never saw) and that
-        run's poses held so far go in. A pose of another run is held (`RobotMap.hold`)."""
+        run's poses held so far go in. A pose of another run is held (`RobotMap.hold`), unless
+        the map's run put nothing in the map: then it starts the new run too."""
         run = message.run
         if not run or run == robot.run:
             return True
