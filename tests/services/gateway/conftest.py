@@ -47,7 +47,9 @@ class Peer:
         here: a put that meets none is dropped, and the gateway's subscriptions reach this
         session after the sessions connect (under load, after a test's first puts)."""
         if key not in self._subscribed:
-            publisher = self.session.declare_publisher(key)
+            publisher = self.session.declare_publisher(
+                key, allowed_destination=zenoh.Locality.REMOTE  # not this session's own
+            )
             eventually(lambda: publisher.matching_status.matching, f"a subscriber of {key}")
             publisher.undeclare()
             self._subscribed.add(key)
@@ -84,11 +86,16 @@ class Peer:
 
     def _wait_gateway_sees(self, key: str, probe: str) -> None:
         """Block until a `probe` ('querier' for a queryable, 'publisher' for a subscriber)
-        declared on the gateway's session matches `key`: Zenoh drops a put or query that meets
-        no known match, so a test must not race its declaration to the gateway."""
+        declared on the gateway's session matches `key` remotely: Zenoh drops a put or query
+        that meets no known match, so a test must not race its declaration to the gateway.
+        Remote only: the gateway's own subscribers (raw scans, odometry: remote samples only)
+        would match a probe at once, and the first post then raced this session's subscriber
+        to the gateway (1 in ~30 runs under load lost it)."""
         if self.gateway_session is None:
             return
-        entity = getattr(self.gateway_session, f"declare_{probe}")(key)
+        entity = getattr(self.gateway_session, f"declare_{probe}")(
+            key, allowed_destination=zenoh.Locality.REMOTE
+        )
         eventually(lambda: entity.matching_status.matching, f"the gateway to see {key}")
         entity.undeclare()
 
