@@ -14,8 +14,9 @@ leaves through the outbox behind what the worker published before (services.comm
 Hints a service takes back from a service it feeds (deskew: the matcher's poses) must not wait
 behind that: `subscribe_feedback` takes them on a second session whose callback never blocks,
 else two services that publish to each other could each wait for the other forever. The same
-side session carries the queries a worker makes mid-stream (`get`) and the queryables that
-answer them (`serve(..., side=True)`): their replies must not wait behind a blocked link either.
+side session carries the queries a worker makes mid-stream (`get`) or a helper thread makes
+(`query`: the matcher's resume query) and the queryables that answer them
+(`serve(..., side=True)`): their replies must not wait behind a blocked link either.
 """
 
 from __future__ import annotations

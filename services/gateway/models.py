@@ -65,7 +65,8 @@ class PoseIn(BaseModel):
 
 
 class MountIn(PoseIn):
-    """The lidar's pose on the robot (T_base_laser): within MAX_MOUNT_M of its origin."""
+    """The lidar's pose on the robot (T_base_laser): x and y each within +-MAX_MOUNT_M of the
+    robot's origin."""
 
     x_m: Annotated[float, Field(ge=-MAX_MOUNT_M, le=MAX_MOUNT_M)] = 0.0
     y_m: Annotated[float, Field(ge=-MAX_MOUNT_M, le=MAX_MOUNT_M)] = 0.0
@@ -393,7 +394,8 @@ class RobotOut(BaseModel):
     last_scan_received_s: float | None = Field(description="gateway wall clock (epoch s)")
     scans_seen: int
     map_revision: int | None
-    restarts: int = Field(description="times the pose stream restarted (replays)")
+    restarts: int = Field(description="times the pose cache started afresh: a replay, or "
+                          "another run of the robot's tracker")
 
 
 class ServiceOut(BaseModel):

@@ -65,7 +65,7 @@ class RobotTrack:
         """Append; a seq that does not move forward (a replay) or another run of the tracker
         (its token: one whose first poses this gateway missed) starts the cache afresh, and
         so does a map redraw (the earlier poses are in the old frame: the map server's
-        corrected path answers for them)."""
+        corrected path answers for them). A late one of a run it replaced is dropped."""
         if estimate.run and estimate.run in self.ended_runs:  # late, of a run replaced
             return
         latest = self.latest

@@ -95,7 +95,8 @@ class RobotMap:
     def start_run(self, run: int) -> list[PoseEstimateMessage]:
         """Start afresh as the map of the tracker's run `run`, which an insert or redraw of it
         showed (their stream is in order, so a run's first one follows every one of the run
-        before); the run replaced is ended. Returns the poses of `run` held so far, to apply."""
+        before), or a pose of it where the map's run inserted nothing (localising on a prior
+        map); the run replaced is ended. Returns the poses of `run` held so far, to apply."""
         if self.run:
             self.ended_runs = [*self.ended_runs, self.run][-ENDED_RUNS_KEPT:]
         self.reset()
@@ -117,7 +118,8 @@ class RobotMap:
         return not full
 
     def reset(self) -> None:
-        """The robot's stream restarted (a replay): start its map and trajectory afresh."""
+        """The robot's stream restarted (a replay, or a new run: `start_run`): start its map
+        and trajectory afresh."""
         self.map = MatchingMap(self.new_grid())
         self.trajectory = TrajectoryStore()
         self.keyframes = Keyframes() if self.keep_keyframes else None

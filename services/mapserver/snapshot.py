@@ -95,10 +95,11 @@ def save_snapshot(data_dir: Path, snap: Snapshot, per_file: int = PER_FILE) -> N
 
 
 def keep_previous(data_dir: Path, robot_id: str) -> Path | None:
-    """Move the robot's snapshot aside as `<robot>.snapshot.npz.previous` (replacing an older
-    one), when a new run replaces its map: a run replaced by mistake (a matcher that could not
-    resume in time starts a map of its own) can still be loaded as a map. Where it went; None
-    when there was none. The keyframes' files are the new run's to replace."""
+    """Move the robot's last snapshot aside as `<robot>.snapshot.npz.previous` (replacing an
+    older one), when a new run replaces its map: a run replaced by mistake (a matcher that
+    could not resume in time starts a map of its own) can still be read as a map (`load_npz`;
+    renamed to `.npz`, by `load_map` too). Where it went; None when there was none. The
+    keyframes' files are the new run's to replace."""
     path = snapshot_path(data_dir, robot_id)
     if not path.exists():
         return None
@@ -108,9 +109,10 @@ def keep_previous(data_dir: Path, robot_id: str) -> Path | None:
 
 
 def remove_snapshot(data_dir: Path, robot_id: str) -> int:
-    """Delete the robot's snapshot, then its keyframes' files (a retired robot: a restart must
-    not bring it back); how many files went. A snapshot set aside as unreadable stays: no
-    start loads it. OSError naming the file that could not be deleted."""
+    """Delete the robot's snapshot and the replaced run's (`.previous`), then its keyframes'
+    files (a retired robot: a restart must not bring it back); how many files went. A
+    snapshot set aside as unreadable stays: no start loads it. OSError naming the file that
+    could not be deleted."""
     removed = 0
     path = snapshot_path(data_dir, robot_id)
     if path.exists():  # first: without it no start loads the robot, whatever is left below

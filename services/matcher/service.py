@@ -30,10 +30,10 @@ server mid-stream gets its back end back from the keyframes in that answer (the 
 found before are in their poses); without them it is tracked without loop closure.
 
 A robot retired (`<prefix>/<robot>/retire/matcher`, every shard answers) loses its front end
-and map, back end, recent inserts, waiting operator's pose and its `<prefix>/<robot>/match`
-queryable, on the worker between two scans and under the lock match requests take; a scan of
-it that comes later starts it afresh (seq past 0: the map server, which retired it too, has no
-map to resume it from).
+and map, back end, recent inserts, waiting operator's pose, the scans waiting for the map
+server's map and its `<prefix>/<robot>/match` queryable, on the worker between two scans and
+under the lock match requests take; a scan of it that comes later starts it afresh (seq past
+0: the map server, which retired it too, has no map to resume it from).
 """
 
 from __future__ import annotations
@@ -516,7 +516,7 @@ class MatcherService:
             counts["keyframes"] = len(mapper.keyframe_seqs)
         if recent is not None:
             counts["inserts_kept"] = recent.kept()
-        held = (frontend, told, waited, queryable)
+        held = (frontend, told, waited, waiting, queryable)
         return Dropped(any(x is not None for x in held), counts)
 
     # -- match requests -------------------------------------------------------------------

@@ -251,9 +251,9 @@ class IngestSettings(ServiceSettings):
     )
     mount: Annotated[list[float], NoDecode] = Field(
         default_factory=list,
-        description="the lidar's pose on the robot, 'x_m,y_m,yaw_deg' (T_base_laser): set on "
-        "every scan, over what the source says; the simulator mounts its lidar there; "
-        "empty = as the source says",
+        description="the lidar's pose on the robot, 'x_m,y_m,yaw_deg' (T_base_laser; x and y "
+        f"within +-{MAX_MOUNT_M:g} m): set on every scan, over what the source says; the "
+        "simulator mounts its lidar there; empty = as the source says",
     )
     stall_timeout_s: float = Field(10.0, gt=0.0, description="no pose for this long: resume")
     wait_subscribers_s: float = Field(60.0, ge=0.0, description="wait for a scan subscriber")

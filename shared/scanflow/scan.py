@@ -17,8 +17,9 @@ Conventions (the same as ROS sensor_msgs/LaserScan):
 - `mount` is the sensor's pose on the robot, T_base_sensor (ROS: the static transform
   base_link -> the scan's frame_id). Deskewing moves every beam into the robot's frame, so
   odometry, matching, maps and published poses are all the robot's; identity (the default)
-  means the sensor sits at the robot's origin, facing forward. It lies within MAX_MOUNT_M of
-  the robot's origin: one farther is a wrong transform or wrong units (millimetres).
+  means the sensor sits at the robot's origin, facing forward. Its x and y lie within
+  +-MAX_MOUNT_M of the robot's origin: one farther is a wrong transform or wrong units
+  (millimetres).
 """
 
 from __future__ import annotations

@@ -242,7 +242,8 @@ class ResumeMessage(Message):
     `keyframes`. One answer rather than three queries: a redraw cannot fall between the map and
     the keyframes and leave them in two frames. `odom_pose` (schema version 8) is the odometry
     pose of the path's last pose (None: unknown): the next scan is predicted from there.
-    `run` is the run the map holds (MapInsertMessage.run): the resumed tracker carries it on.
+    `run` is the run the map holds (MapInsertMessage.run; 0: unknown, the tracker then draws
+    a new one): the resumed tracker carries it on.
     """
 
     TYPE = "resume"

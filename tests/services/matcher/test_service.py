@@ -459,7 +459,7 @@ def test_a_robot_waiting_for_its_map_holds_up_no_other_robot(tmp_path) -> None:
         for robot in ("replayed", "retired"):
             service.handle("scan", scan(robot, 9))
         service.handle("scan", scan("replayed", 0))  # a new run while it waited
-        service.retire("retired")
+        assert service.retire("retired").known  # its waiting scans: something of it
         assert poses_of("replayed") == [0] and "retired" not in service.frontends
         deadline = time.monotonic() + 10.0
         while len(held) < 3:
