@@ -11,10 +11,11 @@ prior map when SCANFLOW_FRONTEND_PRIOR_MAP names one (the map server starts from
 file). A robot first seen mid-stream (this matcher restarted) resumes from the map server's
 one answer on `map/resume` (ResumeMessage): its map and last pose seed the front end. The
 query goes out on a thread of its own, so the other robots are tracked meanwhile; the robot's
-scans wait for the answer and are then tracked in order. An
+scans wait for the answer (`waiting.py`) and are then tracked in order. An
 operator's pose on `<prefix>/<robot>/initial_pose` (InitialPoseMessage, echoed once taken)
-puts the robot there: its next scan is matched from it, or, for a robot not seen yet, its
-first scan. Match requests are answered on `<prefix>/match` (any scans) and
+puts the robot there: the next scan to come is matched from it (after the scans waiting for
+the map server's map, if any), or, for a robot not seen yet, its first scan. Match requests
+are answered on `<prefix>/match` (any scans) and
 `<prefix>/<robot>/match` (also against that robot's current map). Each insert names the one
 before it (`previous_seq`), and the last `resend_inserts` are kept to send again to a map
 server that missed some (`map/resend`); with loop closure, older ones are rebuilt from the
@@ -42,7 +43,6 @@ import copy
 import itertools
 import threading
 import time
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -84,8 +84,7 @@ from services.matcher.recent import (
 )
 from services.matcher.requests import answer
 from services.matcher.shard import owns
-
-MAX_SCANS_WAITING = 1024  # per robot waiting for the map server's answer (~6 MB at 360 beams)
+from services.matcher.waiting import Waiting
 
 # Scan-to-map methods that read the live map under the lock: quick, and bounded by their
 # max_iterations. Any other (csm, its exhaustive form, csm+plicp, global: searches) reads a copy.
@@ -114,8 +113,9 @@ class MatcherService:
         self.initial_poses: dict[str, Pose2D] = {}  # operators' poses for robots not seen yet
         self.recent: dict[str, RecentInserts] = {}  # per robot: its run's last inserts
         self.awaiting: dict[str, float] = {}  # robots met mid-stream waiting for the map server
-        # Robots whose resume query is out: its number and their scans since, in order.
-        self.resuming: dict[str, _Waiting] = {}
+        # Robots whose resume query is out: its number, their scans and operators' poses since.
+        # The worker adds and removes them; an operator's pose is added under the lock.
+        self.resuming: dict[str, Waiting] = {}
         self._asks = itertools.count(1)  # resume queries' numbers: an answer names its own
         self.match_queryables: dict[str, zenoh.Queryable] = {}  # per robot: `<robot>/match`
         self.lock = threading.Lock()  # the worker updates maps that match requests read
@@ -152,10 +152,12 @@ class MatcherService:
         self.shell.seqs.observe(stream, message.seq)
         waiting = self.resuming.get(robot_id)
         if waiting is not None and not restarted:
-            self._hold(waiting, message)
+            with self.lock:  # operators' poses join it under the lock
+                dropped = waiting.hold(message)
+            self.shell.counters.add("scans_awaiting_resume", dropped)
             return
         if waiting is not None:  # a new run: the old one's scans cannot be tracked any more
-            self.shell.counters.add("scans_awaiting_resume", len(self.resuming.pop(robot_id).scans))
+            self._give_up(robot_id, waiting)
         frontend = self.frontends.get(robot_id)
         if frontend is None and message.seq > 0:  # met mid-stream: ask for the map server's map
             self._ask_for_resume(robot_id, message)
@@ -272,10 +274,16 @@ class MatcherService:
                 self.mappers[robot_id] = mapper
             told = self.initial_poses.pop(robot_id, None)
             if told is not None:
-                new.set_pose(told)
-                if mapper is not None:  # a resumed robot's graph links across it weakly
-                    mapper.relocated()
+                self._put_at(robot_id, new, told)
         return new
+
+    def _put_at(self, robot_id: str, frontend: Frontend, pose: Pose2D) -> None:
+        """(Under the lock.) The robot's next scan is matched from an operator's `pose`; its
+        back end, if any, links across it only weakly."""
+        frontend.set_pose(pose)
+        mapper = self.mappers.get(robot_id)
+        if mapper is not None:
+            mapper.relocated()
 
     def _resumed_back_end(
         self, robot_id: str, frontend: Frontend, resumed: ResumeMessage
@@ -303,7 +311,7 @@ class MatcherService:
         """Ask the map server for the robot's map on a thread of its own (the answer comes
         back through the inbox); `first` and the robot's later scans wait for it."""
         ask = next(self._asks)
-        self.resuming[robot_id] = _Waiting(ask, deque([first]))
+        self.resuming[robot_id] = Waiting(ask, first)
         threading.Thread(
             target=self._resume_in_inbox, args=(robot_id, ask), name=f"resume-{robot_id}",
             daemon=True,
@@ -324,31 +332,47 @@ class MatcherService:
         except (zenoh.ZError, RuntimeError) as exc:  # no side session, a refused query
             return [], [f"the query failed: {exc}"]
 
-    def _hold(self, waiting: _Waiting, message: DeskewedScanMessage) -> None:
-        """Keep a scan of a robot waiting for the map server's map; past MAX_SCANS_WAITING
-        the oldest goes (counted: the tracker bridges the gap with the odometry)."""
-        if len(waiting.scans) >= MAX_SCANS_WAITING:
-            waiting.scans.popleft()
-            self.shell.counters.add("scans_awaiting_resume")
-        waiting.scans.append(message)
-
     def _on_resume_answer(self, answer: _ResumeAnswer) -> None:
         """The map server answered (or not) for a robot met mid-stream: its front end starts
-        from the answer and its scans that waited are tracked, in order. While no map server
-        answers at all, they are dropped (counted) and the robot's next scan asks again."""
+        from the answer and its scans that waited are tracked, in order, each operator's pose
+        sent meanwhile applied where it came among them. While no map server answers at all,
+        they are dropped (counted) and the robot's next scan asks again."""
         robot_id = answer.robot_id
         waiting = self.resuming.get(robot_id)
         if waiting is None or waiting.ask != answer.ask:  # retired or restarted meanwhile
             return
-        del self.resuming[robot_id]
         try:
             seeded = self._seeded(robot_id, answer.payloads, answer.errors)
         except _NoMapServerYetError:
-            self.shell.counters.add("scans_awaiting_resume", len(waiting.scans))
+            self._give_up(robot_id, waiting)
             return
         frontend = self._install(robot_id, seeded)
-        for message in waiting.scans:
-            self._track(robot_id, frontend, message)
+        while (scan := self._next_waiting(robot_id, waiting, frontend)) is not None:
+            self._track(robot_id, frontend, scan)
+
+    def _next_waiting(
+        self, robot_id: str, waiting: Waiting, frontend: Frontend
+    ) -> DeskewedScanMessage | None:
+        """The robot's next scan that waited for the map server, the operators' poses sent
+        before it applied; None, the wait over, when none is left (one lock: a pose sent
+        meanwhile joins the wait, or finds it over and applies to the next scan)."""
+        with self.lock:
+            while (item := waiting.next()) is not None:
+                if isinstance(item, DeskewedScanMessage):
+                    return item
+                self._put_at(robot_id, frontend, item)
+            del self.resuming[robot_id]
+        return None
+
+    def _give_up(self, robot_id: str, waiting: Waiting) -> None:
+        """Drop the robot's wait for the map server: its scans go (counted); the last
+        operator's pose sent meanwhile waits for the robot's next start."""
+        with self.lock:
+            del self.resuming[robot_id]
+            told = waiting.last_pose()
+            if told is not None:
+                self.initial_poses[robot_id] = told
+        self.shell.counters.add("scans_awaiting_resume", waiting.scans)
 
     def _seeded(
         self, robot_id: str, payloads: list[bytes], errors: list[str]
@@ -474,11 +498,16 @@ class MatcherService:
         query.reply(key, message.encode())
 
     def place(self, robot_id: str, pose: Pose2D) -> None:
-        """Put the robot at an operator's `pose`, or keep it for the robot's first scan: it
-        takes one of the max_robots places then (RobotLimitError when none is left)."""
+        """Put the robot at an operator's `pose`: its next scan is matched from it, a robot
+        waiting for the map server's map included. For a robot not seen yet the pose is kept
+        for its first scan, taking one of the max_robots places (RobotLimitError when none
+        is left)."""
         with self.lock:
             frontend = self.frontends.get(robot_id)
-            if frontend is None:
+            waiting = self.resuming.get(robot_id)
+            if waiting is not None:  # its waiting scans come first
+                waiting.place(pose)
+            elif frontend is None:
                 if not self.shell.admits(robot_id, _Held(self)):
                     raise RobotLimitError(
                         f"robot {robot_id!r} refused: this matcher keeps "
@@ -486,10 +515,7 @@ class MatcherService:
                     )
                 self.initial_poses[robot_id] = pose
             else:
-                frontend.set_pose(pose)
-                mapper = self.mappers.get(robot_id)
-                if mapper is not None:  # its graph links across the pose only weakly
-                    mapper.relocated()
+                self._put_at(robot_id, frontend, pose)
         self.shell.counters.add("initial_poses")
 
     def retire(self, robot_id: str) -> Dropped:
@@ -505,7 +531,7 @@ class MatcherService:
             waited = self.awaiting.pop(robot_id, None)
             waiting = self.resuming.pop(robot_id, None)  # its answer, when it comes, is dropped
         if waiting is not None:
-            self.shell.counters.add("scans_awaiting_resume", len(waiting.scans))
+            self.shell.counters.add("scans_awaiting_resume", waiting.scans)
         queryable = self.match_queryables.pop(robot_id, None)
         if queryable is not None:
             self.shell.undeclare(queryable)
@@ -560,7 +586,7 @@ class MatcherService:
     def _count_waiting_at_stop(self) -> None:
         """Scans still waiting for a map server's answer when the service stops are lost, as
         scans left in the inbox are: counted (`scans_awaiting_resume`) and logged."""
-        waiting = sum(len(w.scans) for w in self.resuming.values())
+        waiting = sum(w.scans for w in self.resuming.values())
         if waiting:
             self.shell.counters.add("scans_awaiting_resume", waiting)
             self.shell.log.warning(
@@ -587,14 +613,6 @@ class _ResumeAnswer:
     errors: list[str]
 
 
-@dataclass
-class _Waiting:
-    """A robot's resume query out (number `ask`) and the robot's scans since, in order."""
-
-    ask: int
-    scans: deque[DeskewedScanMessage]
-
-
 class _NoMapServerYetError(Exception):
     """A robot met mid-stream waits for the map server's map: no map server answers yet."""
 
@@ -602,7 +620,7 @@ class _NoMapServerYetError(Exception):
 class _Held:
     """The robots a matcher holds a place for: those it tracks, those whose operator's pose
     waits for their first scan, and those waiting for the map server's map or asking for it
-    (none overlap but the last three)."""
+    (a robot can be in several at once: counted once)."""
 
     def __init__(self, service: MatcherService) -> None:
         self._service = service
@@ -614,7 +632,7 @@ class _Held:
 
     def __len__(self) -> int:
         s = self._service
-        return len(s.frontends) + len(set(s.initial_poses) | set(s.awaiting) | set(s.resuming))
+        return len(set(s.frontends) | set(s.initial_poses) | set(s.awaiting) | set(s.resuming))
 
 
 def main() -> None:

@@ -5,8 +5,8 @@ from __future__ import annotations
 import itertools
 import logging
 import re
+import threading
 import time
-from collections import deque
 
 import numpy as np
 import pytest
@@ -38,7 +38,8 @@ from services.common.resend import FIRST, resend_selector
 from services.common.robots import RobotLimitError
 from services.matcher import service as service_module
 from services.matcher.recent import RecentInserts
-from services.matcher.service import MatcherService, _NoMapServerYetError, _Waiting
+from services.matcher.service import MatcherService, _NoMapServerYetError
+from services.matcher.waiting import Waiting
 
 LOOP_CLOSURE = BackendSettings.model_construct(loop_closure=True)
 
@@ -482,10 +483,59 @@ def test_a_robot_waiting_for_its_map_holds_up_no_other_robot(tmp_path) -> None:
         service.shell.close(flush_s=0.0)
 
 
+def test_an_operators_pose_while_a_robot_waits_for_its_map_applies_where_it_was_sent(
+    tmp_path,
+) -> None:
+    """A pose sent while the robot's scans wait for the map server's map applies to the scans
+    sent after it, not to the oldest waiting; when no map server answers, the scans go and the
+    pose waits for the robot's next start."""
+    service = matcher()
+    sent = recording(service)
+    release = threading.Event()
+
+    def query(selector: str, timeout_s: float) -> tuple[list[bytes], list[str]]:
+        release.wait(10.0)  # the map server answers when the test says
+        return ([resume_answer(tmp_path, "r")] if "/r/" in selector else []), []
+
+    service.shell.query = query
+    events: list[int | Pose2D] = []
+    track, put_at = service._track, service._put_at
+    service._track = lambda r, f, m: (events.append(m.seq), track(r, f, m))[-1]
+    service._put_at = lambda r, f, p: (events.append(p), put_at(r, f, p))[-1]
+    ring = np.column_stack((3 * np.cos(np.linspace(0, 6, 60)), 3 * np.sin(np.linspace(0, 6, 60))))
+
+    def scan(robot: str, seq: int) -> DeskewedScanMessage:
+        return DeskewedScanMessage(robot, seq, 0.1 * seq, ring, "odometry", False, 60, 0)
+
+    try:
+        told, later = Pose2D(6.0, -1.0, 0.5), Pose2D(-4.0, 2.0, -1.0)
+        for robot in ("r", "q"):
+            service.handle("scan", scan(robot, 5))
+            service.handle("scan", scan(robot, 6))
+        service.place("r", told)
+        service.place("q", later)
+        service.handle("scan", scan("r", 7))
+        assert events == [] and not service.initial_poses
+        release.set()
+        answered(service)
+        assert events == [5, 6, told, 7]
+        estimates = {m.seq: m.pose for m in sent if isinstance(m, PoseEstimateMessage)}
+        assert sorted(estimates) == [5, 6, 7]
+        resumed = Pose2D(0.4, 0.1, 0.2)  # the answer's last pose
+        assert estimates[6].relative_to(resumed).translation_norm() < 0.5
+        assert estimates[7].relative_to(told).translation_norm() < 0.5
+        assert "r" not in service.resuming and service.frontends["r"] is not None
+        assert "q" not in service.resuming and service.initial_poses == {"q": later}
+        assert service.shell.counters.get("scans_awaiting_resume") == 2  # q's two scans
+    finally:
+        release.set()
+        service.shell.close(flush_s=0.0)
+
+
 def test_scans_still_waiting_for_the_map_server_at_a_stop_are_counted(caplog) -> None:
     service = matcher()
     service._ask_for_resume = lambda robot_id, first: service.resuming.setdefault(
-        robot_id, _Waiting(1, deque([first])))  # a query that never comes back
+        robot_id, Waiting(1, first))  # a query that never comes back
     ring = np.full((20, 2), 2.0)
     try:
         for seq in (5, 6):
