@@ -85,7 +85,8 @@ class RobotMap:
         self.streams: set[str] = set() if snap is None else {"insert", "pose"}
         self.dirty: CellBox | None = None
         self.held: tuple[int, int] | None = None  # inserts (after, through] in a taken state
-        self.saved = self.state
+        # The state its snapshot holds; None: none of this run (its file replaced or moved).
+        self.saved: tuple[int, int] | None = self.state
 
     @property
     def state(self) -> tuple[int, int]:
@@ -128,6 +129,7 @@ class RobotMap:
         self.last_insert_seq = -1
         self.last_odom = None
         self.streams.clear()
+        self.saved = None  # a new run reaching the old one's (revision, seq) is saved still
         self.dirty = None
         self.held = None
 

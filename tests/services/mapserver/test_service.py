@@ -81,6 +81,34 @@ def test_a_replay_after_a_restart_from_the_snapshot_replaces_the_resumed_run(
         server.shell.close(flush_s=0.0)
 
 
+@pytest.mark.parametrize("run_b", [11, 22])
+def test_a_replay_ending_where_the_run_it_replaced_was_saved_is_saved_too(
+    tmp_path, insert, pose, run_b
+):
+    """A replay (same run token, seqs back) or a new run (another token) replaces run A, whose
+    snapshot moves aside; the new run, ending at A's saved (revision, seq), is snapshotted
+    still (an audit found only `.previous` on disk, and the robot gone after a restart)."""
+    settings = (MapServerSettings(data_dir=str(tmp_path)), ZenohSettings(mode="peer", connect=[]))
+    server = MapServer(*settings)
+    try:
+        for run in (11, run_b):
+            for seq in range(3):
+                at = Pose2D(1.0 + seq, 0.0, 0.0)
+                server.handle("insert", replace(insert(seq, at), run=run))
+                server.handle("pose", replace(pose(seq, at), run=run))
+            server.snapshot()
+    finally:
+        server.shell.close(flush_s=0.0)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "r.snapshot.npz", "r.snapshot.npz.previous"
+    ]
+    server = MapServer(*settings)
+    try:
+        assert server.robots["r"].last_seq == 2 and server.robots["r"].run == run_b
+    finally:
+        server.shell.close(flush_s=0.0)
+
+
 @pytest.mark.parametrize("first", ["insert", "pose"])
 def test_a_new_run_first_seen_past_its_start_replaces_the_resumed_run(
     tmp_path, caplog, first, insert, pose, tracker_map
