@@ -473,9 +473,7 @@ class ServiceShell:
         try:
             handle(kind, message)
         except Exception:  # a bad message must not stop the service
-            n = self.counters.add(f"errors.{kind}")
-            if worth_logging(n):  # one bad source at the scan rate must not flood the log
-                self.log.exception("failed to handle a %s message (%d so far)", kind, n)
+            self.failed(kind)
         took_s = time.perf_counter() - t0
         self._handle_max_s = max(self._handle_max_s, took_s)
         if took_s > self.slow_message_s:  # everything behind it waited that long too
@@ -488,6 +486,13 @@ class ServiceShell:
                 self._put_s - put0, self._get_s - get0, self.slow_message_s, n,
                 self.inbox.depth(),
             )
+
+    def failed(self, kind: str) -> None:
+        """(In an except block.) Count (`errors.<kind>`) and log the exception that a `kind`
+        message raised; the service goes on."""
+        n = self.counters.add(f"errors.{kind}")
+        if worth_logging(n):  # one bad source at the scan rate must not flood the log
+            self.log.exception("failed to handle a %s message (%d so far)", kind, n)
 
     def stop(self) -> None:
         """Set the stop event: `run` returns after the item in hand; nothing is closed here."""

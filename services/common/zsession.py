@@ -46,7 +46,8 @@ def sorted_replies(replies: Iterable[zenoh.Reply]) -> tuple[list[tuple[str, byte
     for reply in replies:
         result = reply.result  # a Sample, or the ReplyError of a failed reply
         if isinstance(result, zenoh.ReplyError):
-            errors.append(result.payload.to_string())
+            # Any queryable on the key may answer: text that is not UTF-8 is still read.
+            errors.append(result.payload.to_bytes().decode(errors="replace"))
         else:
             answers.append((str(result.key_expr), result.payload.to_bytes()))
     return answers, errors

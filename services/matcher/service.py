@@ -158,6 +158,7 @@ class MatcherService:
             return
         if waiting is not None:  # a new run: the old one's scans cannot be tracked any more
             self._give_up(robot_id, waiting)
+            self.awaiting.pop(robot_id, None)  # its wait for a map server starts again too
         frontend = self.frontends.get(robot_id)
         if frontend is None and message.seq > 0:  # met mid-stream: ask for the map server's map
             self._ask_for_resume(robot_id, message)
@@ -311,16 +312,19 @@ class MatcherService:
         """Ask the map server for the robot's map on a thread of its own (the answer comes
         back through the inbox); `first` and the robot's later scans wait for it."""
         ask = next(self._asks)
-        self.resuming[robot_id] = Waiting(ask, first)
         threading.Thread(
             target=self._resume_in_inbox, args=(robot_id, ask), name=f"resume-{robot_id}",
             daemon=True,
-        ).start()
+        ).start()  # a thread that cannot start: the scan fails (counted), the next asks again
+        self.resuming[robot_id] = Waiting(ask, first)  # the answer comes on this thread
 
     def _resume_in_inbox(self, robot_id: str, ask: int) -> None:
         """(Its own thread.) The map server's answer to query `ask` for `robot_id`, into the
-        worker's inbox."""
-        payloads, errors = self._resume_query(robot_id)
+        worker's inbox: always one, so the robot's scans never wait for nothing."""
+        try:
+            payloads, errors = self._resume_query(robot_id)
+        except Exception as exc:  # the query's replies unreadable, say
+            payloads, errors = [], [f"the query failed: {type(exc).__name__}: {exc}"]
         self.shell.inbox.put("resume", _ResumeAnswer(robot_id, ask, payloads, errors))
 
     def _resume_query(self, robot_id: str) -> tuple[list[bytes], list[str]]:
@@ -342,13 +346,20 @@ class MatcherService:
         if waiting is None or waiting.ask != answer.ask:  # retired or restarted meanwhile
             return
         try:
-            seeded = self._seeded(robot_id, answer.payloads, answer.errors)
+            frontend = self._install(
+                robot_id, self._seeded(robot_id, answer.payloads, answer.errors)
+            )
         except _NoMapServerYetError:
             self._give_up(robot_id, waiting)
             return
-        frontend = self._install(robot_id, seeded)
+        except Exception:  # counted as the answer's error; the next scan asks again
+            self._give_up(robot_id, waiting)
+            raise
         while (scan := self._next_waiting(robot_id, waiting, frontend)) is not None:
-            self._track(robot_id, frontend, scan)
+            try:
+                self._track(robot_id, frontend, scan)
+            except Exception:  # one scan, as if it came alone: the others still go through
+                self.shell.failed("scan")
 
     def _next_waiting(
         self, robot_id: str, waiting: Waiting, frontend: Frontend

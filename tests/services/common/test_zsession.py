@@ -33,13 +33,14 @@ def test_the_block_close_setting_reaches_the_zenoh_config() -> None:
 
 
 def test_a_querys_replies_are_sorted_into_answers_and_errors() -> None:
-    """Each answer with its key, each error reply's text, none merged away."""
+    """Each answer with its key, each error reply's text (UTF-8 or not), none merged away."""
     session = open_session(ZenohSettings(mode="peer", connect=[]))
 
     def answer(query: zenoh.Query) -> None:
         query.reply("scanflow-test/sorted/a", b"one")
         query.reply("scanflow-test/sorted/a", b"two")
         query.reply_err("refused: busy")
+        query.reply_err(b"\xff\xfe not text")  # any queryable may answer: still read
 
     queryable = session.declare_queryable("scanflow-test/sorted/*", answer)
     try:
@@ -50,7 +51,7 @@ def test_a_querys_replies_are_sorted_into_answers_and_errors() -> None:
         queryable.undeclare()
         session.close()
     assert answers == [("scanflow-test/sorted/a", b"one"), ("scanflow-test/sorted/a", b"two")]
-    assert errors == ["refused: busy"]
+    assert errors == ["refused: busy", "\ufffd\ufffd not text"]
 
 
 def test_a_reader_that_stalls_longer_than_zenohs_default_loses_nothing() -> None:

@@ -532,6 +532,81 @@ def test_an_operators_pose_while_a_robot_waits_for_its_map_applies_where_it_was_
         service.shell.close(flush_s=0.0)
 
 
+def test_a_resume_that_fails_anywhere_leaves_no_robot_waiting_for_nothing(
+    tmp_path, monkeypatch, caplog
+) -> None:
+    """Every way a resume can fail ends the wait, counted and logged (an audit left robots
+    waiting for ever): a thread that cannot start fails its scan, the next asks again; a
+    query that raises is an answer with its error (the robot starts afresh, saying why); a
+    seed that cannot be installed drops the waiting scans, counted; one waiting scan that
+    fails is that scan's error alone, the rest are tracked."""
+    caplog.set_level(logging.INFO)
+    service = matcher()
+    sent = recording(service)
+    ring = np.column_stack((3 * np.cos(np.linspace(0, 6, 60)), 3 * np.sin(np.linspace(0, 6, 60))))
+
+    def scan(robot: str, seq: int) -> DeskewedScanMessage:
+        return DeskewedScanMessage(robot, seq, 0.1 * seq, ring, "odometry", False, 60, 0)
+
+    def handled(robot: str, seq: int) -> None:  # as the shell's worker does
+        service.shell._handle(service.handle, "scan", scan(robot, seq))
+
+    def poses_of(robot: str) -> list[int]:
+        return [m.seq for m in sent if isinstance(m, PoseEstimateMessage) and m.robot_id == robot]
+
+    try:
+        def refuse(_thread: threading.Thread) -> None:
+            raise RuntimeError("can't start new thread")
+
+        with monkeypatch.context() as patched:
+            patched.setattr(threading.Thread, "start", refuse)
+            handled("t", 5)
+        assert "t" not in service.resuming and service.shell.counters.get("errors.scan") == 1
+
+        def unreadable(robot_id: str) -> tuple[list[bytes], list[str]]:
+            raise ValueError("replies unreadable")
+
+        service._resume_query = unreadable
+        handled("t", 6)
+        answered(service)
+        assert poses_of("t") == [6] and "t" not in service.resuming
+        assert "robot t: no map to resume from, starting fresh (the query failed: ValueError: " \
+            "replies unreadable)" in caplog.text
+
+        service._resume_query = lambda robot_id: ([resume_answer(tmp_path, robot_id)], [])
+        install = service._install
+
+        def broken(robot_id: str, seeded: object) -> None:
+            raise RuntimeError("keyframes inconsistent")
+
+        service._install = broken
+        for seq in (5, 6):
+            handled("u", seq)
+        while (item := service.shell.inbox.get(10.0)) is not None:
+            service.shell._handle(service.handle, *item)
+            break
+        assert "u" not in service.resuming and "u" not in service.frontends
+        assert service.shell.counters.get("errors.resume") == 1
+        assert service.shell.counters.get("scans_awaiting_resume") == 2
+
+        service._install = install
+        track = service._track
+
+        def flaky(robot_id: str, frontend: object, message: DeskewedScanMessage) -> None:
+            if message.seq == 8:
+                raise RuntimeError("one bad scan")
+            track(robot_id, frontend, message)
+
+        service._track = flaky
+        for seq in (7, 8, 9):
+            handled("u", seq)
+        answered(service)
+        assert poses_of("u") == [7, 9] and "u" not in service.resuming
+        assert service.shell.counters.get("errors.scan") == 2
+    finally:
+        service.shell.close(flush_s=0.0)
+
+
 def test_scans_still_waiting_for_the_map_server_at_a_stop_are_counted(caplog) -> None:
     service = matcher()
     service._ask_for_resume = lambda robot_id, first: service.resuming.setdefault(
