@@ -319,8 +319,11 @@ class PoseOut(BaseModel):
         )
 
     @classmethod
-    def from_trajectory(cls, robot_id: str, pose: Pose2D, stamp_s: float) -> PoseOut:
-        """A pose from the map server's trajectory, which keeps no seq, covariance or status."""
+    def from_trajectory(
+        cls, robot_id: str, pose: Pose2D, stamp_s: float, interpolated: bool = True
+    ) -> PoseOut:
+        """A pose from the map server's trajectory, which keeps no seq, covariance or status:
+        interpolated at `stamp_s`, or (`interpolated` false) its pose there."""
         return cls(
             robot_id=robot_id,
             seq=None,
@@ -333,8 +336,9 @@ class PoseOut(BaseModel):
             method="",
             iterations=0,
             score=0.0,
-            message="interpolated from the map server's trajectory (no covariance kept)",
-            interpolated=True,
+            message=("interpolated from" if interpolated else "the last pose of")
+            + " the map server's trajectory (no covariance kept)",
+            interpolated=interpolated,
         )
 
 

@@ -16,6 +16,7 @@ from fastapi.responses import PlainTextResponse, Response
 from numpy.typing import NDArray
 from scanflow import keys
 from scanflow.frontend.trajectory import tum_text
+from scanflow.geometry import Pose2D
 from scanflow.wire import InitialPoseMessage, TrajectoryMessage
 from starlette.concurrency import run_in_threadpool
 
@@ -37,8 +38,8 @@ BEFORE_THE_CACHE: dict[int | str, dict[str, str]] = {
 }
 
 
-def _unknown(robot: str) -> HTTPException:
-    return HTTPException(404, f"robot {robot!r} has published no pose")
+def _unknown(robot: str, why: str = "") -> HTTPException:
+    return HTTPException(404, f"robot {robot!r} has published no pose{why}")
 
 
 @router.get(
@@ -47,22 +48,26 @@ def _unknown(robot: str) -> HTTPException:
 )
 async def get_pose(robot: Robot, backend: Backend, t: TimeParam = None) -> PoseOut:
     """The robot's latest pose, or with `t` its pose at that time: interpolated between the two
-    estimates around it (the map server's whole trajectory for times before the gateway's cache)."""
+    estimates around it (the map server's whole trajectory for times before the gateway's cache,
+    and for a robot whose poses this gateway has not seen: it started or restarted since)."""
     if t is None:
         latest = backend.tracks.latest(robot)
-        if latest is None:
-            raise _unknown(robot)
-        return PoseOut.from_estimate(latest)
+        if latest is not None:
+            return PoseOut.from_estimate(latest)
+        stamps, poses = await _trajectory_of_unseen(backend, robot)
+        last = Pose2D.from_array(poses[-1])
+        return PoseOut.from_trajectory(robot, last, float(stamps[-1]), interpolated=False)
     estimates = backend.tracks.estimates(robot)
-    if not estimates:
-        raise _unknown(robot)
-    stamps, poses = estimate_arrays(estimates)
-    found = pose_at(stamps, poses, t)
-    if found is not None:
-        return PoseOut.from_estimate(estimates[found[1]], found[0], t)
-    if t > stamps[-1]:
-        raise HTTPException(404, f"t={t} is after the last pose of {robot!r} ({stamps[-1]})")
-    stamps, poses = await _full_trajectory(backend, robot)
+    if estimates:
+        stamps, poses = estimate_arrays(estimates)
+        found = pose_at(stamps, poses, t)
+        if found is not None:
+            return PoseOut.from_estimate(estimates[found[1]], found[0], t)
+        if t > stamps[-1]:
+            raise HTTPException(404, f"t={t} is after the last pose of {robot!r} ({stamps[-1]})")
+        stamps, poses = await _full_trajectory(backend, robot)
+    else:
+        stamps, poses = await _trajectory_of_unseen(backend, robot)
     found = pose_at(stamps, poses, t)
     if found is None:
         span = f"{stamps[0]}..{stamps[-1]}" if len(stamps) else "empty"
@@ -83,6 +88,22 @@ async def put_pose(robot: Robot, body: PoseIn, backend: Backend) -> PoseIn:
     replies = await backend.aquery(keys.initial_pose(robot, backend.prefix), message.encode())
     taken = InitialPoseMessage.decode(replies[0].payload)  # the tracker's echo
     return PoseIn(x_m=taken.pose.x, y_m=taken.pose.y, theta_rad=taken.pose.theta)
+
+
+async def _trajectory_of_unseen(
+    backend: ZenohBackend, robot: str
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The map server's trajectory of a robot none of whose poses this gateway has: 404 (the
+    robot unknown) when it has none either, or cannot be asked."""
+    try:
+        stamps, poses = await _full_trajectory(backend, robot)
+    except BackendError as exc:
+        if exc.status_code not in (404, 503, 504):
+            raise
+        raise _unknown(robot, f" (the map server's trajectory: {exc.reason})") from exc
+    if not len(stamps):
+        raise _unknown(robot)
+    return stamps, poses
 
 
 async def _full_trajectory(

@@ -25,9 +25,29 @@ def test_latest_pose_comes_from_the_bus(client, publish_poses):
     assert body["status"] == "ok" and body["interpolated"] is False
 
 
-def test_unknown_robot_is_404_naming_it(client):
-    r = client.get("/api/v1/robots/nobody/pose")
+def test_unknown_robot_is_404_naming_it(client, peer):
+    r = client.get("/api/v1/robots/nobody/pose")  # no map server to ask either
     assert r.status_code == 404 and "nobody" in r.json()["detail"]
+    peer.answer(keys.trajectory("*"), lambda q: TrajectoryMessage(
+        "empty", np.zeros(0), np.zeros((0, 3))).encode())  # a map server with no pose of it
+    for t in (None, 1.0):
+        r = client.get("/api/v1/robots/nobody/pose", params={} if t is None else {"t": t})
+        assert r.status_code == 404 and "nobody" in r.json()["detail"]
+
+
+def test_a_robot_this_gateway_has_not_seen_is_answered_from_the_map_servers_path(client, peer):
+    """A gateway started or restarted after the robot's last pose (a run that ended) has no
+    pose of it cached: its latest pose and a pose at t come from the map server's trajectory."""
+    stamps = np.array([0.0, 2.0, 10.0])
+    poses = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [5.0, 1.0, 0.5]])
+    peer.answer(keys.trajectory("r4"), lambda q: TrajectoryMessage("r4", stamps, poses).encode())
+    body = client.get("/api/v1/robots/r4/pose").json()
+    assert (body["stamp_s"], body["x_m"], body["y_m"], body["theta_rad"]) == (10.0, 5.0, 1.0, 0.5)
+    assert body["seq"] is None and body["status"] == "trajectory"
+    assert body["interpolated"] is False and body["message"].startswith("the last pose of")
+    body = client.get("/api/v1/robots/r4/pose", params={"t": 1.0}).json()
+    assert body["x_m"] == pytest.approx(1.0) and body["interpolated"] is True
+    assert client.get("/api/v1/robots/r4/pose", params={"t": 11.0}).status_code == 404
 
 
 def test_pose_at_time_interpolates_in_se2(client, publish_poses):
