@@ -23,7 +23,7 @@ from services.gateway.deps import KEY_ANSWERS, require_key
 from services.gateway.limits import BodyLimit, RequestTiming
 from services.gateway.metrics import Metrics
 from services.gateway.models import MatchIn, OdometryIn, ScanIn
-from services.gateway.routers import ROUTERS
+from services.gateway.routers import ROUTERS, health
 
 STATIC_DIR = Path(__file__).parent / "static"
 BODY_MODELS: tuple[type[BaseModel], ...] = (MatchIn, ScanIn, OdometryIn)
@@ -63,8 +63,8 @@ def create_app(
             z = zenoh_settings or ZenohSettings()
             app.state.backend = await anyio.to_thread.run_sync(ZenohBackend.open, settings, z)
         if settings.api_key is None:
-            log.warning("SCANFLOW_GATEWAY_API_KEY is not set: ingest, match and pose setting "
-                        "are open")
+            log.warning("SCANFLOW_GATEWAY_API_KEY is not set: ingest, match, setting a pose "
+                        "and retiring a robot are open")
         try:
             yield
         finally:
@@ -82,7 +82,11 @@ def create_app(
     app.state.metrics = Metrics()
     reads = [Depends(require_key)] if settings.guard_reads else []  # documented only if on
     for router in ROUTERS:
-        app.include_router(router, dependencies=reads, responses=KEY_ANSWERS if reads else None)
+        # Health stays open: container health checks and load balancers' probes send no key.
+        guarded = reads if router is not health.router else []
+        app.include_router(
+            router, dependencies=guarded, responses=KEY_ANSWERS if guarded else None
+        )
     # FastAPI's decorator, called: Starlette's add_exception_handler types a handler as taking
     # any Exception, so one that takes its own kind does not fit it.
     app.exception_handler(BackendError)(_backend_error)

@@ -336,10 +336,11 @@ class GatewaySettings(ProcessSettings):
     host: str = Field("127.0.0.1", description="HTTP bind address (0.0.0.0 in containers)")
     port: int = Field(8000, ge=1, le=65535, description="HTTP port")
     api_key: SecretStr | None = Field(
-        None, description="X-API-Key required by ingest, match and setting a pose (unset: "
-        "those are open)"
+        None, description="X-API-Key required by ingest, match, setting a pose and retiring a "
+        "robot (unset: those are open)"
     )
-    guard_reads: bool = Field(False, description="require the API key on read endpoints too")
+    guard_reads: bool = Field(False, description="require the API key on read endpoints too "
+                              "(not on /api/v1/health; the live page then shows nothing)")
     max_body_bytes: int = Field(4 * 1024 * 1024, ge=1024, description="bigger bodies get 413")
     max_beams: int = Field(8192, ge=1, le=100_000, description="beams per scan in a request")
     query_timeout_s: float = Field(5.0, gt=0.0, le=120.0, description="Zenoh query deadline")

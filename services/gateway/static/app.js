@@ -116,6 +116,11 @@ async function refreshRobots() {
   const status = document.getElementById("status");
   try {
     const r = await fetch(`${API}/robots`);
+    if (r.status === 401 || r.status === 403) {
+      status.textContent = "this gateway needs its API key for reads " +
+        "(SCANFLOW_GATEWAY_GUARD_READS): the live page cannot show them";
+      return;
+    }
     const body = await r.json();
     body.robots.forEach((robot) => viewOf(robot.robot_id));
     status.textContent = `${body.robots.length} robot(s), services: ` +

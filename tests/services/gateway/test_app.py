@@ -72,7 +72,7 @@ def test_an_unset_api_key_is_warned_about(backend, caplog):
     assert any("SCANFLOW_GATEWAY_API_KEY is not set" in r.getMessage() for r in caplog.records)
 
 
-def test_guard_reads_puts_the_key_on_every_endpoint(backend, settings, auth):
+def test_guard_reads_puts_the_key_on_every_endpoint_but_health(backend, settings, auth):
     from fastapi.testclient import TestClient
 
     from services.gateway.app import create_app
@@ -81,6 +81,7 @@ def test_guard_reads_puts_the_key_on_every_endpoint(backend, settings, auth):
     with TestClient(create_app(guarded, backend)) as c:
         assert c.get("/api/v1/robots").status_code == 401
         assert c.get("/metrics").status_code == 401
+        assert c.get("/api/v1/health").status_code in (200, 503)  # probes send no key
         assert c.get("/api/v1/robots", headers=auth).status_code == 200
         operation = c.get("/openapi.json").json()["paths"]["/api/v1/robots"]["get"]
         assert operation["security"] == [{"APIKeyHeader": []}]
@@ -122,5 +123,6 @@ def test_guarded_reads_list_the_keys_answers_in_the_schema(backend, settings):
         paths = c.get("/openapi.json").json()["paths"]
     for path in ("/api/v1/robots", "/api/v1/robots/{robot}/pose", "/metrics"):
         assert {"401", "403"} <= set(paths[path]["get"]["responses"]), path
+    assert "401" not in paths["/api/v1/health"]["get"]["responses"]
     open_paths = create_app(settings, backend).openapi()["paths"]
     assert "401" not in open_paths["/api/v1/robots"]["get"]["responses"]

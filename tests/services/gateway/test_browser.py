@@ -10,11 +10,13 @@ import io
 import shutil
 import threading
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import replace
 
 import numpy as np
 import pytest
 import uvicorn
+from fastapi import FastAPI
 from PIL import Image
 from scanflow import keys
 from scanflow.geometry import Pose2D
@@ -35,19 +37,27 @@ pytestmark = pytest.mark.skipif(
 BACKGROUND = (0x20, 0x24, 0x2A)
 
 
-@pytest.fixture
-def served(backend, settings) -> Iterator[str]:
-    """The gateway app on a real uvicorn server in a thread; yields its base URL."""
+@contextmanager
+def serving(app: FastAPI) -> Iterator[str]:
+    """`app` on a real uvicorn server in a thread; yields its base URL."""
     port = free_port()
-    config = uvicorn.Config(create_app(settings, backend), host="127.0.0.1", port=port,
-                            log_level="warning")
-    server = uvicorn.Server(config)
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port,
+                                           log_level="warning"))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     wait_for_port(port)
-    yield f"http://127.0.0.1:{port}"
-    server.should_exit = True
-    thread.join(10)
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        server.should_exit = True
+        thread.join(10)
+
+
+@pytest.fixture
+def served(backend, settings) -> Iterator[str]:
+    """The gateway app on a real uvicorn server in a thread; yields its base URL."""
+    with serving(create_app(settings, backend)) as url:
+        yield url
 
 
 def test_page_draws_the_map_and_trajectory(served, peer, backend):
@@ -118,5 +128,21 @@ def test_page_loads_the_path_again_when_loop_closure_redraws_the_map(served, pee
                 " return p.length >= 5 && p.every(([x, y]) => y === 5); }",
                 timeout=15_000,
             )
+        finally:
+            browser.close()
+
+
+def test_page_says_why_it_shows_nothing_when_reads_need_the_key(backend, settings):
+    """With guard_reads the page's own requests carry no key (an event stream cannot send the
+    header): it says so rather than 'gateway unreachable'."""
+    guarded = settings.model_copy(update={"guard_reads": True})
+    with serving(create_app(guarded, backend)) as url, sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
+        try:
+            page = browser.new_page()
+            page.goto(url)
+            status = page.locator("#status")
+            status.filter(has_text="needs its API key").wait_for(timeout=15_000)
+            assert "GUARD_READS" in status.inner_text()
         finally:
             browser.close()
