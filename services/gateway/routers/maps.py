@@ -57,9 +57,11 @@ async def map_file(
 ) -> Response:
     """The whole map as the map server exported it, or with all of x0, y0, x1, y1 (metres, map
     frame) the cells inside that box; `X-Map-Revision` says which revision it is. A growing map
-    can change between a .yaml and a .pgm download: .zip holds the two of one revision."""
+    can change between a .yaml and a .pgm download: .zip holds the two of one revision. Every
+    file is named `<robot>.<fmt>` (Content-Disposition), the name a .yaml's `image:` gives."""
     bounds = (x0, y0, x1, y1)
-    headers = {"Cache-Control": "no-cache"}
+    headers = {"Cache-Control": "no-cache",
+               "Content-Disposition": f'inline; filename="{robot}.{fmt}"'}
     if all(b is None for b in bounds):
         selector = f"{keys.map_key(robot, 'image', backend.prefix)}?format={fmt}"
         try:
@@ -80,11 +82,12 @@ async def map_file(
     if region.occupancy.size == 0:
         raise HTTPException(404, f"the map of {robot!r} has no cells in {bounds}")
     headers["X-Map-Revision"] = str(region.meta.revision)
-    data = await run_in_threadpool(export_region, region, fmt)  # CPU work: off the event loop
+    data = await run_in_threadpool(export_region, region, fmt, robot)  # CPU: off the event loop
     return Response(data, media_type=MEDIA[fmt], headers=headers)
 
 
-def export_region(region: MapRegionMessage, fmt: str) -> bytes:
+def export_region(region: MapRegionMessage, fmt: str, name: str) -> bytes:
     """The region written by the library's PNG or map_server exporter from the percentages the
-    map server sent, which its whole-map export draws from too: each cell comes out alike."""
-    return map_file_bytes(RosGrid(region.occupancy, region.window_spec), fmt, "map")
+    map server sent, which its whole-map export draws from too: each cell comes out alike
+    (map_server's files named `name`, as the whole map's are)."""
+    return map_file_bytes(RosGrid(region.occupancy, region.window_spec), fmt, name)

@@ -37,6 +37,8 @@ def test_map_meta_and_png(client, peer):
     assert r.headers["x-map-revision"] == "3"
     bundle = client.get("/api/v1/robots/r1/map.zip")
     assert bundle.headers["content-type"] == "application/zip"
+    for fmt, got in (("png", r), ("zip", bundle)):  # the name a .yaml's `image:` gives
+        assert got.headers["content-disposition"] == f'inline; filename="r1.{fmt}"'
 
 
 def test_map_region_is_exported_by_the_library(client, peer):
@@ -61,8 +63,10 @@ def test_map_region_is_exported_by_the_library(client, peer):
     bundle = client.get("/api/v1/robots/r1/map.zip",
                         params={"x0": 0, "y0": -1.5, "x1": 1, "y1": -1})
     assert bundle.headers["content-type"] == "application/zip"
-    archive = zipfile.ZipFile(io.BytesIO(bundle.content))
-    assert archive.read("map.yaml") == yaml.content and archive.read("map.pgm") == r.content
+    archive = zipfile.ZipFile(io.BytesIO(bundle.content))  # named as the whole map's files
+    assert archive.read("r1.yaml") == yaml.content and archive.read("r1.pgm") == r.content
+    assert "image: r1.pgm" in yaml.text
+    assert yaml.headers["content-disposition"] == 'inline; filename="r1.yaml"'
 
 
 def test_partial_region_and_missing_map(client, peer):
@@ -113,9 +117,8 @@ def test_a_region_draws_each_cell_as_the_whole_map_does(p: np.ndarray, corner: t
     robot = RobotMap("r1", lambda: grid)
     whole = replies.region(robot, None)
     for fmt in ("png", "pgm"):
-        assert export_region(whole, fmt) == replies.image(robot, fmt).data, fmt
-    yaml = replies.image(robot, "yaml").data.replace(b"image: r1.pgm", b"image: map.pgm")
-    assert export_region(whole, "yaml") == yaml
+        assert export_region(whole, fmt, "r1") == replies.image(robot, fmt).data, fmt
+    assert export_region(whole, "yaml", "r1") == replies.image(robot, "yaml").data
     # A window of it: cells [r0, rows) x [c0, cols), bounded by those cells' centres.
     r0, c0 = min(corner[0], p.shape[0] - 1), min(corner[1], p.shape[1] - 1)
     spec = grid.spec
@@ -125,6 +128,6 @@ def test_a_region_draws_each_cell_as_the_whole_map_does(p: np.ndarray, corner: t
     window = replies.region(robot, (x0, y0, x1, y1))
     assert (window.row0, window.col0) == (r0, c0)
     for fmt in ("png", "pgm"):
-        part, full = (pixels(d) for d in (export_region(window, fmt),
+        part, full = (pixels(d) for d in (export_region(window, fmt, "r1"),
                                           replies.image(robot, fmt).data))
         np.testing.assert_array_equal(part[::-1], full[::-1][r0:, c0:])
