@@ -373,7 +373,7 @@ class FrontendSettings(Section):
     method: MatchMethod = Field(
         "gn",
         description="scan-to-map method (scanflow.matching name); 'gn+plicp' drifts far less "
-        "but is less robust on sparse long-range scans (README, Front end)",
+        "but is less robust on sparse long-range scans (docs/frontend.md)",
     )
     fallback_method: Literal[MatchMethod, ""] = Field(
         "csm", description="global-window search that seeds `method` when it fails; '' = none"

@@ -27,7 +27,7 @@ Layout (``<prefix>`` defaults to ``scanflow``; ``<robot>`` is a robot id):
 
 Zenoh keeps publication order only within one subscriber, and a full inbox stops a
 session's whole link: every service subscribes to exactly the keys it consumes, and no service
-relies on the order of two keys (see the README's services section).
+relies on the order of two keys (see docs/services.md).
 
 (**) the scans the matcher's front end inserted into its map, each with the pose it went in at;
 the map server inserts the same points at the same pose, so its map equals the front end's.

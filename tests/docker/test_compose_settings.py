@@ -1,5 +1,5 @@
-"""The compose files set only variables scanflow reads, and the README names every one a user
-can pass from the shell (no Docker needed: this reads the files)."""
+"""The compose files set only variables scanflow reads, and docs/containers.md names every one
+a user can pass from the shell (no Docker needed: this reads the files)."""
 
 from __future__ import annotations
 
@@ -30,11 +30,11 @@ def test_every_variable_a_compose_file_sets_is_a_setting(name):
     assert (keys | passed) - known == set()
 
 
-def test_the_readme_names_every_variable_compose_takes_from_the_shell():
-    readme = _text("README.md")
+def test_the_docs_name_every_variable_compose_takes_from_the_shell():
+    docs = _text("docs/containers.md")
     passed = {v for name in COMPOSE
               for v in re.findall(r"\$\{(SCANFLOW_[A-Z0-9_]+)", _text(name))}
     passed |= set(re.findall(r"^\s+(SCANFLOW_[A-Z0-9_]+):\s*(?:#.*)?$", _text(COMPOSE[0]),
                              flags=re.MULTILINE))  # passed through when set
     assert "SCANFLOW_GATEWAY_API_KEY" in passed
-    assert sorted(v for v in passed if not re.search(rf"\b{v}\b", readme)) == []
+    assert sorted(v for v in passed if not re.search(rf"\b{v}\b", docs)) == []

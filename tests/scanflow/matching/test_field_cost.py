@@ -509,7 +509,7 @@ def test_a_field_too_large_for_memory_is_a_match_input_error_not_a_memory_error(
     options: dict[str, float],
 ) -> None:
     """A point target's field covers its bounding box: a far glitch point or an option out of
-    scale is refused naming the target and the options (README, bad input), before numpy
+    scale is refused naming the target and the options (docs/matching.md, bad input), before numpy
     allocates anything."""
     target = caster(room, Pose2D())
     if extra_point is not None:

@@ -159,7 +159,7 @@ def test_bad_input_gets_a_status_or_a_named_error(rooms_map):
     ],
 )
 def test_an_option_out_of_its_range_is_a_match_input_error_naming_it(rooms_map, option, value):
-    """Through `match`, as the README promises: never an error from deep inside, nor a hang
+    """Through `match`, as docs/matching.md promises: never an error from deep inside, nor a hang
     (a pyramid level at most MAX_LEVELS - 1, as gn's and lm's `levels`)."""
     scan = cast(get_world("rooms").segments, Pose2D(2.5, 2.0, 0.0))
     with pytest.raises(MatchInputError, match=rf"^option {option} must be"):

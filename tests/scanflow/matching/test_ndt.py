@@ -181,7 +181,7 @@ def test_cells_too_many_for_memory_are_a_match_input_error(
     room, caster, extra_point, options
 ) -> None:
     """A point target's cells cover its bounding box: refused naming the target and the
-    options (README, bad input), before anything is allocated."""
+    options (docs/matching.md, bad input), before anything is allocated."""
     target = caster(room, Pose2D())
     if extra_point is not None:
         target = np.vstack((target, [extra_point]))

@@ -64,7 +64,7 @@ def test_added_points_lie_between_bridged_neighbours_step_m_apart(
 
 
 def test_a_step_that_would_add_too_many_points_is_a_match_input_error() -> None:
-    """icp's `surface_step_m=1e-12` asked numpy for 198 TiB (README, bad input: a
+    """icp's `surface_step_m=1e-12` asked numpy for 198 TiB (docs/matching.md, bad input: a
     MatchInputError naming the option, not a MemoryError)."""
     from scanflow.matching import MatchInputError, match
 
