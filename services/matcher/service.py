@@ -84,7 +84,7 @@ from services.matcher.recent import (
 )
 from services.matcher.requests import answer
 from services.matcher.shard import owns
-from services.matcher.waiting import Waiting
+from services.matcher.waiting import Placed, Waiting
 
 # Scan-to-map methods that read the live map under the lock: quick, and bounded by their
 # max_iterations. Any other (csm, its exhaustive form, csm+plicp, global: searches) reads a copy.
@@ -110,7 +110,8 @@ class MatcherService:
         self.shell = ServiceShell("matcher", settings, zenoh_settings)
         self.frontends: dict[str, Frontend] = {}
         self.mappers: dict[str, Mapper] = {}  # robots tracked with loop closure
-        self.initial_poses: dict[str, Pose2D] = {}  # operators' poses for robots not seen yet
+        # Operators' poses for robots not seen yet (or whose waiting scans were all lost).
+        self.initial_poses: dict[str, Placed] = {}
         self.recent: dict[str, RecentInserts] = {}  # per robot: its run's last inserts
         self.awaiting: dict[str, float] = {}  # robots met mid-stream waiting for the map server
         # Robots whose resume query is out: its number, their scans and operators' poses since.
@@ -278,10 +279,20 @@ class MatcherService:
                 self._put_at(robot_id, new, told)
         return new
 
-    def _put_at(self, robot_id: str, frontend: Frontend, pose: Pose2D) -> None:
-        """(Under the lock.) The robot's next scan is matched from an operator's `pose`; its
-        back end, if any, links across it only weakly."""
-        frontend.set_pose(pose)
+    def _put_at(self, robot_id: str, frontend: Frontend, placed: Placed) -> None:
+        """(Under the lock.) The robot's next scan is matched from an operator's pose, moved
+        by the odometry since the scan it was anchored to (lost while waiting for the map
+        server); its back end, if any, links across it only weakly. One anchored to a scan
+        without odometry cannot be carried on: not applied, logged, counted."""
+        if placed.anchored and placed.odom_pose is None:
+            self.shell.counters.add("initial_poses_stale")
+            self.shell.log.warning(
+                "robot %s: the operator's pose %s came before scans lost while waiting for the "
+                "map server, and no odometry carries it on to the next: not applied (send it "
+                "again)", robot_id, placed.pose,
+            )
+            return
+        frontend.set_pose(placed.pose, placed.stamp_s, placed.odom_pose)
         mapper = self.mappers.get(robot_id)
         if mapper is not None:
             mapper.relocated()
@@ -377,10 +388,11 @@ class MatcherService:
 
     def _give_up(self, robot_id: str, waiting: Waiting) -> None:
         """Drop the robot's wait for the map server: its scans go (counted); the last
-        operator's pose sent meanwhile waits for the robot's next start."""
+        operator's pose sent meanwhile waits for the robot's next start (anchored to the
+        first scan after it that went, if any)."""
         with self.lock:
             del self.resuming[robot_id]
-            told = waiting.last_pose()
+            told = waiting.last_placed()
             if told is not None:
                 self.initial_poses[robot_id] = told
         self.shell.counters.add("scans_awaiting_resume", waiting.scans)
@@ -524,9 +536,9 @@ class MatcherService:
                         f"robot {robot_id!r} refused: this matcher keeps "
                         f"{self.settings.max_robots} robots already (SCANFLOW_MATCHER_MAX_ROBOTS)"
                     )
-                self.initial_poses[robot_id] = pose
+                self.initial_poses[robot_id] = Placed(pose)
             else:
-                self._put_at(robot_id, frontend, pose)
+                self._put_at(robot_id, frontend, Placed(pose))
         self.shell.counters.add("initial_poses")
 
     def retire(self, robot_id: str) -> Dropped:

@@ -4,6 +4,7 @@ poses sent meanwhile, in the order they came (each pose applies to the scans aft
 from __future__ import annotations
 
 from collections import deque
+from dataclasses import dataclass
 
 from scanflow.geometry import Pose2D
 from scanflow.wire import DeskewedScanMessage
@@ -11,32 +12,54 @@ from scanflow.wire import DeskewedScanMessage
 MAX_SCANS_WAITING = 1024  # per robot waiting for the map server's answer (~6 MB at 360 beams)
 
 
+@dataclass(frozen=True)
+class Placed:
+    """An operator's pose: where the robot is at the next scan to come. Once that scan is
+    lost (dropped while waiting), the pose is anchored to it: its stamp and odometry pose
+    (None: it had none), so the scan after it is predicted by the odometry since."""
+
+    pose: Pose2D
+    stamp_s: float | None = None
+    odom_pose: Pose2D | None = None
+
+    @property
+    def anchored(self) -> bool:
+        return self.stamp_s is not None
+
+    def lost(self, scan: DeskewedScanMessage) -> Placed:
+        """This pose after `scan`, the first scan after it, was lost."""
+        return self if self.anchored else Placed(self.pose, scan.stamp_s, scan.odom_pose)
+
+
 class Waiting:
     """The scans and operators' poses of resume query number `ask`, in arrival order; at most
-    `capacity` scans (the oldest go first; a pose before them stays, it applies to the rest)."""
+    `capacity` scans (the oldest go first; a pose before them stays, anchored to the first
+    that went)."""
 
     def __init__(
         self, ask: int, first: DeskewedScanMessage, capacity: int = MAX_SCANS_WAITING
     ) -> None:
         self.ask = ask
         self.capacity = capacity
-        self._items: deque[DeskewedScanMessage | Pose2D] = deque([first])
+        self._items: deque[DeskewedScanMessage | Placed] = deque([first])
         self.scans = 1  # how many of the items are scans
 
     def hold(self, scan: DeskewedScanMessage) -> int:
         """Keep `scan` after the others; the number of older scans dropped to make room (0, 1)."""
         dropped = 0
         if self.scans >= self.capacity:
-            pose = None  # of the poses before the next scan that stays, the last
-            while isinstance(item := self._items.popleft(), Pose2D):
-                pose = item
+            placed = None  # of the poses before the next scan that stays, the last
+            while isinstance(item := self._items.popleft(), Placed):
+                placed = item
+            if placed is not None:
+                placed = placed.lost(item)
             self.scans -= 1
             dropped = 1
-            while self._items and isinstance(head := self._items[0], Pose2D):
-                pose = head
+            while self._items and isinstance(head := self._items[0], Placed):
+                placed = head
                 self._items.popleft()
-            if pose is not None:
-                self._items.appendleft(pose)
+            if placed is not None:
+                self._items.appendleft(placed)
         self._items.append(scan)
         self.scans += 1
         return dropped
@@ -44,11 +67,11 @@ class Waiting:
     def place(self, pose: Pose2D) -> None:
         """An operator's pose: the robot is there at the next scan to come (it replaces one
         sent since the last scan)."""
-        if self._items and not isinstance(self._items[-1], DeskewedScanMessage):
+        if self._items and isinstance(self._items[-1], Placed):
             self._items.pop()
-        self._items.append(pose)
+        self._items.append(Placed(pose))
 
-    def next(self) -> DeskewedScanMessage | Pose2D | None:
+    def next(self) -> DeskewedScanMessage | Placed | None:
         """The oldest scan or pose still waiting (taken out), None when none is left."""
         if not self._items:
             return None
@@ -57,9 +80,12 @@ class Waiting:
             self.scans -= 1
         return item
 
-    def last_pose(self) -> Pose2D | None:
-        """The last operator's pose still waiting (None: none sent meanwhile)."""
+    def last_placed(self) -> Placed | None:
+        """The last operator's pose still waiting, as it stands when every scan waiting is
+        lost (None: none sent meanwhile)."""
+        after: DeskewedScanMessage | None = None  # the first scan after it
         for item in reversed(self._items):
-            if isinstance(item, Pose2D):
-                return item
+            if isinstance(item, Placed):
+                return item if after is None else item.lost(after)
+            after = item
         return None

@@ -300,15 +300,21 @@ class Frontend:
         kept = f"rechecked and kept: {low}; the search: {note} ({found.score:.3f})"
         return result, FrontendStatus.TRACKED, "; ".join(m for m in (result.message, kept) if m)
 
-    def set_pose(self, pose: Pose2D) -> None:
+    def set_pose(
+        self, pose: Pose2D, stamp_s: float | None = None, odom_pose: Pose2D | None = None
+    ) -> None:
         """An operator's word for where the robot is (ROS's /initialpose): the next scan is
-        matched from `pose` (before the first scan: the start). No whole-map search is pending
-        any more."""
+        matched from `pose` (before the first scan: the start). With `stamp_s` and `odom_pose`,
+        where the robot was at that stamp and the odometry pose there (the scans since were
+        lost): the next scan is matched from `pose` moved by the odometry since. No whole-map
+        search is pending any more."""
         if not all(math.isfinite(v) for v in (pose.x, pose.y, pose.theta)):
             raise ValueError(f"pose must be finite, got {pose}")
         self._lost = False
         self._rejections = 0
-        if self._predictor.last_pose is None:
+        if stamp_s is not None and odom_pose is not None:
+            self._predictor.restart(stamp_s, pose, odom_pose)
+        elif self._predictor.last_pose is None:
             self.initial_pose = pose
         else:
             self._predictor.place(pose)

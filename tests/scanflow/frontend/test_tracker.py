@@ -623,6 +623,25 @@ def test_an_operators_pose_replaces_the_search_and_puts_a_lost_robot_back(
         lost.set_pose(Pose2D(math.inf, 0.0, 0.0))
 
 
+def test_an_operators_pose_for_a_past_scan_is_carried_to_the_next_by_the_odometry(
+    settings: FrontendSettings, scan_at: Scanner, prior_grid: PriorGrid
+) -> None:
+    """Told where the robot was at a scan since lost (a restarted matcher dropped it while it
+    waited for the map server), with the odometry pose there: the next scan is predicted from
+    the told pose moved by the odometry since, not at the told pose itself (a chaos test saw
+    a robot tracked metres off, its map grown with it, from a pose applied seconds late)."""
+    stay = settings.model_copy(update={"global_after_rejections": 0, "fallback_method": ""})
+    frontend = Frontend(stay, grid=prior_grid(scan_at, PRIOR_MAP_FROM_WORLD))
+    odom_from_world = Pose2D(-3.0, 4.0, 1.2)  # the odometry's own frame
+    away = path_from(KIDNAPPED_TO, 40)[::8]  # 0.4 m and 8 deg apart
+    frontend.set_pose(PRIOR_MAP_FROM_WORLD * away[0], 5.0, odom_from_world * away[0])
+    out = frontend.process(scan_at(away[2]), 6.0, odom_from_world * away[2], 7)
+    assert out.prediction_source == "odometry"
+    assert out.status is FrontendStatus.TRACKED and near(out.pose, away[2])
+    later = frontend.process(scan_at(away[3]), 6.1, odom_from_world * away[3], 8)
+    assert later.status is FrontendStatus.TRACKED and near(later.pose, away[3])
+
+
 def _over_the_caps_below(level_that_fits: int, monkeypatch: pytest.MonkeyPatch) -> list[int]:
     """The whole-map search refuses levels finer than `level_that_fits`, as it does a map
     too large for them (its caps); returns the levels tried."""

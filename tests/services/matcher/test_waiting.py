@@ -1,4 +1,5 @@
-"""A robot's wait for the map server's map: scans and operators' poses kept in their order."""
+"""A robot's wait for the map server's map: scans and operators' poses kept in their order; a
+pose whose next scan was lost is anchored to that scan's odometry."""
 
 from __future__ import annotations
 
@@ -8,53 +9,67 @@ from hypothesis import strategies as st
 from scanflow.geometry import Pose2D
 from scanflow.wire import DeskewedScanMessage
 
-from services.matcher.waiting import Waiting
+from services.matcher.waiting import Placed, Waiting
 
 RING = np.column_stack((np.cos(np.linspace(0, 6, 20)), np.sin(np.linspace(0, 6, 20))))
 
 
-def scan(seq: int) -> DeskewedScanMessage:
-    return DeskewedScanMessage("r", seq, 0.1 * seq, RING, "odometry", False, 20, 0)
+def scan(seq: int, odometry: bool = True) -> DeskewedScanMessage:
+    odom = Pose2D(float(seq), 0.0, 0.0) if odometry else None
+    return DeskewedScanMessage("r", seq, 0.5 * seq, RING, "odometry", False, 20, 0,
+                               odom_pose=odom)
 
 
-def drained(waiting: Waiting) -> list[int | Pose2D]:
+def drained(waiting: Waiting) -> list[int | Placed]:
     """Everything still waiting, oldest first: scans by seq, poses as they are."""
-    out: list[int | Pose2D] = []
+    out: list[int | Placed] = []
     while (item := waiting.next()) is not None:
         out.append(item.seq if isinstance(item, DeskewedScanMessage) else item)
     return out
 
 
+def at(x: float) -> Pose2D:
+    return Pose2D(x, 0.0, 0.0)
+
+
 def test_poses_keep_their_place_among_the_scans() -> None:
     waiting = Waiting(1, scan(5))
     waiting.hold(scan(6))
-    waiting.place(Pose2D(1.0, 2.0, 0.3))
+    waiting.place(at(1.0))
     waiting.hold(scan(7))
-    assert waiting.scans == 3 and waiting.last_pose() == Pose2D(1.0, 2.0, 0.3)
-    assert drained(waiting) == [5, 6, Pose2D(1.0, 2.0, 0.3), 7]
-    assert waiting.scans == 0 and waiting.last_pose() is None
-    waiting.place(Pose2D(4.0, 0.0, 0.0))  # while the last scan is tracked: for the next one
-    assert drained(waiting) == [Pose2D(4.0, 0.0, 0.0)]
+    assert waiting.scans == 3
+    assert drained(waiting) == [5, 6, Placed(at(1.0)), 7]
+    assert waiting.scans == 0 and waiting.last_placed() is None
+    waiting.place(at(4.0))  # while the last scan is tracked: for the next one
+    assert drained(waiting) == [Placed(at(4.0))]
 
 
-def test_past_capacity_the_oldest_scan_goes_and_the_last_pose_before_the_next_stays() -> None:
+def test_past_capacity_the_oldest_scan_goes_and_a_pose_before_it_is_anchored_to_it() -> None:
     waiting = Waiting(1, scan(0), capacity=2)
-    waiting.place(Pose2D(1.0, 0.0, 0.0))
-    waiting.place(Pose2D(2.0, 0.0, 0.0))  # replaces the one before: no scan came between
+    waiting.place(at(1.0))
+    waiting.place(at(2.0))  # replaces the one before: no scan came between
     assert waiting.hold(scan(1)) == 0
-    waiting.place(Pose2D(3.0, 0.0, 0.0))
     assert waiting.hold(scan(2)) == 1  # scan 0 goes; the pose after it stays before scan 1
-    assert waiting.hold(scan(3)) == 1  # scan 1 goes; of the poses before scan 2, the last
-    assert drained(waiting) == [Pose2D(3.0, 0.0, 0.0), 2, 3]
+    assert waiting.hold(scan(3)) == 1  # scan 1 goes: the robot was at 2 m there
+    assert drained(waiting) == [Placed(at(2.0), 0.5, at(1.0)), 2, 3]
+
+
+def test_when_every_scan_is_lost_the_last_pose_is_anchored_to_the_first_after_it() -> None:
+    waiting = Waiting(1, scan(0))
+    waiting.place(at(1.0))
+    assert waiting.last_placed() == Placed(at(1.0))  # nothing after it: for the next scan
+    waiting.hold(scan(1, odometry=False))
+    waiting.hold(scan(2))
+    assert waiting.last_placed() == Placed(at(1.0), 0.5, None)  # no odometry to carry it on
 
 
 @given(st.lists(st.one_of(st.integers(0, 9), st.none()), max_size=40), st.integers(1, 6))
 def test_the_newest_scans_wait_in_order_each_after_the_last_pose_sent_before_it(
     events: list[int | None], capacity: int
 ) -> None:
-    """Property: whatever comes, the newest `capacity` scans wait, in order, and before each
-    the last pose sent before it since the scan before it that still waits (the poses of
-    dropped scans' places collapse onto the next that waits)."""
+    """Property: whatever comes, the newest `capacity` scans wait, in order, each after the
+    last pose sent since the scan before it that waits; a pose whose next scan went is
+    anchored to that scan (the first that went after it)."""
     waiting = Waiting(1, scan(0), capacity)
     sent: list[int | Pose2D] = [0]
     for n, event in enumerate(events, start=1):
@@ -62,15 +77,19 @@ def test_the_newest_scans_wait_in_order_each_after_the_last_pose_sent_before_it(
             waiting.hold(scan(n))
             sent.append(n)
         else:
-            waiting.place(Pose2D(float(event), 0.0, 0.0))
-            sent.append(Pose2D(float(event), 0.0, 0.0))
-    seqs = [x for x in sent if isinstance(x, int)]
-    expected: list[int | Pose2D] = []
+            waiting.place(at(float(event)))
+            sent.append(at(float(event)))
+    kept = [x for x in sent if isinstance(x, int)][-capacity:]
+    expected: list[int | Placed] = []
+    pending: Placed | None = None
     for x in sent:
-        if isinstance(x, int) and x not in seqs[-capacity:]:
-            continue
-        if isinstance(x, Pose2D) and expected and isinstance(expected[-1], Pose2D):
-            expected.pop()
-        expected.append(x)
-    assert waiting.scans == min(len(seqs), capacity)
+        if isinstance(x, Pose2D):
+            pending = Placed(x)
+        elif x not in kept:
+            pending = None if pending is None else pending.lost(scan(x))
+        else:
+            expected += [pending, x] if pending is not None else [x]
+            pending = None
+    expected += [pending] if pending is not None else []
+    assert waiting.scans == len(kept)
     assert drained(waiting) == expected
