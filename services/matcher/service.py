@@ -388,11 +388,11 @@ class MatcherService:
 
     def _give_up(self, robot_id: str, waiting: Waiting) -> None:
         """Drop the robot's wait for the map server: its scans go (counted); the last
-        operator's pose sent meanwhile waits for the robot's next start (anchored to the
-        first scan after it that went, if any)."""
+        operator's pose sent meanwhile, or else the one sent before the wait, waits for the
+        robot's next start (anchored to the first scan after it that went, if any)."""
         with self.lock:
             del self.resuming[robot_id]
-            told = waiting.last_placed()
+            told = waiting.last_placed(self.initial_poses.get(robot_id))
             if told is not None:
                 self.initial_poses[robot_id] = told
         self.shell.counters.add("scans_awaiting_resume", waiting.scans)

@@ -80,12 +80,12 @@ class Waiting:
             self.scans -= 1
         return item
 
-    def last_placed(self) -> Placed | None:
-        """The last operator's pose still waiting, as it stands when every scan waiting is
-        lost (None: none sent meanwhile)."""
+    def last_placed(self, before: Placed | None = None) -> Placed | None:
+        """The last operator's pose still waiting, else `before` (one sent before the wait
+        began), as it stands when every scan waiting is lost (None: none at all)."""
         after: DeskewedScanMessage | None = None  # the first scan after it
         for item in reversed(self._items):
             if isinstance(item, Placed):
                 return item if after is None else item.lost(after)
             after = item
-        return None
+        return before if before is None or after is None else before.lost(after)

@@ -519,12 +519,14 @@ def test_an_operators_pose_while_a_robot_waits_for_its_map_applies_where_it_was_
         service.handle("scan", scan("r", 7))
         moved = replace(scan("q", 7), odom_pose=Pose2D(1.0, 2.0, 0.3))
         service.handle("scan", moved)
+        service.place("p", told)  # before its first scan, which is then lost
+        service.handle("scan", replace(scan("p", 5), odom_pose=Pose2D(0.5, 0.0, 0.0)))
         service.handle("scan", scan("s", 5))
         service.place("s", later)
         service.handle("scan", scan("s", 6))  # no odometry to carry the pose on from it
-        assert events == [] and not service.initial_poses
+        assert events == [] and list(service.initial_poses) == ["p"]
         release.set()
-        while service.resuming:  # the three answers, in whatever order they come
+        while service.resuming:  # the four answers, in whatever order they come
             service.handle(*service.shell.inbox.get(10.0))
         assert events == [5, 6, told, 7]
         estimates = {m.seq: m.pose for m in sent if isinstance(m, PoseEstimateMessage)}
@@ -535,8 +537,9 @@ def test_an_operators_pose_while_a_robot_waits_for_its_map_applies_where_it_was_
         assert "r" not in service.resuming and service.frontends["r"] is not None
         assert "q" not in service.resuming
         assert service.initial_poses == {"q": Placed(later, moved.stamp_s, moved.odom_pose),
-                                         "s": Placed(later, 0.1 * 6, None)}
-        assert service.shell.counters.get("scans_awaiting_resume") == 5  # q's three, s's two
+                                         "s": Placed(later, 0.1 * 6, None),
+                                         "p": Placed(told, 0.1 * 5, Pose2D(0.5, 0.0, 0.0))}
+        assert service.shell.counters.get("scans_awaiting_resume") == 6  # q's 3, s's 2, p's 1
         assert service._install("s", None).initial_pose != later  # stale: not applied
         assert service.shell.counters.get("initial_poses_stale") == 1
     finally:

@@ -61,6 +61,9 @@ def test_when_every_scan_is_lost_the_last_pose_is_anchored_to_the_first_after_it
     waiting.hold(scan(1, odometry=False))
     waiting.hold(scan(2))
     assert waiting.last_placed() == Placed(at(1.0), 0.5, None)  # no odometry to carry it on
+    before = Placed(at(7.0))  # sent before the wait, whose every scan is lost
+    assert Waiting(2, scan(3)).last_placed(before) == Placed(at(7.0), 1.5, at(3.0))
+    assert Waiting(2, scan(3)).last_placed(Placed(at(7.0), 0.0, at(0.0))).stamp_s == 0.0
 
 
 @given(st.lists(st.one_of(st.integers(0, 9), st.none()), max_size=40), st.integers(1, 6))
