@@ -380,6 +380,15 @@ class FrontendSettings(Section):
     )
     fallback_linear_m: float = Field(1.0, gt=0.0, description="fallback search half-width")
     fallback_angular_deg: float = Field(30.0, gt=0.0, description="fallback search half-angle")
+    fallback_max_linear_m: float = Field(
+        5.0, gt=0.0, le=50.0, description="the fallback search and the correction it may make "
+        "widen to 3 std of the prediction's uncertainty (scans rejected in a row) up to this "
+        "half-width; the first scan of a run carried on across a gap searches all of it",
+    )
+    fallback_max_angular_deg: float = Field(
+        180.0, gt=0.0, le=180.0, description="same, half-angle"
+    )
+
     recheck_ratio: float = Field(
         0.8, ge=0.0, le=1.0,
         description="a passing match scoring below this x the median of the last 20 accepted "

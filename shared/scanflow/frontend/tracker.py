@@ -128,6 +128,7 @@ class _Step:
     mount: Pose2D
     match_time_s: float = 0.0
     rechecked: bool = False
+    bridged: bool = False  # the first scan of a run carried on across a gap (`carry_on`)
 
 
 def insert_scan(
@@ -214,6 +215,7 @@ class Frontend:
         # A prior map and no start: the first scan is searched for over the whole map.
         self._lost = self._initialised and initial_pose is None
         self._rejections = 0  # rejected scans in a row
+        self._bridged = False  # carried on across a gap: checked by a wide search till accepted
         self._covariance = np.zeros((3, 3))
         self._scores = RecentScores()  # of the accepted matches by settings.method
 
@@ -238,7 +240,8 @@ class Frontend:
         points = as_points(points_m, "points_m")
         misses = np.zeros((0, 2)) if no_return_m is None else as_points(no_return_m, "no_return_m")
         prediction = self._predict(stamp_s, odom_pose)
-        step = _Step(prediction, points, misses, float(stamp_s), odom_pose, seq, mount)
+        step = _Step(prediction, points, misses, float(stamp_s), odom_pose, seq, mount,
+                     bridged=self._bridged)
         if len(points) < self.settings.min_points:
             reason = f"{len(points)} valid points, need min_points={self.settings.min_points}"
             return self._finish(step, FrontendStatus.TOO_FEW_POINTS, None, reason)
@@ -274,7 +277,7 @@ class Frontend:
             return self._recheck(step, result)
         if not s.fallback_method:
             return result, FrontendStatus.REJECTED, reason
-        found, status, note = self.relocalise(points, guess)
+        found, status, note = self.relocalise(points, guess, self._uncertainty(step))
         if status is FrontendStatus.RECOVERED:
             return found, status, f"{note}: {reason}"
         # Rejected: the search's optimum when it found one, else the local match.
@@ -287,14 +290,19 @@ class Frontend:
         `recheck`): then the fallback search's match when that scores recheck_margin higher
         (RECOVERED), else the match as it was, with a note of the search."""
         s = self.settings
-        if not (s.fallback_method and self._scores.is_low(result.score, s.recheck_ratio)):
+        bridged = step.bridged
+        if not (s.fallback_method and (bridged or self._scores.is_low(result.score,
+                                                                      s.recheck_ratio))):
             return result, FrontendStatus.TRACKED, result.message
         step.rechecked = True
         low = (
-            f"score {result.score:.3f} below {s.recheck_ratio} x the recent median "
+            "predicted by the odometry across the gap the run was carried on over" if bridged
+            else f"score {result.score:.3f} below {s.recheck_ratio} x the recent median "
             f"{self._scores.median():.3f}"
         )
-        found, status, note = self.relocalise(step.points, step.prediction.pose)
+        found, status, note = self.relocalise(
+            step.points, step.prediction.pose, self._uncertainty(step)
+        )
         if status is FrontendStatus.RECOVERED and found.score >= result.score + s.recheck_margin:
             return found, status, f"rechecked, {note} ({found.score:.3f}): {low}"
         kept = f"rechecked and kept: {low}; the search: {note} ({found.score:.3f})"
@@ -306,14 +314,16 @@ class Frontend:
         """An operator's word for where the robot is (ROS's /initialpose): the next scan is
         matched from `pose` (before the first scan: the start). With `stamp_s` and `odom_pose`,
         where the robot was at that stamp and the odometry pose there (the scans since were
-        lost): the next scan is matched from `pose` moved by the odometry since. No whole-map
-        search is pending any more."""
+        lost): the next scan is matched from `pose` moved by the odometry since, and checked as
+        after `carry_on`. No whole-map search is pending any more."""
         if not all(math.isfinite(v) for v in (pose.x, pose.y, pose.theta)):
             raise ValueError(f"pose must be finite, got {pose}")
         self._lost = False
         self._rejections = 0
+        self._bridged = False
         if stamp_s is not None and odom_pose is not None:
             self._predictor.restart(stamp_s, pose, odom_pose)
+            self._bridged = True
         elif self._predictor.last_pose is None:
             self.initial_pose = pose
         else:
@@ -322,10 +332,14 @@ class Frontend:
     def carry_on(self, stamp_s: float, pose: Pose2D, odom_pose: Pose2D) -> None:
         """Carry on a run from its last estimate, `pose` at `stamp_s` with the odometry pose
         `odom_pose` there (a restarted matcher resuming the map server's path): the next scan is
-        predicted from it by the odometry since, however long this tracker was out."""
+        predicted from it by the odometry since, however long this tracker was out, and its
+        match checked by a search over the widest fallback window (the odometry may have
+        drifted metres meanwhile), as a low-scoring match is."""
         if not all(math.isfinite(v) for v in (pose.x, pose.y, pose.theta)):
             raise ValueError(f"pose must be finite, got {pose}")
         self._predictor.update(stamp_s, pose, odom_pose)
+        self._lost = False  # it has a pose: no whole-map search is pending
+        self._bridged = True
 
     def redraw(self, matching_map: MatchingMap, correction: Pose2D) -> None:
         """Track on `matching_map` from now on: the map redrawn in another frame (T_new_old =
@@ -370,34 +384,67 @@ class Frontend:
         )
 
     def relocalise(
-        self, points_m: ArrayLike, guess: Pose2D
+        self, points_m: ArrayLike, guess: Pose2D, uncertainty: ArrayLike | None = None
     ) -> tuple[MatchResult, FrontendStatus, str]:
         """Search the map around `guess` (settings.fallback_method over +-fallback_linear_m /
-        +-fallback_angular_deg), refine the best pose with settings.method, and check it
-        against `guess` as a tracked match is: RECOVERED with the match, or REJECTED with why.
-        The front end's own state is untouched. Needs a fallback method and a non-empty map."""
+        +-fallback_angular_deg, widened to 3 std of `uncertainty`, the guess's 3x3 covariance,
+        up to fallback_max_linear_m / _angular_deg), refine the best pose with settings.method,
+        and check it against `guess` as a tracked match is, its correction allowed as far as
+        the search reached: RECOVERED with the match, or REJECTED with why. The front end's own
+        state is untouched. Needs a fallback method and a non-empty map."""
         s = self.settings
         if not s.fallback_method:
             raise ValueError("relocalise needs settings.fallback_method (it is '')")
         points = as_points(points_m, "points_m")
+        linear_m, angular_rad = self._search_window(uncertainty)
         coarse = match(
             points, self.map, guess, method=s.fallback_method,
-            linear_m=s.fallback_linear_m, angular_rad=math.radians(s.fallback_angular_deg),
-            resolution_m=s.map_resolution_m,
+            linear_m=linear_m, angular_rad=angular_rad, resolution_m=s.map_resolution_m,
         )
         if not found_a_pose(coarse):  # a corridor's search still gives gn its start
             return coarse, FrontendStatus.REJECTED, f"fallback: {coarse.message}"
         coarse = corridor_start(coarse, guess, points)
         refined = match(points, self.map, coarse.pose, method=s.method)
-        if not rejection_reason(refined, guess, self._limits):
-            return refined, FrontendStatus.RECOVERED, f"recovered by {s.fallback_method}"
+        limits = replace(
+            self._limits, max_correction_m=max(self._limits.max_correction_m, linear_m),
+            max_correction_rad=max(self._limits.max_correction_rad, angular_rad),
+        )
+        widened = ""
+        if (linear_m, angular_rad) != (s.fallback_linear_m, math.radians(s.fallback_angular_deg)):
+            widened = f" over +-{linear_m:.2f} m, +-{math.degrees(angular_rad):.0f} deg"
+        if not rejection_reason(refined, guess, limits):
+            return refined, FrontendStatus.RECOVERED, f"recovered by {s.fallback_method}{widened}"
         # The search's own optimum (grid resolution) when refining it fails too.
-        coarse_reason = rejection_reason(coarse, guess, self._limits)
+        coarse_reason = rejection_reason(coarse, guess, limits)
         if coarse_reason:
             return coarse, FrontendStatus.REJECTED, f"after fallback: {coarse_reason}"
         return coarse, FrontendStatus.RECOVERED, (
-            f"recovered by {s.fallback_method} alone ({s.method} refinement failed)"
+            f"recovered by {s.fallback_method}{widened} alone ({s.method} refinement failed)"
         )
+
+    def _search_window(self, uncertainty: ArrayLike | None) -> tuple[float, float]:
+        """The fallback search's half-width (m) and half-angle (rad): the settings', widened
+        to 3 std of `uncertainty` up to their maxima (an unknown direction: the maxima)."""
+        s = self.settings
+        linear_m, angular_rad = s.fallback_linear_m, math.radians(s.fallback_angular_deg)
+        if uncertainty is None:
+            return linear_m, angular_rad
+        variances = np.nan_to_num(np.diag(np.asarray(uncertainty, dtype=float)), nan=np.inf)
+        std_m = math.sqrt(max(float(variances[0]), float(variances[1]), 0.0))
+        std_rad = math.sqrt(max(float(variances[2]), 0.0))
+        return (
+            max(linear_m, min(3.0 * std_m, s.fallback_max_linear_m)),
+            max(angular_rad, min(3.0 * std_rad, math.radians(s.fallback_max_angular_deg))),
+        )
+
+    def _uncertainty(self, step: _Step) -> NDArray[np.float64]:
+        """The prediction's covariance: the last estimate's, grown by the motion since (scans
+        rejected in a row: wide); unknown (infinite) for the first scan of a run carried on
+        across a gap, whose odometry drifts in ways its end points do not show (a loop
+        driven while a matcher was out)."""
+        if step.bridged:
+            return np.diag([math.inf, math.inf, math.inf])
+        return self._covariance + self._motion_noise(step.prediction.motion)
 
     def _finish(
         self, step: _Step, status: FrontendStatus, result: MatchResult | None, note: str
@@ -405,6 +452,7 @@ class Frontend:
         """Adopt the match (accepted) or the prediction (rejected), insert if due, report."""
         if status in ACCEPTED:
             self._rejections = 0
+            self._bridged = False
             pose = step.prediction.pose if result is None else result.pose
             self._covariance = np.zeros((3, 3)) if result is None else result.covariance
             if result is not None and result.method == self.settings.method:

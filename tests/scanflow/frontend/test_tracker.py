@@ -642,6 +642,36 @@ def test_an_operators_pose_for_a_past_scan_is_carried_to_the_next_by_the_odometr
     assert later.status is FrontendStatus.TRACKED and near(later.pose, away[3])
 
 
+@pytest.mark.parametrize("told", [False, True])
+def test_a_run_carried_on_across_a_gap_is_checked_by_the_widest_search(
+    settings: FrontendSettings, scan_at: Scanner, prior_grid: PriorGrid, told: bool
+) -> None:
+    """A matcher resumed after seconds out (or an operator's pose carried over lost scans)
+    predicts the next scan by the odometry across the gap, which may have drifted metres: a
+    chaos test saw the +-1 m fallback latch on to a look-alike 4 m off, tracked for good. The
+    first scan after it is searched over the widest window (fallback_max_*), and its
+    correction may reach as far."""
+    truth = path_from(KIDNAPPED_TO, 3)
+    odom_from_world = Pose2D(-3.0, 4.0, 1.2)
+    drift = Pose2D(1.8, -1.5, math.radians(25.0))  # the odometry's error across the gap
+    start = PRIOR_MAP_FROM_WORLD * truth[0] * drift.inverse()  # what the odometry carries on
+    for widest in (settings, settings.model_copy(update={"fallback_max_linear_m": 1.0,
+                                                         "fallback_max_angular_deg": 30.0})):
+        frontend = Frontend(widest, grid=prior_grid(scan_at, PRIOR_MAP_FROM_WORLD))
+        if told:
+            frontend.set_pose(start, 0.0, odom_from_world * truth[0])
+        else:
+            frontend.carry_on(0.0, start, odom_from_world * truth[0])
+        outs = [frontend.process(scan_at(p), 20.0 + 0.1 * i, odom_from_world * p, i)
+                for i, p in enumerate(truth[1:])]
+        if widest is settings:
+            assert outs[0].status is FrontendStatus.RECOVERED, outs[0].message
+            assert "+-5.00 m, +-180 deg" in outs[0].message and near(outs[0].pose, truth[1])
+            assert outs[1].status is FrontendStatus.TRACKED and near(outs[1].pose, truth[2])
+        else:  # the search as wide as before: the robot is not found
+            assert not near(outs[0].pose, truth[1], metres=0.5)
+
+
 def _over_the_caps_below(level_that_fits: int, monkeypatch: pytest.MonkeyPatch) -> list[int]:
     """The whole-map search refuses levels finer than `level_that_fits`, as it does a map
     too large for them (its caps); returns the levels tried."""
