@@ -115,9 +115,21 @@ def moved_points(points: NDArray[np.float64], pose: NDArray[np.float64]) -> NDAr
     return out
 
 
+def matched_length_m(
+    field: LikelihoodField, points: NDArray[np.float64], pose: NDArray[np.float64]
+) -> float:
+    """The scale for rotations: the spread of the points on the field at `pose` (all of them
+    when none is). Far points off it carry nothing: one return 3 km away made every rotation
+    look unconstrained over all the points, so gn and lm never turned, and said ok."""
+    sampled = np.zeros(len(points))
+    _run_kernel(field, points, pose, False, sampled=sampled)
+    return characteristic_length_m(points, sampled >= MATCHED_VALUE)
+
+
 @njit(cache=True)
-def _accumulate(values, origin, resolution_m, points, normals, pose, with_jacobian):  # type: ignore[no-untyped-def]
-    """One pass over the points: cost, hits and (optionally) J^T J and J^T r.
+def _accumulate(values, origin, resolution_m, points, normals, pose, with_jacobian, sampled):  # type: ignore[no-untyped-def]
+    """One pass over the points: cost, hits and (optionally) J^T J and J^T r; each point's
+    field value into `sampled` (when it has a place for each).
 
     Bilinear value and gradient as in LikelihoodField.sample (points whose interpolation square
     leaves the grid have value 0 and no gradient), without per-call numpy temporaries: at a few
@@ -128,6 +140,7 @@ def _accumulate(values, origin, resolution_m, points, normals, pose, with_jacobi
     rows, cols = values.shape
     c, s = math.cos(pose[2]), math.sin(pose[2])
     inv_res = 1.0 / resolution_m
+    keep = sampled.shape[0] == points.shape[0]
     cost, hits = 0.0, 0
     hessian = np.zeros((3, 3))
     gradient = np.zeros(3)
@@ -145,6 +158,8 @@ def _accumulate(values, origin, resolution_m, points, normals, pose, with_jacobi
             value = (1 - fr) * ((1 - fc) * v00 + fc * v01) + fr * ((1 - fc) * v10 + fc * v11)
             gx = ((1 - fr) * (v01 - v00) + fr * (v11 - v10)) * inv_res
             gy = ((1 - fc) * (v10 - v00) + fc * (v11 - v01)) * inv_res
+        if keep:
+            sampled[i] = value
         r = 1.0 - value
         cost += r * r
         if value != 0.0:
@@ -163,16 +178,20 @@ def _accumulate(values, origin, resolution_m, points, normals, pose, with_jacobi
     return cost, hits, hessian, gradient
 
 
+_NOWHERE = np.zeros(0)  # `_accumulate`'s `sampled` when the values are not wanted
+
+
 def _run_kernel(
     field: LikelihoodField,
     points: NDArray[np.float64],
     pose: NDArray[np.float64],
     with_jacobian: bool,
     normals: NDArray[np.float64] | None = None,
+    sampled: NDArray[np.float64] | None = None,
 ) -> tuple[float, int, NDArray[np.float64], NDArray[np.float64]]:
     spec = field.spec
     if spec.rows < 2 or spec.cols < 2:  # no interpolation square fits: nothing is inside
-        return float(len(points)), 0, np.zeros((3, 3)), np.zeros(3)
+        return float(len(points)), 0, np.zeros((3, 3)), np.zeros(3)  # (`sampled` stays 0)
     return _accumulate(
         field.values,
         np.array([spec.origin_x_m, spec.origin_y_m]),
@@ -181,6 +200,7 @@ def _run_kernel(
         np.zeros_like(points) if normals is None else normals,
         np.asarray(pose, dtype=np.float64),
         with_jacobian,
+        _NOWHERE if sampled is None else sampled,
     )
 
 
@@ -362,7 +382,7 @@ def finest_normals(
     docstring)."""
     normals = surface_normals(source)
     hessian = linearise(field, source, pose, normals).hessian
-    pinned = analyse_hessian(hessian, characteristic_length_m(source)).ratio >= PINNED_RATIO
+    pinned = analyse_hessian(hessian, matched_length_m(field, source, pose)).ratio >= PINNED_RATIO
     return normals if pinned else np.zeros_like(source)
 
 
@@ -450,7 +470,7 @@ def assess_field_match(
     """
     # Rotation scaled by the spread of the points on the field: far ones off it carry nothing.
     matched = field.sample(moved_points(source, pose))[0] >= MATCHED_VALUE
-    length_m = characteristic_length_m(source, matched)
+    length_m = characteristic_length_m(source, matched)  # as matched_length_m; `matched` reused
     lin = linearise(field, source, pose, normals)
     cond = analyse_hessian(lin.hessian, length_m)
     at = Pose2D.from_array(pose)

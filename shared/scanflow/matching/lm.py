@@ -15,7 +15,6 @@ from numpy.typing import NDArray
 from scanflow.geometry import Pose2D
 from scanflow.maps.field import LikelihoodField
 from scanflow.matching.api import MatchResult, MatchStatus, register_method
-from scanflow.matching.checks import characteristic_length_m
 from scanflow.matching.field_cost import (
     MAX_LEVELS,
     LevelOutcome,
@@ -23,6 +22,7 @@ from scanflow.matching.field_cost import (
     field_cost,
     level_tolerances,
     linearise,
+    matched_length_m,
     out_of_iterations,
     run_coarse_to_fine,
     solve_well_determined,
@@ -58,7 +58,6 @@ def match_lm(
     require_positive(resolution_m=resolution_m, sigma_m=sigma_m, tau=tau)
     require_iterations(max_iterations)
     require_non_negative(translation_tol_m=translation_tol_m, rotation_tol_rad=rotation_tol_rad)
-    length_m = characteristic_length_m(source)
 
     def solve_level(
         field: LikelihoodField,
@@ -68,6 +67,7 @@ def match_lm(
         finest: bool,
     ) -> LevelOutcome:
         t_tol, r_tol = level_tolerances(finest, translation_tol_m, rotation_tol_rad)
+        length_m = matched_length_m(field, points, pose)  # far points off the field: none
         lin = linearise(field, points, pose, normals)
         if solve_well_determined(lin.hessian, lin.gradient, length_m) is None:
             return LevelOutcome(
