@@ -40,9 +40,19 @@ from scanflow.maps.occupancy_kernels import (
     update_cells,
 )
 
+# A map's lattice anchor and cell indices stay where int64 cell arithmetic cannot overflow (a
+# map anchored at 1e300 m, as a forged file could say, failed deep inside a compiled kernel).
+MAX_ANCHOR_M = 1e7
+MAX_CELL_INDEX = 2**40
+
 
 def _logit(p: float) -> float:
     return math.log(p / (1.0 - p))
+
+
+def _is_int(value: object) -> bool:
+    """An integer (Python's or numpy's), not a bool or a float."""
+    return isinstance(value, int | np.integer) and not isinstance(value, bool)
 
 
 @dataclass(frozen=True, slots=True)
@@ -229,8 +239,11 @@ class OccupancyGrid:
     ) -> None:
         if initial_capacity_cells < 1:
             raise ValueError(f"initial_capacity_cells must be >= 1, got {initial_capacity_cells}")
-        if not (math.isfinite(anchor_x_m) and math.isfinite(anchor_y_m)):
-            raise ValueError(f"anchor must be finite, got ({anchor_x_m}, {anchor_y_m})")
+        if not (abs(anchor_x_m) <= MAX_ANCHOR_M and abs(anchor_y_m) <= MAX_ANCHOR_M):
+            raise ValueError(
+                f"anchor must be finite and within +-{MAX_ANCHOR_M:g} m, got "
+                f"({anchor_x_m}, {anchor_y_m})"
+            )
         self.params = params or OccupancyParams()
         self.anchor_x_m = float(anchor_x_m)
         self.anchor_y_m = float(anchor_y_m)
@@ -261,6 +274,11 @@ class OccupancyGrid:
         Without `hit_sums` (3, rows, cols) every cell has no recorded hits, so matching fields
         fall back to the occupied cells' centres.
         """
+        bounds = (box.row0, box.col0, box.row1, box.col1)
+        if not all(_is_int(v) and abs(v) <= MAX_CELL_INDEX for v in bounds):
+            raise ValueError(f"box must hold integers within +-{MAX_CELL_INDEX}, got {bounds}")
+        if not (_is_int(revision) and revision >= 0):
+            raise ValueError(f"revision must be an integer >= 0, got {revision!r}")
         lo = np.asarray(log_odds, dtype=np.float32)
         obs = np.asarray(observed, dtype=bool)
         if lo.shape != box.shape or obs.shape != box.shape:

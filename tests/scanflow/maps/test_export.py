@@ -209,6 +209,26 @@ def test_npz_bytes_round_trip_and_unreadable_bytes_name_their_source(grid: Occup
             grid_from_npz_bytes(data, "the matcher's map")
 
 
+@pytest.mark.parametrize(("field", "value", "reason"), [
+    ("box", [-61.0, -81.0, 61.0, 81.0], "box must hold integers"),
+    ("box", [0, 0, 2**62, 2**62], "box must hold integers within"),
+    ("revision", "x", "revision must be an integer"),
+    ("revision", -1, "revision must be an integer"),
+    ("anchor_x_m", 1e300, "anchor must be finite and within"),
+])
+def test_a_map_whose_meta_is_malformed_is_refused_naming_it(
+    grid: OccupancyGrid, field: str, value: object, reason: str
+):
+    """Bytes from the bus (a resume answer, a whole map) whose meta has the wrong types loaded,
+    then failed deep inside a compiled kernel at the first insert (a fuzzing audit)."""
+    arrays = npz_arrays(grid)
+    meta = json.loads(str(arrays["meta"]))
+    meta[field] = value
+    arrays["meta"] = np.array(json.dumps(meta))
+    with pytest.raises(ValueError, match=f"^the matcher's map: .*{reason}"):
+        grid_from_npz_bytes(npz_bytes(arrays), "the matcher's map")
+
+
 def test_map_server_files_are_what_ros_expects(tmp_path: Path, grid: OccupancyGrid):
     yaml_path = save_map_server(grid, tmp_path / "office.yaml")
     text = yaml_path.read_text()
