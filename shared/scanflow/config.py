@@ -495,8 +495,10 @@ class BackendSettings(Section):
     ambiguity_ratio: float = Field(
         0.9, gt=0.0, le=1.0, description="a distinct rival scoring this x the best: no closure"
     )
-    rival_distance_m: float = Field(0.5, gt=0.0, description="rivals lie this far from the best")
-    rival_angle_deg: float = Field(10.0, gt=0.0, description="or this far in heading")
+    rival_distance_m: float = Field(
+        0.5, gt=0.0, le=1000.0, description="rivals lie this far from the best"
+    )
+    rival_angle_deg: float = Field(10.0, gt=0.0, le=360.0, description="or this far in heading")
     confirm_keyframes: int = Field(
         3, ge=0, description="a closure waits this many keyframes for another that implies the "
         "same correction before it enters the graph; 0 = every closure enters at once"

@@ -19,6 +19,7 @@ from scanflow.maps.maxpool import SCORE_SCALE, MaxPoolStack
 from scanflow.matching.api import MatchResult, MatchStatus, Target, failed, match, register_method
 from scanflow.matching.checks import surface_conditioning, surfaces_of
 from scanflow.matching.csm_search import (
+    MAX_SEARCH_LENGTH_M,
     MAX_TOP_CANDIDATES,
     build_candidates,
     check_search_size,
@@ -32,6 +33,7 @@ from scanflow.matching.csm_search import (
 from scanflow.matching.field_cost import MIN_POINTS, check_inputs, points_field
 from scanflow.matching.inputs import (
     MatchInputError,
+    require_at_most,
     require_in,
     require_non_negative,
     require_positive,
@@ -55,6 +57,11 @@ def check_window_options(
         angular_resolution_rad=angular_resolution_rad, sigma_m=sigma_m,
     )
     require_non_negative(suppress_m=suppress_m, suppress_rad=suppress_rad)
+    # Beyond these a search's cell and step counts overflowed deep inside (a fuzzing audit).
+    require_at_most(MAX_SEARCH_LENGTH_M, resolution_m=resolution_m, sigma_m=sigma_m,
+                    suppress_m=suppress_m)
+    require_at_most(2 * math.pi, angular_resolution_rad=angular_resolution_rad,
+                    suppress_rad=suppress_rad)
     require_in(0.0, 1.0, candidate_min_ratio=candidate_min_ratio)
     if not (isinstance(candidates, int | np.integer) and 1 <= candidates <= MAX_TOP_CANDIDATES):
         raise MatchInputError(

@@ -43,6 +43,7 @@ MAX_CANDIDATES = 2**34
 # Distinct optima one search may return (`candidates`): each is a further search that checks
 # every earlier one's suppression box.
 MAX_TOP_CANDIDATES = 100
+MAX_SEARCH_LENGTH_M = 1000.0  # a search's cell, likelihood width and rivals' distance
 # Entries of the float temporaries `build_candidates` holds at once (16 MB each).
 ROTATION_BLOCK_ENTRIES = 2**21
 # Source points up to this many times the reach count towards the angular step (see

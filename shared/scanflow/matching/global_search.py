@@ -38,6 +38,7 @@ from scanflow.matching.api import (
     register_method,
 )
 from scanflow.matching.csm_search import (
+    MAX_SEARCH_LENGTH_M,
     MAX_TOP_CANDIDATES,
     build_candidates,
     check_search_size,
@@ -175,6 +176,9 @@ def localise_globally(
     for name, value in (("suppress_m", suppress_m), ("suppress_rad", suppress_rad)):
         if not (math.isfinite(value) and value >= 0.0):
             raise MatchInputError(f"{name} must be finite and >= 0, got {value}")
+    # Beyond these the search's step counts overflowed deep inside (a fuzzing audit).
+    require_at_most(MAX_SEARCH_LENGTH_M, suppress_m=suppress_m)
+    require_at_most(2 * math.pi, suppress_rad=suppress_rad)
     t0 = time.perf_counter()
     source = as_points(points, "points")
     method = f"{GLOBAL_METHOD}+{refine}"

@@ -32,6 +32,8 @@ from scanflow.matching.gn import match_gn
 from scanflow.matching.inputs import require_at_most, require_positive
 from scanflow.matching.plicp import match_plicp
 
+MAX_GATE_M = 5.0  # the fine step's reach from gn's pose (1 km: a MemoryError from its lookup)
+
 
 def fine_target(target: object, moved: NDArray[np.float64], gate_m: float) -> NDArray[np.float64]:
     """The target points plicp refines on: a map's mean hits near the moved scan (within the
@@ -57,6 +59,7 @@ def match_gn_plicp(
     module docstring); `extra["fine_step"]` says whether the fine pose was kept and why not."""
     require_positive(gate_m=gate_m, min_gate_m=min_gate_m, agree_m=agree_m, agree_rad=agree_rad)
     require_at_most(gate_m, min_gate_m=min_gate_m)
+    require_at_most(MAX_GATE_M, gate_m=gate_m)
     coarse = match_gn(source, target, guess, **gn_options)
     if not coarse.ok:
         return replace(coarse, method="gn+plicp")

@@ -49,6 +49,7 @@ from scanflow.matching.trust import fit_checked
 ARMIJO_C = 1e-4
 GRIDS = 4  # the paper's overlapping grids
 PD_FLOOR_RATIO = 1e-3
+MIN_CELL_M, MAX_CELL_M = 0.01, 10.0  # the finest cell size's range
 # A source point pins the pose only within this many sigmas of its cell (`surface_hessian`).
 MATCHED_SIGMAS = 2.0
 
@@ -289,6 +290,9 @@ def match_ndt(
     need 3+ points each and beams 1 deg apart sample a wall 20 m away only every 35 cm.
     """
     require_positive(cell_size_m=cell_size_m, surface_step_m=surface_step_m)
+    # Cells describe surfaces: a 1 km one allocated without end, a 1e-300 m one overflowed, a
+    # 30 m one held a whole room and said ok anywhere in it (a fuzzing audit).
+    require_in(MIN_CELL_M, MAX_CELL_M, cell_size_m=cell_size_m)
     require_in(1, MAX_LEVELS, levels=levels)
     require_iterations(max_iterations)
     require_non_negative(translation_tol_m=translation_tol_m, rotation_tol_rad=rotation_tol_rad)

@@ -46,7 +46,6 @@ from scanflow.matching.correspondence import (
 )
 from scanflow.matching.covariance import line_fit_covariance, unknown_covariance
 from scanflow.matching.inputs import (
-    require_at_least,
     require_at_most,
     require_in,
     require_iterations,
@@ -56,6 +55,7 @@ from scanflow.matching.inputs import (
 from scanflow.matching.trust import fit_checked
 
 MIN_PAIRS = 6
+MAX_NORMAL_NEIGHBOURS = 64
 # Solver outcome codes (shared with icp).
 CONVERGED, MAX_ITER, TOO_FEW, SINGULAR = 0, 1, 2, 3
 
@@ -178,7 +178,7 @@ def match_plicp(
         max_step_m=max_step_m, max_step_rad=max_step_rad,
     )
     require_at_most(normal_radius_m, normal_fit_radius_m=normal_fit_radius_m)
-    require_at_least(2, normal_neighbours=normal_neighbours)
+    require_in(2, MAX_NORMAL_NEIGHBOURS, normal_neighbours=normal_neighbours)
     require_iterations(max_iterations)
     require_non_negative(
         tolerance_m=tolerance_m, tolerance_rad=tolerance_rad, thin_below_deg=thin_below_deg

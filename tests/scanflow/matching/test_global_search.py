@@ -144,6 +144,8 @@ def test_bad_input_gets_a_status_or_a_named_error(rooms_map):
         localise_globally(scan, rooms_map, candidates=10**7)
     with pytest.raises(MatchInputError, match="suppress_m"):  # used to raise OverflowError
         localise_globally(scan, rooms_map, suppress_m=math.inf)
+    with pytest.raises(MatchInputError, match="suppress_m must be <= 1000"):  # numba's error
+        localise_globally(scan, rooms_map, suppress_m=1e300)
 
 
 @pytest.mark.parametrize(
