@@ -69,14 +69,33 @@ def check_window_options(
         )
 
 
-SEARCHED = frozenset({MatchStatus.OK, MatchStatus.DEGENERATE, MatchStatus.ILL_CONDITIONED})
+# A pose however well its points constrain it; a search's may also lie on its window's edge.
+CONDITIONED = frozenset({MatchStatus.OK, MatchStatus.DEGENERATE, MatchStatus.ILL_CONDITIONED})
+SEARCHED = CONDITIONED | {MatchStatus.STEP_LIMIT}
 
 
 def found_a_pose(result: MatchResult) -> bool:
     """Whether a search found a best pose, however well its points constrain it (OK, or the
-    conditioning it reports): a refinement may start there, and its own checks judge the end.
-    One that found nothing (no overlap, too few points, an empty map) gives no start."""
+    conditioning it reports), or where it lies (STEP_LIMIT: on its window's edge): a refinement
+    may start there, and its own checks judge the end. One that found nothing (no overlap, too
+    few points, an empty map) gives no start."""
     return result.status in SEARCHED
+
+
+def window_edge(
+    ix: int, iy: int, step: int, half_cells: int, half_steps: int, step_rad: float
+) -> str:
+    """Why the best pose, at cell offset (ix, iy) and angle step `step`, lies on the search
+    window's edge, where the optimum may lie beyond it ("" when inside; a window of every
+    heading has no angular edge): csm said ok 3 deg off at its last angle (a fuzzing audit)."""
+    edges = []
+    if max(abs(ix), abs(iy)) >= half_cells:
+        edges.append(f"cell offset ({ix}, {iy}) of +-{half_cells} (widen linear_m)")
+    if abs(step) >= half_steps and (2 * half_steps + 1) * step_rad < 2 * math.pi:
+        edges.append(f"angle step {step} of +-{half_steps} (widen angular_rad)")
+    if not edges:
+        return ""
+    return f"best pose on the search window's edge: {', '.join(edges)}"
 
 
 def correlative_match(
@@ -144,6 +163,9 @@ def correlative_match(
     status, weak, message = surface_conditioning(
         source, matched, poses[0], surfaces=surfaces_of(target)
     )
+    edge = window_edge(ix, iy, k - half_steps, half_cells, half_steps, step_rad)
+    if status is MatchStatus.OK and edge:  # (along a corridor's axis the edge is expected)
+        status, message = MatchStatus.STEP_LIMIT, edge
     pose = poses[0]
     result = MatchResult(
         pose=pose,

@@ -22,7 +22,7 @@ from scipy.spatial import cKDTree
 from scanflow.geometry import Pose2D
 from scanflow.matching.api import MatchResult, MatchStatus, Target, register_method, target_points
 from scanflow.matching.checks import guess_along, weak_length_m
-from scanflow.matching.csm import found_a_pose, match_csm
+from scanflow.matching.csm import CONDITIONED, found_a_pose, match_csm
 from scanflow.matching.inputs import (
     require_at_least,
     require_in,
@@ -112,7 +112,7 @@ def match_csm_plicp(
         # refinement is rightly degenerate, and a wrong basin's few matched points may look
         # well conditioned); any other refinement that is not ok ranks below it.
         overlaps = [
-            scorer.score(f.pose) if f.ok or (i == 0 and found_a_pose(f)) else -1.0
+            scorer.score(f.pose) if f.ok or (i == 0 and f.status in CONDITIONED) else -1.0
             for i, f in enumerate(fines)
         ]
     best = pick_hypothesis(overlaps, switch_margin) if len(fines) > 1 else 0

@@ -281,3 +281,28 @@ def test_a_search_that_found_a_pose_is_a_start_for_its_callers_whatever_its_cond
                match(scan + 1e6, room_map_points, method="csm")]
     assert [r.status for r in nothing] == [MatchStatus.TOO_FEW_POINTS, MatchStatus.NO_OVERLAP]
     assert not any(found_a_pose(r) for r in nothing)
+
+
+@pytest.mark.parametrize(("guess", "edge"), [
+    (Pose2D(0.0, 0.0, 0.577), "angle step -52 of +-52"),  # 33 deg off, +-30 deg searched
+    (Pose2D(0.0, 1.2, 0.0), "cell offset (0, -20) of +-20"),  # 1.2 m off, +-1 m searched
+])
+def test_a_best_pose_on_the_windows_edge_is_no_ok_answer_but_a_start(
+    room, caster, guess: Pose2D, edge: str
+) -> None:
+    """The optimum may lie beyond the window: csm said ok 3 deg off at its last angle, or
+    0.2 m off at its last cell (a fuzzing audit). It says STEP_LIMIT and where; its callers
+    still refine from there (csm+plicp reaches the truth), and a full turn has no angle edge."""
+    from scanflow.matching.csm import found_a_pose
+
+    scan = caster(room, Pose2D())
+    edged = match(scan, scan, guess, method="csm")
+    assert edged.status is MatchStatus.STEP_LIMIT and not edged.ok and found_a_pose(edged)
+    assert edge in edged.message
+    refined = match(scan, scan, guess, method="csm+plicp")
+    assert refined.ok and refined.pose.translation_norm() < 0.01
+    assert abs(refined.pose.theta) < math.radians(0.1)
+    inside = match(scan, scan, Pose2D(0.0, 0.3, 0.1), method="csm")
+    assert inside.ok and inside.pose.translation_norm() < 0.06
+    turned = match(scan, scan, Pose2D(0.0, 0.0, 3.0), method="csm", angular_rad=math.pi)
+    assert turned.ok and abs(turned.pose.theta) < math.radians(1.0)
