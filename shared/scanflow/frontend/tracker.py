@@ -73,6 +73,7 @@ ACCEPTED = frozenset({
     FrontendStatus.INITIALISED, FrontendStatus.LOCALISED, FrontendStatus.TRACKED,
     FrontendStatus.RECOVERED,
 })
+MAX_ODOM_M = 1e9  # an odometry pose further out is no odometry: its increments overflow
 
 
 @dataclass(frozen=True, eq=False)
@@ -239,7 +240,14 @@ class Frontend:
             raise ValueError(f"stamp_s must be finite, got {stamp_s!r}")
         points = as_points(points_m, "points_m")
         misses = np.zeros((0, 2)) if no_return_m is None else as_points(no_return_m, "no_return_m")
+        unused = ""
+        if odom_pose is not None and not max(abs(odom_pose.x), abs(odom_pose.y)) <= MAX_ODOM_M:
+            # Its increments would overflow to inf (a fuzzing audit saw ValueError from here).
+            unused, odom_pose = f"odometry pose {odom_pose} beyond +-{MAX_ODOM_M:g} m: unused", None
         prediction = self._predict(stamp_s, odom_pose)
+        if unused:
+            prediction = replace(prediction, message="; ".join(
+                m for m in (unused, prediction.message) if m))
         step = _Step(prediction, points, misses, float(stamp_s), odom_pose, seq, mount,
                      bridged=self._bridged)
         if len(points) < self.settings.min_points:

@@ -255,6 +255,20 @@ def test_odometry_jump_is_ignored(
     assert error(outs[-1].pose, truth[-1])[0] < 0.03
 
 
+def test_an_odometry_pose_far_beyond_any_map_is_unused_not_an_exception(
+    settings: FrontendSettings, scan_at: Scanner
+) -> None:
+    """Poses at 1.5e308 m overflowed the odometry increment to inf, and process raised
+    ValueError (a fuzzing audit); the front end never raises for bad content."""
+    truth = straight_path(START, 0.1, 4)
+    huge = [Pose2D(1.5e308, -1.5e308, 0.1 * i) for i in range(4)]
+    outs = run(Frontend(settings, initial_pose=START_IN_MAP), scan_at, truth, huge)
+    assert all(o.accepted for o in outs)
+    assert all("beyond +-1e+09 m: unused" in o.message for o in outs)
+    assert outs[-1].prediction_source != PredictionSource.ODOMETRY
+    assert error(outs[-1].pose, truth[-1])[0] < 0.03
+
+
 def test_fallback_recovers_from_a_bad_prediction(scan_at: Scanner, stays_put: str) -> None:
     truth = straight_path(START, 0.1, 6)[-1]
     # One odometry step 0.6 m / 12 deg off, within the jump limits: a wrong prior.
