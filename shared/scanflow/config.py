@@ -398,7 +398,9 @@ class FrontendSettings(Section):
         0.1, ge=0.0, description="the searched pose replaces that match only when it scores "
         "this much higher",
     )
-    map_resolution_m: float = Field(0.05, gt=0.0, description="the tracking map's cell size")
+    map_resolution_m: float = Field(
+        0.05, ge=0.001, le=100.0, description="the tracking map's cell size"
+    )
     no_return_clear_m: float = Field(
         5.0, ge=0.0, description="beams with no return clear free space this far (0 = not at all)"
     )

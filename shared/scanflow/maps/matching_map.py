@@ -35,6 +35,10 @@ from scanflow.maps.pyramid import TILE_CELLS, FieldLayer
 
 # Side of the tiles `hit_means_near` reads around a scan's points (0.4 m at 5 cm cells).
 NEAR_TILE_CELLS = 8
+# Pyramid levels and max-pool depths its users reach (gn's 16 levels; csm's capped windows);
+# past them the work grows without end (level 24: 16 s, a stack 13 deep: 7 GiB).
+MAX_LEVEL = 20
+MAX_POOL_DEPTH = 12
 
 
 class MatchingMap:
@@ -125,8 +129,8 @@ class MatchingMap:
         return result
 
     def _layer(self, level: int) -> FieldLayer:
-        if level < 0:
-            raise ValueError(f"level must be >= 0, got {level}")
+        if not 0 <= level <= MAX_LEVEL:
+            raise ValueError(f"level must be in [0, {MAX_LEVEL}], got {level}")
         self._sync()
         layer = self._layers.get(level)
         if layer is None:
@@ -165,8 +169,8 @@ class MatchingMap:
         """(K, 2) world mean hit points of the occupied cells within `radius_m` of the points
         (and some a little farther: whole tiles of NEAR_TILE_CELLS around them): a point-to-line
         matcher's target around a scan, read in proportion to the scan, not to the map."""
-        if not radius_m >= 0.0:
-            raise ValueError(f"radius_m must be >= 0, got {radius_m}")
+        if not 0.0 <= radius_m < math.inf:
+            raise ValueError(f"radius_m must be finite and >= 0, got {radius_m}")
         points = np.asarray(points_world, dtype=np.float64).reshape(-1, 2)
         if len(points) == 0 or self.grid.is_empty:
             return np.zeros((0, 2))
@@ -181,6 +185,8 @@ class MatchingMap:
         """Branch-and-bound max-pooled scores of the level's likelihood field, 2**depth deep:
         equal to `MaxPoolStack.from_values` of `likelihood_field(level)`, re-pooled only where
         the field changed. A read-only view valid until the next update."""
+        if not 0 <= depth <= MAX_POOL_DEPTH:
+            raise ValueError(f"depth must be in [0, {MAX_POOL_DEPTH}], got {depth}")
         layer = self._layer(level)
         field = layer.field()
         pool = self._pools.get((depth, level))

@@ -44,6 +44,7 @@ from scanflow.maps.occupancy_kernels import (
 # map anchored at 1e300 m, as a forged file could say, failed deep inside a compiled kernel).
 MAX_ANCHOR_M = 1e7
 MAX_CELL_INDEX = 2**40
+MIN_RESOLUTION_M, MAX_RESOLUTION_M = 1e-3, 100.0
 
 
 def _logit(p: float) -> float:
@@ -69,8 +70,12 @@ class OccupancyParams:
     max_range_m: float = 100.0
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.resolution_m) and self.resolution_m > 0):
-            raise ValueError(f"resolution_m must be positive, got {self.resolution_m}")
+        # A cell of 1e-6 m asked for TiB at the first insert, one of 1e300 m overflowed a search.
+        if not MIN_RESOLUTION_M <= self.resolution_m <= MAX_RESOLUTION_M:
+            raise ValueError(
+                f"resolution_m must be in [{MIN_RESOLUTION_M:g}, {MAX_RESOLUTION_M:g}] m, got "
+                f"{self.resolution_m}"
+            )
         if not 0.5 < self.p_hit < 1.0:
             raise ValueError(f"p_hit must be in (0.5, 1), got {self.p_hit}")
         if not 0.0 < self.p_miss < 0.5:
@@ -538,7 +543,8 @@ class OccupancyGrid:
         Invalid input raises before the grid changes.
         """
         hits = _as_points("points_world", points_world)
-        origin = _as_points("sensor_origin", np.asarray(sensor_origin, dtype=np.float64)[None, :])
+        origin = np.asarray(sensor_origin, dtype=np.float64).reshape(1, -1)
+        origin = _as_points("sensor_origin", origin)
         misses = (
             np.empty((0, 2))
             if no_return_endpoints is None

@@ -316,8 +316,11 @@ def test_bad_map_server_yaml_names_the_field(tmp_path: Path, text: str, field: s
 
 @pytest.mark.parametrize(
     ("resolution", "origin", "reason"),
-    [("-0.05", "[0, 0, 0]", "resolution_m must be positive"),
-     ("nan", "[0, 0, 0]", "resolution_m must be positive"),
+    [("-0.05", "[0, 0, 0]", r"resolution_m must be in \[0.001, 100\] m"),
+     ("nan", "[0, 0, 0]", r"resolution_m must be in \[0.001, 100\] m"),
+     # 1e300 loaded, then overflowed a search; 1e-6 asked for TiB at the first insert
+     ("1e300", "[0, 0, 0]", r"resolution_m must be in \[0.001, 100\] m"),
+     ("1e-6", "[0, 0, 0]", r"resolution_m must be in \[0.001, 100\] m"),
      ("0.05", "[nan, 0, 0]", "must be finite"), ("0.05", "[0, inf, 0]", "must be finite")],
 )
 def test_a_resolution_or_origin_the_grid_refuses_names_the_file(

@@ -649,3 +649,22 @@ def test_hit_means_near_of_nothing_is_empty():
     assert mm.hit_means_near(np.zeros((0, 2)), 0.2).shape == (0, 2)
     with pytest.raises(ValueError, match="radius_m"):
         mm.hit_means_near(np.zeros((1, 2)), -1.0)
+
+
+def test_levels_depths_and_radii_past_any_use_are_refused_by_name() -> None:
+    """Unbounded, a level 24 field took 16 s (level 40: minutes), a max-pool stack 13 deep
+    asked for 7 GiB, and an infinite radius overflowed (a fuzzing audit); a scalar sensor
+    origin was an IndexError."""
+    grid = OccupancyGrid(OccupancyParams(resolution_m=0.05))
+    grid.insert_scan(room_scan(np.zeros(2)), np.zeros(2))
+    m = MatchingMap(grid)
+    assert m.likelihood_field(20).spec.resolution_m == pytest.approx(0.05 * 2**20)
+    for call, named in (
+        (lambda: m.likelihood_field(21), r"level must be in \[0, 20\]"),
+        (lambda: m.likelihood_field(-1), r"level must be in \[0, 20\]"),
+        (lambda: m.maxpool_stack(13), r"depth must be in \[0, 12\]"),
+        (lambda: m.hit_means_near([[0.0, 0.0]], math.inf), "radius_m must be finite"),
+        (lambda: grid.insert_scan([[1.0, 2.0]], 0), r"sensor_origin must have shape \(N, 2\)"),
+    ):
+        with pytest.raises(ValueError, match=named):
+            call()
