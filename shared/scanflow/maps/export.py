@@ -270,6 +270,14 @@ def _shade_of(image_path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64
             return np.asarray(img.convert("RGB"), dtype=np.float64).mean(axis=2), None
     except Image.DecompressionBombError as exc:  # a size no map has: a corrupt header
         raise ValueError(f"{image_path}: {exc}") from exc
+    except FileNotFoundError:
+        raise
+    except (OSError, SyntaxError, ValueError) as exc:  # cut short, empty, not an image at all
+        if str(exc).startswith(f"{image_path}:"):  # said above
+            raise
+        raise ValueError(
+            f"{image_path}: not a readable image ({type(exc).__name__}: {exc})"
+        ) from exc
 
 
 def load_map_server(yaml_path: Path | str, params: OccupancyParams | None = None) -> OccupancyGrid:

@@ -516,6 +516,19 @@ def test_a_floating_point_image_is_a_value_error_naming_it(tmp_path: Path):
         load_map(tmp_path / "f.yaml")
 
 
+@pytest.mark.parametrize("cut", [0, 11, 30])
+def test_an_image_cut_short_or_empty_is_a_value_error_naming_it(tmp_path: Path, cut: int):
+    """Pillow's OSError or UnidentifiedImageError came out bare (a fuzzing audit)."""
+    Image.fromarray(np.full((40, 50), FREE_PIXEL, np.uint8)).save(tmp_path / "whole.pgm")
+    (tmp_path / "cut.pgm").write_bytes((tmp_path / "whole.pgm").read_bytes()[:cut])
+    (tmp_path / "cut.yaml").write_text("image: cut.pgm\nresolution: 0.05\norigin: [0, 0, 0]\n")
+    with pytest.raises(ValueError, match=r"cut\.pgm: not a readable image"):
+        load_map(tmp_path / "cut.yaml")
+    (tmp_path / "gone.yaml").write_text("image: gone.pgm\nresolution: 0.05\norigin: [0, 0, 0]\n")
+    with pytest.raises(FileNotFoundError):  # a missing file stays what it is
+        load_map(tmp_path / "gone.yaml")
+
+
 @pytest.mark.parametrize(
     ("negate", "inverted"),
     [("0", False), ("false", False), ("FALSE", False), ("no", False), ("off", False),
