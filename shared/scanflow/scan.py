@@ -36,6 +36,7 @@ from scanflow.geometry import IDENTITY, Pose2D
 
 MAX_BEAMS = 100_000
 MAX_MOUNT_M = 100.0  # the sensor's distance from the robot's origin, in x and in y
+MAX_ODOM_M = 1e9  # an odometry position further out overflows its increments to inf
 
 
 class ScanError(ValueError):
@@ -264,6 +265,8 @@ class Odometry:
         object.__setattr__(self, "stamp_s", _finite("stamp_s", self.stamp_s))
         if not isinstance(self.pose, Pose2D):
             raise ScanError(f"pose must be a Pose2D, got {type(self.pose).__name__}")
+        if not max(abs(self.pose.x), abs(self.pose.y)) <= MAX_ODOM_M:
+            raise ScanError(f"pose must lie within +-{MAX_ODOM_M:g} m, got {self.pose}")
         if self.velocity is not None:
             if not isinstance(self.velocity, tuple | list | np.ndarray) or len(self.velocity) != 3:
                 raise ScanError(f"velocity must be 3 numbers (vx, vy, omega), got "

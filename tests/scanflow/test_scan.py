@@ -164,6 +164,9 @@ def test_odometry_validation() -> None:
         Odometry(0.0, Pose2D(), velocity=(1.0, 2.0, math.inf))
     with pytest.raises(ScanError, match="robot_id"):
         Odometry(0.0, Pose2D(), robot_id="")
+    # 1.7e308 m was taken, and deskewing then gave non-finite points (a fuzzing audit).
+    with pytest.raises(ScanError, match=r"pose must lie within \+-1e\+09 m"):
+        Odometry(0.0, Pose2D(0.0, -1.7e308, 0.0))
     with pytest.raises(ScanError, match="velocity must be 3 numbers"):
         Odometry(0.0, Pose2D(), velocity=5)  # type: ignore[arg-type]
     with pytest.raises(ScanError, match=r"velocity\[0\] must be a number"):

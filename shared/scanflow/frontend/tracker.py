@@ -55,6 +55,7 @@ from scanflow.matching.api import MatchInputError, as_points, failed
 from scanflow.matching.checks import guess_position_along, weak_length_m
 from scanflow.matching.csm import found_a_pose
 from scanflow.matching.global_search import localise_globally
+from scanflow.scan import MAX_ODOM_M
 
 
 class FrontendStatus(StrEnum):
@@ -73,7 +74,6 @@ ACCEPTED = frozenset({
     FrontendStatus.INITIALISED, FrontendStatus.LOCALISED, FrontendStatus.TRACKED,
     FrontendStatus.RECOVERED,
 })
-MAX_ODOM_M = 1e9  # an odometry pose further out is no odometry: its increments overflow
 
 
 @dataclass(frozen=True, eq=False)
