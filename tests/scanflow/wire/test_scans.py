@@ -107,6 +107,6 @@ def test_odometry_beyond_max_position_is_malformed(payload: Callable[..., bytes]
     odom = wire.OdometryMessage(Odometry(1.0, Pose2D(), robot_id="r"))
     with pytest.raises(wire.DecodeError, match=r"odom: pose must lie within \+-1e\+09 m"):
         wire.decode_any(payload(odom, pose=[1e308, 0.0, 0.0]))  # (Odometry's own bound)
-    with pytest.raises(wire.DecodeError, match=r"odom\.pose \(2e\+06, 0\.0\) m is beyond"):
+    with pytest.raises(wire.DecodeError, match=r"odom\.pose \(2000000\.0, 0\.0\) m is beyond"):
         wire.decode_any(payload(odom, pose=[2e6, 0.0, 0.0]))
     wire.OdometryMessage(Odometry(1.0, Pose2D(0.0, -wire.MAX_POSITION_M, 0.0), robot_id="r"))
