@@ -198,7 +198,7 @@ def library_matcher(query) -> bytes:
     [
         ({"max_step_m": 0}, "max_step_m must be > 0"),
         ({"max_iterations": -1}, "max_iterations must be >= 1"),
-        ({"normal_neighbours": 1}, "normal_neighbours must be >= 2"),
+        ({"normal_neighbours": 1}, "normal_neighbours must be in [2, 64]"),
     ],
 )
 def test_an_option_out_of_its_range_is_a_422_naming_it(client, peer, auth, options, named):
