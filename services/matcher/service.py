@@ -158,7 +158,7 @@ class MatcherService:
             self.shell.counters.add("scans_awaiting_resume", dropped)
             return
         if waiting is not None:  # a new run: the old one's scans cannot be tracked any more
-            self._give_up(robot_id, waiting)
+            self._give_up(robot_id, waiting, restarted=True)
             self.awaiting.pop(robot_id, None)  # its wait for a map server starts again too
         frontend = self.frontends.get(robot_id)
         if frontend is None and message.seq > 0:  # met mid-stream: ask for the map server's map
@@ -327,7 +327,9 @@ class MatcherService:
             target=self._resume_in_inbox, args=(robot_id, ask), name=f"resume-{robot_id}",
             daemon=True,
         ).start()  # a thread that cannot start: the scan fails (counted), the next asks again
-        self.resuming[robot_id] = Waiting(ask, first)  # the answer comes on this thread
+        with self.lock:  # the answer comes on this thread; a pose sent before waits in line
+            told = self.initial_poses.pop(robot_id, None)
+            self.resuming[robot_id] = Waiting(ask, first, placed=told)
 
     def _resume_in_inbox(self, robot_id: str, ask: int) -> None:
         """(Its own thread.) The map server's answer to query `ask` for `robot_id`, into the
@@ -366,11 +368,15 @@ class MatcherService:
         except Exception:  # counted as the answer's error; the next scan asks again
             self._give_up(robot_id, waiting)
             raise
-        while (scan := self._next_waiting(robot_id, waiting, frontend)) is not None:
-            try:
-                self._track(robot_id, frontend, scan)
-            except Exception:  # one scan, as if it came alone: the others still go through
-                self.shell.failed("scan")
+        try:
+            while (scan := self._next_waiting(robot_id, waiting, frontend)) is not None:
+                try:
+                    self._track(robot_id, frontend, scan)
+                except Exception:  # one scan, as if it came alone: the others still go on
+                    self.shell.failed("scan")
+        finally:  # (the wait ends whatever failed: the robot's later scans are tracked)
+            if self.resuming.get(robot_id) is waiting:
+                self._give_up(robot_id, waiting)
 
     def _next_waiting(
         self, robot_id: str, waiting: Waiting, frontend: Frontend
@@ -386,15 +392,16 @@ class MatcherService:
             del self.resuming[robot_id]
         return None
 
-    def _give_up(self, robot_id: str, waiting: Waiting) -> None:
+    def _give_up(self, robot_id: str, waiting: Waiting, restarted: bool = False) -> None:
         """Drop the robot's wait for the map server: its scans go (counted); the last
-        operator's pose sent meanwhile, or else the one sent before the wait, waits for the
-        robot's next start (anchored to the first scan after it that went, if any)."""
+        operator's pose in it waits for the robot's next start, anchored to the first scan
+        after it that went (the odometry carries it on from there), unless the stream
+        `restarted` (its odometry may have restarted too: the pose is taken as it stands)."""
         with self.lock:
             del self.resuming[robot_id]
-            told = waiting.last_placed(self.initial_poses.get(robot_id))
+            told = waiting.last_placed()
             if told is not None:
-                self.initial_poses[robot_id] = told
+                self.initial_poses[robot_id] = Placed(told.pose) if restarted else told
         self.shell.counters.add("scans_awaiting_resume", waiting.scans)
 
     def _seeded(

@@ -37,11 +37,15 @@ class Waiting:
     that went)."""
 
     def __init__(
-        self, ask: int, first: DeskewedScanMessage, capacity: int = MAX_SCANS_WAITING
+        self, ask: int, first: DeskewedScanMessage, capacity: int = MAX_SCANS_WAITING,
+        placed: Placed | None = None,
     ) -> None:
+        """`placed`: an operator's pose sent before `first` (for the robot's first scan)."""
         self.ask = ask
         self.capacity = capacity
         self._items: deque[DeskewedScanMessage | Placed] = deque([first])
+        if placed is not None:
+            self._items.appendleft(placed)
         self.scans = 1  # how many of the items are scans
 
     def hold(self, scan: DeskewedScanMessage) -> int:
@@ -80,12 +84,12 @@ class Waiting:
             self.scans -= 1
         return item
 
-    def last_placed(self, before: Placed | None = None) -> Placed | None:
-        """The last operator's pose still waiting, else `before` (one sent before the wait
-        began), as it stands when every scan waiting is lost (None: none at all)."""
+    def last_placed(self) -> Placed | None:
+        """The last operator's pose still waiting, as it stands when every scan waiting is
+        lost (None: none sent)."""
         after: DeskewedScanMessage | None = None  # the first scan after it
         for item in reversed(self._items):
             if isinstance(item, Placed):
                 return item if after is None else item.lost(after)
             after = item
-        return before if before is None or after is None else before.lost(after)
+        return None

@@ -378,7 +378,9 @@ class FrontendSettings(Section):
     fallback_method: Literal[MatchMethod, ""] = Field(
         "csm", description="global-window search that seeds `method` when it fails; '' = none"
     )
-    fallback_linear_m: float = Field(1.0, gt=0.0, description="fallback search half-width")
+    fallback_linear_m: float = Field(
+        1.0, gt=0.0, description="fallback search half-width (widened, see fallback_max_linear_m)"
+    )
     fallback_angular_deg: float = Field(30.0, gt=0.0, description="fallback search half-angle")
     fallback_max_linear_m: float = Field(
         5.0, gt=0.0, le=50.0, description="the fallback search and the correction it may make "
@@ -406,7 +408,8 @@ class FrontendSettings(Section):
     )
     min_points: int = Field(30, ge=3, description="fewer valid points: scan rejected")
     max_correction_m: float = Field(
-        1.0, gt=0.0, description="largest accepted |match - prediction| translation"
+        1.0, gt=0.0, description="largest accepted |match - prediction| translation (a "
+        "fallback search's match: as far as its window reached)"
     )
     max_correction_deg: float = Field(30.0, gt=0.0, description="same, heading")
     min_score: float = Field(0.2, description="lowest accepted match score")

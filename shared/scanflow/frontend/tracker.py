@@ -14,11 +14,14 @@ Per scan:
    (a jump beyond the limits is ignored), else constant velocity, else the last pose;
 2. match the points against the map from the prediction with `settings.method`; if the checks of
    `acceptance` fail and a fallback is set, a correlative search (`settings.fallback_method`)
-   over +-fallback_linear_m / +-fallback_angular_deg seeds the method again (and its own
+   over +-fallback_linear_m / +-fallback_angular_deg, widened to 3 std of the prediction's
+   uncertainty up to fallback_max_linear_m / _angular_deg (its correction allowed as far),
+   seeds the method again (and its own
    optimum is used, at grid resolution, if that refinement fails the checks too; a degenerate
    search's optimum at the prediction's position along the corridor, `corridor_start`). A match that
-   passes but scores below `recheck_ratio` x the median of the recent ones is searched the same
-   way, and the searched match replaces it when it scores `recheck_margin` higher (`recheck`);
+   passes but scores below `recheck_ratio` x the median of the recent ones, or is the first of
+   a run carried on across a gap (`carry_on`: searched over the widest window), is searched the
+   same way, and the searched match replaces it when it scores `recheck_margin` higher;
 3. accepted: the pose is the match, the map gets the scan when the motion filter allows it;
    rejected (or too few points): the pose is the prediction with its covariance grown by the
    motion since the last accepted match, the map is untouched, the status and message say why.
@@ -322,16 +325,15 @@ class Frontend:
         """An operator's word for where the robot is (ROS's /initialpose): the next scan is
         matched from `pose` (before the first scan: the start). With `stamp_s` and `odom_pose`,
         where the robot was at that stamp and the odometry pose there (the scans since were
-        lost): the next scan is matched from `pose` moved by the odometry since, and checked as
-        after `carry_on`. No whole-map search is pending any more."""
+        lost): the next scan is matched from `pose` moved by the odometry since. No whole-map
+        search is pending any more."""
         if not all(math.isfinite(v) for v in (pose.x, pose.y, pose.theta)):
             raise ValueError(f"pose must be finite, got {pose}")
         self._lost = False
         self._rejections = 0
-        self._bridged = False
+        self._bridged = False  # the operator's word: the checks judge it as a prediction
         if stamp_s is not None and odom_pose is not None:
             self._predictor.restart(stamp_s, pose, odom_pose)
-            self._bridged = True
         elif self._predictor.last_pose is None:
             self.initial_pose = pose
         else:
@@ -404,11 +406,18 @@ class Frontend:
         if not s.fallback_method:
             raise ValueError("relocalise needs settings.fallback_method (it is '')")
         points = as_points(points_m, "points_m")
-        linear_m, angular_rad = self._search_window(uncertainty)
-        coarse = match(
-            points, self.map, guess, method=s.fallback_method,
-            linear_m=linear_m, angular_rad=angular_rad, resolution_m=s.map_resolution_m,
-        )
+        # Widened, then (past the search's caps: many points reaching far) the settings' own.
+        windows = dict.fromkeys((self._search_window(uncertainty), self._search_window(None)))
+        for linear_m, angular_rad in windows:
+            try:
+                coarse = match(
+                    points, self.map, guess, method=s.fallback_method,
+                    linear_m=linear_m, angular_rad=angular_rad, resolution_m=s.map_resolution_m,
+                )
+                break
+            except MatchInputError:
+                if (linear_m, angular_rad) == list(windows)[-1]:
+                    raise
         if not found_a_pose(coarse):  # a corridor's search still gives gn its start
             return coarse, FrontendStatus.REJECTED, f"fallback: {coarse.message}"
         coarse = corridor_start(coarse, guess, points)

@@ -83,15 +83,16 @@ def found_a_pose(result: MatchResult) -> bool:
 
 
 def window_edge(
-    ix: int, iy: int, step: int, half_cells: int, half_steps: int, step_rad: float
+    ix: int, iy: int, step: int, half_cells: int, half_steps: int, angular_rad: float
 ) -> str:
     """Why the best pose, at cell offset (ix, iy) and angle step `step`, lies on the search
-    window's edge, where the optimum may lie beyond it ("" when inside; a window of every
-    heading has no angular edge): csm said ok 3 deg off at its last angle (a fuzzing audit)."""
+    window's edge, where the optimum may lie beyond it ("" when inside; a window of no width
+    in a dimension searches none there, and one of every heading has no angular edge): csm
+    said ok 3 deg off at its last angle (a fuzzing audit)."""
     edges = []
-    if max(abs(ix), abs(iy)) >= half_cells:
+    if half_cells > 0 and max(abs(ix), abs(iy)) >= half_cells:
         edges.append(f"cell offset ({ix}, {iy}) of +-{half_cells} (widen linear_m)")
-    if abs(step) >= half_steps and (2 * half_steps + 1) * step_rad < 2 * math.pi:
+    if 0 < half_steps <= abs(step) and angular_rad < math.pi:
         edges.append(f"angle step {step} of +-{half_steps} (widen angular_rad)")
     if not edges:
         return ""
@@ -163,7 +164,7 @@ def correlative_match(
     status, weak, message = surface_conditioning(
         source, matched, poses[0], surfaces=surfaces_of(target)
     )
-    edge = window_edge(ix, iy, k - half_steps, half_cells, half_steps, step_rad)
+    edge = window_edge(ix, iy, k - half_steps, half_cells, half_steps, angular_rad)
     if status is MatchStatus.OK and edge:  # (along a corridor's axis the edge is expected)
         status, message = MatchStatus.STEP_LIMIT, edge
     pose = poses[0]

@@ -306,3 +306,6 @@ def test_a_best_pose_on_the_windows_edge_is_no_ok_answer_but_a_start(
     assert inside.ok and inside.pose.translation_norm() < 0.06
     turned = match(scan, scan, Pose2D(0.0, 0.0, 3.0), method="csm", angular_rad=math.pi)
     assert turned.ok and abs(turned.pose.theta) < math.radians(1.0)
+    # A window of no width in a dimension has no edge there (translation or rotation only).
+    for narrow in ({"angular_rad": 0.001}, {"linear_m": 0.01}):
+        assert match(scan, scan, Pose2D(0.02, 0.0, 0.0), method="csm", **narrow).ok, narrow
