@@ -118,6 +118,7 @@ class MatcherService:
         # The worker adds and removes them; an operator's pose is added under the lock.
         self.resuming: dict[str, Waiting] = {}
         self._asks = itertools.count(1)  # resume queries' numbers: an answer names its own
+        self._entering: str | None = None  # a new robot admitted by the scan in hand
         self.match_queryables: dict[str, zenoh.Queryable] = {}  # per robot: `<robot>/match`
         self.lock = threading.Lock()  # the worker updates maps that match requests read
         prefix = self.shell.prefix
@@ -146,8 +147,20 @@ class MatcherService:
         if not self.owns(robot_id):
             self.shell.counters.add(f"other_shard.{kind}")
             return
-        if not self.shell.admits(robot_id, _Held(self)):
-            return
+        held = _Held(self)
+        if robot_id not in held:  # a new robot: its place is taken under the lock, as an
+            with self.lock:  # operator's pose for another takes one, and held till it is in
+                if not self.shell.admits(robot_id, held):
+                    return
+                self._entering = robot_id
+        try:
+            self._scan(kind, message)
+        finally:
+            self._entering = None
+
+    def _scan(self, kind: str, message: DeskewedScanMessage) -> None:
+        """`handle`'s work for a scan of an admitted robot."""
+        robot_id = message.robot_id
         stream = f"{robot_id}/{kind}"
         restarted = self.shell.seqs.is_restart(stream, message.seq)
         self.shell.seqs.observe(stream, message.seq)
@@ -649,8 +662,8 @@ class _NoMapServerYetError(Exception):
 
 class _Held:
     """The robots a matcher holds a place for: those it tracks, those whose operator's pose
-    waits for their first scan, and those waiting for the map server's map or asking for it
-    (a robot can be in several at once: counted once)."""
+    waits for their first scan, those waiting for the map server's map or asking for it, and
+    the one its scan in hand admitted (a robot can be in several at once: counted once)."""
 
     def __init__(self, service: MatcherService) -> None:
         self._service = service
@@ -658,11 +671,13 @@ class _Held:
     def __contains__(self, robot_id: object) -> bool:
         s = self._service
         return robot_id in s.frontends or robot_id in s.initial_poses or robot_id in s.awaiting \
-            or robot_id in s.resuming
+            or robot_id in s.resuming or robot_id == s._entering
 
     def __len__(self) -> int:
         s = self._service
-        return len(set(s.frontends) | set(s.initial_poses) | set(s.awaiting) | set(s.resuming))
+        entering = set() if s._entering is None else {s._entering}
+        return len(set(s.frontends) | set(s.initial_poses) | set(s.awaiting) | set(s.resuming)
+                   | entering)
 
 
 def main() -> None:

@@ -152,6 +152,37 @@ def test_operators_poses_for_robots_not_seen_yet_take_places_among_max_robots() 
         service.shell.close(flush_s=0.0)
 
 
+def test_a_new_robots_scan_in_hand_holds_its_place_against_an_operators_pose() -> None:
+    """The worker admits a new robot's scan and registers it a moment later; an operator's pose
+    for another robot, on a query thread, could take the last place meanwhile and both were
+    kept, one past max_robots (a review). The scan in hand holds its place under the lock."""
+    service = MatcherService(
+        MatcherSettings(max_robots=2), FrontendSettings(), ZenohSettings(mode="peer", connect=[]),
+        BackendSettings(),
+    )
+    try:
+        service.place("a", Pose2D())
+        placed_meanwhile: list[BaseException] = []
+        install = service._install
+
+        def install_after_a_pose(robot_id: str, seeded: object) -> Frontend:
+            try:  # an operator's pose arrives between the admission and the registration
+                service.place("b", Pose2D())
+            except RobotLimitError as exc:
+                placed_meanwhile.append(exc)
+            return install(robot_id, seeded)
+
+        service._install = install_after_a_pose
+        arc = np.linspace(0, 6, 60)
+        ring = np.column_stack((3 * np.cos(arc), 3 * np.sin(arc)))
+        service.handle("scan", DeskewedScanMessage("x", 0, 0.0, ring, "odometry", False, 60, 0))
+        assert len(placed_meanwhile) == 1 and "x" in service.frontends
+        assert sorted({*service.frontends, *service.initial_poses}) == ["a", "x"]
+        assert service._entering is None
+    finally:
+        service.shell.close(flush_s=0.0)
+
+
 def test_a_robot_resumes_from_the_map_servers_one_answer_or_says_why_not(
     tmp_path, caplog
 ) -> None:
