@@ -349,18 +349,16 @@ class MatcherService:
         worker's inbox: always one, so the robot's scans never wait for nothing."""
         try:
             payloads, errors = self._resume_query(robot_id)
-        except Exception as exc:  # the query's replies unreadable, say
+        except Exception as exc:  # no side session, a refused query, unreadable replies
             payloads, errors = [], [f"the query failed: {type(exc).__name__}: {exc}"]
         self.shell.inbox.put("resume", _ResumeAnswer(robot_id, ask, payloads, errors))
 
     def _resume_query(self, robot_id: str) -> tuple[list[bytes], list[str]]:
         """The map server's answers to the resume query for `robot_id` (up to
-        resume_timeout_s) and its errors: one failing to be asked is an error too."""
+        resume_timeout_s) and its errors (a query that cannot be asked raises:
+        `_resume_in_inbox` makes that an error too)."""
         selector = keys.map_key(robot_id, "resume", self.shell.prefix)
-        try:
-            return self.shell.query(selector, self.settings.resume_timeout_s)
-        except (zenoh.ZError, RuntimeError) as exc:  # no side session, a refused query
-            return [], [f"the query failed: {exc}"]
+        return self.shell.query(selector, self.settings.resume_timeout_s)
 
     def _on_resume_answer(self, answer: _ResumeAnswer) -> None:
         """The map server answered (or not) for a robot met mid-stream: its front end starts

@@ -50,23 +50,28 @@ class Waiting:
 
     def hold(self, scan: DeskewedScanMessage) -> int:
         """Keep `scan` after the others; the number of older scans dropped to make room (0, 1)."""
+        # No two poses are ever next to each other (`place` replaces, this keeps one).
         dropped = 0
         if self.scans >= self.capacity:
-            placed = None  # of the poses before the next scan that stays, the last
-            while isinstance(item := self._items.popleft(), Placed):
-                placed = item
-            if placed is not None:
-                placed = placed.lost(item)
-            self.scans -= 1
-            dropped = 1
-            while self._items and isinstance(head := self._items[0], Placed):
-                placed = head
-                self._items.popleft()
+            placed = self._take_placed()
+            gone = self._items.popleft()  # the oldest scan
+            assert isinstance(gone, DeskewedScanMessage)
+            placed = placed.lost(gone) if placed is not None else None
+            placed = self._take_placed() or placed  # one sent after it is newer
             if placed is not None:
                 self._items.appendleft(placed)
+            self.scans -= 1
+            dropped = 1
         self._items.append(scan)
         self.scans += 1
         return dropped
+
+    def _take_placed(self) -> Placed | None:
+        """The pose at the head, taken out, if the head is one."""
+        if self._items and isinstance(head := self._items[0], Placed):
+            self._items.popleft()
+            return head
+        return None
 
     def place(self, pose: Pose2D) -> None:
         """An operator's pose: the robot is there at the next scan to come (it replaces one

@@ -390,7 +390,6 @@ class FrontendSettings(Section):
     fallback_max_angular_deg: float = Field(
         180.0, gt=0.0, le=180.0, description="same, half-angle"
     )
-
     recheck_ratio: float = Field(
         0.8, ge=0.0, le=1.0,
         description="a passing match scoring below this x the median of the last 20 accepted "

@@ -406,18 +406,15 @@ class Frontend:
         if not s.fallback_method:
             raise ValueError("relocalise needs settings.fallback_method (it is '')")
         points = as_points(points_m, "points_m")
-        # Widened, then (past the search's caps: many points reaching far) the settings' own.
-        windows = dict.fromkeys((self._search_window(uncertainty), self._search_window(None)))
-        for linear_m, angular_rad in windows:
-            try:
-                coarse = match(
-                    points, self.map, guess, method=s.fallback_method,
-                    linear_m=linear_m, angular_rad=angular_rad, resolution_m=s.map_resolution_m,
-                )
-                break
-            except MatchInputError:
-                if (linear_m, angular_rad) == list(windows)[-1]:
-                    raise
+        own = self._search_window(None)
+        linear_m, angular_rad = self._search_window(uncertainty)
+        try:
+            coarse = self._search(points, guess, linear_m, angular_rad)
+        except MatchInputError:  # widened past the search's caps (many points reaching far)
+            if (linear_m, angular_rad) == own:
+                raise
+            linear_m, angular_rad = own
+            coarse = self._search(points, guess, linear_m, angular_rad)
         if not found_a_pose(coarse):  # a corridor's search still gives gn its start
             return coarse, FrontendStatus.REJECTED, f"fallback: {coarse.message}"
         coarse = corridor_start(coarse, guess, points)
@@ -427,7 +424,7 @@ class Frontend:
             max_correction_rad=max(self._limits.max_correction_rad, angular_rad),
         )
         widened = ""
-        if (linear_m, angular_rad) != (s.fallback_linear_m, math.radians(s.fallback_angular_deg)):
+        if (linear_m, angular_rad) != own:
             widened = f" over +-{linear_m:.2f} m, +-{math.degrees(angular_rad):.0f} deg"
         if not rejection_reason(refined, guess, limits):
             return refined, FrontendStatus.RECOVERED, f"recovered by {s.fallback_method}{widened}"
@@ -438,6 +435,14 @@ class Frontend:
         return coarse, FrontendStatus.RECOVERED, (
             f"recovered by {s.fallback_method}{widened} alone ({s.method} refinement failed)"
         )
+
+    def _search(
+        self, points: NDArray[np.float64], guess: Pose2D, linear_m: float, angular_rad: float
+    ) -> MatchResult:
+        """The fallback search over +-linear_m / +-angular_rad around `guess`."""
+        s = self.settings
+        return match(points, self.map, guess, method=s.fallback_method, linear_m=linear_m,
+                     angular_rad=angular_rad, resolution_m=s.map_resolution_m)
 
     def _search_window(self, uncertainty: ArrayLike | None) -> tuple[float, float]:
         """The fallback search's half-width (m) and half-angle (rad): the settings', widened

@@ -115,15 +115,22 @@ def moved_points(points: NDArray[np.float64], pose: NDArray[np.float64]) -> NDAr
     return out
 
 
+def matched_mask(
+    field: LikelihoodField, points: NDArray[np.float64], pose: NDArray[np.float64]
+) -> NDArray[np.bool_]:
+    """Which points, moved by `pose`, lie on the field (value at least MATCHED_VALUE)."""
+    sampled = np.zeros(len(points))
+    _run_kernel(field, points, pose, False, sampled=sampled)
+    return sampled >= MATCHED_VALUE
+
+
 def matched_length_m(
     field: LikelihoodField, points: NDArray[np.float64], pose: NDArray[np.float64]
 ) -> float:
     """The scale for rotations: the spread of the points on the field at `pose` (all of them
     when none is). Far points off it carry nothing: one return 3 km away made every rotation
     look unconstrained over all the points, so gn and lm never turned, and said ok."""
-    sampled = np.zeros(len(points))
-    _run_kernel(field, points, pose, False, sampled=sampled)
-    return characteristic_length_m(points, sampled >= MATCHED_VALUE)
+    return characteristic_length_m(points, matched_mask(field, points, pose))
 
 
 @njit(cache=True)
@@ -469,8 +476,8 @@ def assess_field_match(
     source's (`linearise`), so that H holds only what the surfaces carry.
     """
     # Rotation scaled by the spread of the points on the field: far ones off it carry nothing.
-    matched = field.sample(moved_points(source, pose))[0] >= MATCHED_VALUE
-    length_m = characteristic_length_m(source, matched)  # as matched_length_m; `matched` reused
+    matched = matched_mask(field, source, pose)
+    length_m = characteristic_length_m(source, matched)
     lin = linearise(field, source, pose, normals)
     cond = analyse_hessian(lin.hessian, length_m)
     at = Pose2D.from_array(pose)
